@@ -1,0 +1,13 @@
+"""skfem-mpm: the Material Point Method with B-spline bases, as a scikit-fem plugin."""
+__version__ = "0.1.0"
+
+from .spline import (ElementLineBSpline, ElementQuadBSpline, MappingRectangular,
+                     SplineGrid)
+
+__all__ = [
+    "__version__",
+    "ElementLineBSpline",
+    "ElementQuadBSpline",
+    "MappingRectangular",
+    "SplineGrid",
+]

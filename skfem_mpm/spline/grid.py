@@ -1,0 +1,394 @@
+"""``SplineGrid``: a tensor-product B-spline space on a scikit-fem mesh.
+
+The grid owns the mesh (MeshLine1 or MeshQuad1 with cells numbered
+e = e_x + n_x e_y and vertices counter-clockwise), the element (Bezier
+extraction, see :mod:`skfem_mpm.spline.element`), the spline dof numbering
+(dof a + n_bx b for the function N^x_a N^y_b, n_bx = n_x + p), and fast point
+location on its breakpoints. Vector fields use the interleaved numbering
+dim * s + c of scikit-fem's ``ElementVector``.
+"""
+import numpy as np
+from skfem import CellBasis, FacetBasis, MeshLine1, MeshQuad1
+from skfem.element import ElementVector
+
+from ..validation import as_points, check_positive_int
+from .bernstein import bernstein, bernstein_derivative
+from .dofs import SplineDofs
+from .element import ElementLineBSpline, ElementQuadBSpline
+from .knots import check_breakpoints, check_degree, open_knot_vector
+from .mapping import MappingRectangular
+
+__all__ = ["SplineGrid"]
+
+SIDES = {1: ("left", "right"), 2: ("left", "right", "bottom", "top")}
+
+
+def _is_per_axis(breakpoints):
+    if isinstance(breakpoints, np.ndarray):
+        return breakpoints.dtype == object
+    try:
+        return len(breakpoints) > 0 and np.ndim(breakpoints[0]) == 1
+    except TypeError:
+        return False
+
+
+class SplineGrid:
+    """B-spline space of degree ``degree`` on a line or a rectangle.
+
+    Parameters
+    ----------
+    breakpoints
+        The cell boundaries: one strictly increasing array for a line, or a
+        pair of arrays (x, y) for a rectangle. Non-uniform spacing is allowed.
+    degree
+        1, 2 or 3. The knot vectors are open (clamped), so the space
+        interpolates at the boundary, and the functions are C^(degree-1).
+
+    Use :meth:`line` and :meth:`rectangle` for uniform grids.
+    """
+
+    def __init__(self, breakpoints, degree):
+        self.degree = check_degree(degree)
+        if _is_per_axis(breakpoints):
+            axes = tuple(breakpoints)
+        else:
+            axes = (breakpoints,)
+        if len(axes) not in (1, 2):
+            raise ValueError(f"a SplineGrid has 1 or 2 axes, got {len(axes)}")
+        self.breakpoints = tuple(
+            check_breakpoints(b, name=f"breakpoints[{i}]" if len(axes) > 1 else "breakpoints")
+            for i, b in enumerate(axes)
+        )
+        p = self.degree
+        self.dim = len(self.breakpoints)
+        self.cells_per_axis = tuple(b.size - 1 for b in self.breakpoints)
+        self.basis_per_axis = tuple(n + p for n in self.cells_per_axis)
+        self.ncells = int(np.prod(self.cells_per_axis))
+        self.ndofs = int(np.prod(self.basis_per_axis))
+        self.knot_vectors = tuple(open_knot_vector(b, p) for b in self.breakpoints)
+        self.cell_sizes = tuple(np.diff(b) for b in self.breakpoints)
+        self.h = tuple(float(s.min()) for s in self.cell_sizes)
+        self.bounds = tuple((float(b[0]), float(b[-1])) for b in self.breakpoints)
+        self._uniform = tuple(
+            bool(np.allclose(s, s[0], rtol=1e-12, atol=0.0)) for s in self.cell_sizes
+        )
+        self._build_mesh()
+        self.element = (ElementLineBSpline(p, self.breakpoints[0]) if self.dim == 1
+                        else ElementQuadBSpline(p, self.breakpoints))
+        self.extraction = self.element.extraction
+        self.dofs = SplineDofs(self.mesh, self.element, self._element_dofs(), self.ndofs)
+        self.vector_element = ElementVector(self.element, self.dim)
+        self.vector_dofs = SplineDofs(
+            self.mesh, self.vector_element, self._vector_element_dofs(), self.dim * self.ndofs
+        )
+
+    # ------------------------------------------------------------------ build
+    @classmethod
+    def line(cls, a, b, cells, degree):
+        """Uniform grid of ``cells`` cells on [a, b]."""
+        cells = check_positive_int("cells", cells)
+        a, b = float(a), float(b)
+        if not (np.isfinite(a) and np.isfinite(b) and b > a):
+            raise ValueError(f"the interval must satisfy a < b (finite), got a={a}, b={b}")
+        return cls(np.linspace(a, b, cells + 1), degree)
+
+    @classmethod
+    def rectangle(cls, xlim, ylim, cells, degree):
+        """Uniform grid on [x0, x1] x [y0, y1] with ``cells = (nx, ny)``
+        (an int gives the same count on both axes)."""
+        if isinstance(cells, (int, np.integer)) and not isinstance(cells, bool):
+            cells = (cells, cells)
+        if len(cells) != 2:
+            raise ValueError(f"cells must be an int or a pair (nx, ny), got {cells!r}")
+        axes = []
+        for name, lim, n in (("xlim", xlim, cells[0]), ("ylim", ylim, cells[1])):
+            n = check_positive_int("cells", n)
+            lo, hi = float(lim[0]), float(lim[1])
+            if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
+                raise ValueError(f"{name} must satisfy lo < hi (finite), got {tuple(lim)}")
+            axes.append(np.linspace(lo, hi, n + 1))
+        return cls(tuple(axes), degree)
+
+    def _build_mesh(self):
+        if self.dim == 1:
+            u = self.breakpoints[0]
+            n = u.size - 1
+            t = np.vstack((np.arange(n), np.arange(1, n + 1)))
+            self.mesh = MeshLine1(u[None, :].copy(), t)
+            self.mapping = self.mesh._mapping()
+            return
+        bx, by = self.breakpoints
+        nx, ny = self.cells_per_axis
+        X, Y = np.meshgrid(bx, by, indexing="xy")
+        points = np.vstack((X.ravel(), Y.ravel()))
+        ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
+        v0 = (ix + (nx + 1) * iy).ravel()
+        t = np.vstack((v0, v0 + 1, v0 + nx + 2, v0 + nx + 1))
+        self.mesh = MeshQuad1(points, t)
+        self.mapping = MappingRectangular(self.mesh)
+
+    def _element_dofs(self):
+        p = self.degree
+        if self.dim == 1:
+            cells = np.arange(self.ncells)
+            return cells[None, :] + np.arange(p + 1)[:, None]
+        nx = self.cells_per_axis[0]
+        nbx = self.basis_per_axis[0]
+        cells = np.arange(self.ncells)
+        ex, ey = cells % nx, cells // nx
+        a = np.tile(np.arange(p + 1), p + 1)
+        b = np.repeat(np.arange(p + 1), p + 1)
+        return (ex[None, :] + a[:, None]) + nbx * (ey[None, :] + b[:, None])
+
+    def _vector_element_dofs(self):
+        scalar = self._element_dofs()
+        d = self.dim
+        out = np.empty((scalar.shape[0] * d, scalar.shape[1]), dtype=np.int64)
+        for c in range(d):
+            out[c::d] = d * scalar + c
+        return out
+
+    # ----------------------------------------------------------- scikit-fem
+    def basis(self, intorder=None, vector=False):
+        """A scikit-fem ``CellBasis`` with Gauss quadrature on this space.
+
+        ``intorder`` is the polynomial degree integrated exactly (per axis in
+        2D); the default 2p integrates the mass matrix exactly. ``vector=True``
+        gives the vector-valued space (``ElementVector``) for elasticity.
+        """
+        if intorder is None:
+            intorder = 2 * self.degree
+        elem, dofs = self._element_and_dofs(vector)
+        basis = CellBasis(self.mesh, elem, mapping=self.mapping, intorder=intorder,
+                          dofs=dofs, disable_doflocs=True)
+        basis.doflocs = self.doflocs(vector)
+        return basis
+
+    def facet_basis(self, side, intorder=None, vector=False):
+        """A scikit-fem ``FacetBasis`` on one side of the grid (for tractions
+        and boundary integrals with Gauss quadrature)."""
+        facets = self._side_facets(side)
+        if intorder is None:
+            intorder = 2 * self.degree
+        elem, dofs = self._element_and_dofs(vector)
+        return FacetBasis(self.mesh, elem, mapping=self.mapping, intorder=intorder,
+                          facets=facets, dofs=dofs, disable_doflocs=True)
+
+    def _element_and_dofs(self, vector):
+        if vector:
+            return self.vector_element, self.vector_dofs
+        return self.element, self.dofs
+
+    def doflocs(self, vector=False):
+        """Greville abscissae of the basis functions, shape (dim, ndofs)
+        (repeated per component, interleaved, when ``vector``)."""
+        p = self.degree
+        axes = []
+        for tau in self.knot_vectors:
+            nb = tau.size - p - 1
+            idx = np.arange(nb)[:, None] + np.arange(1, p + 1)[None, :]
+            axes.append(tau[idx].mean(axis=1))
+        if self.dim == 1:
+            locs = axes[0][None, :]
+        else:
+            gx, gy = np.meshgrid(axes[0], axes[1], indexing="xy")
+            locs = np.vstack((gx.ravel(), gy.ravel()))
+        if vector:
+            locs = np.repeat(locs, self.dim, axis=1)
+        return locs
+
+    def _check_side(self, side):
+        valid = SIDES[self.dim]
+        if side not in valid:
+            raise ValueError(
+                f"side must be one of {', '.join(map(repr, valid))} for a "
+                f"{self.dim}D grid, got {side!r}"
+            )
+        return side
+
+    def _side_facets(self, side):
+        self._check_side(side)
+        axis = 0 if side in ("left", "right") else 1
+        value = self.bounds[axis][0 if side in ("left", "bottom") else 1]
+        mid = self.mesh.p[:, self.mesh.facets].mean(axis=1)
+        boundary = self.mesh.boundary_facets()
+        on_side = np.isclose(mid[axis, boundary], value, rtol=0.0,
+                             atol=1e-12 * max(1.0, abs(value)))
+        return boundary[on_side]
+
+    def boundary_dofs(self, side, component=None):
+        """Dofs of the basis functions that are non-zero on a side.
+
+        ``side`` is ``'left'``/``'right'`` (1D) or ``'left'``, ``'right'``,
+        ``'bottom'``, ``'top'`` (2D). With ``component=None`` the indices are
+        those of the scalar space; with ``component=c`` (0 <= c < dim) they
+        are the dofs of component c in the vector space (dim * s + c).
+        With open knot vectors exactly one layer of functions touches a side,
+        and setting those dofs fixes the field on that side.
+        """
+        self._check_side(side)
+        if self.dim == 1:
+            scalar = np.array([0 if side == "left" else self.ndofs - 1])
+        else:
+            nbx, nby = self.basis_per_axis
+            a = np.arange(nbx)
+            b = np.arange(nby)
+            if side == "left":
+                scalar = nbx * b
+            elif side == "right":
+                scalar = nbx * b + nbx - 1
+            elif side == "bottom":
+                scalar = a
+            else:
+                scalar = a + nbx * (nby - 1)
+        if component is None:
+            return scalar
+        if isinstance(component, bool) or not isinstance(component, (int, np.integer)) \
+                or not 0 <= component < self.dim:
+            raise ValueError(
+                f"component must be None or an integer in [0, {self.dim - 1}], got {component!r}"
+            )
+        return self.dim * scalar + int(component)
+
+    # ------------------------------------------------------- point location
+    def _locate_axis(self, axis, x):
+        u = self.breakpoints[axis]
+        n = u.size - 1
+        if self._uniform[axis]:
+            e = np.floor((x - u[0]) * (n / (u[-1] - u[0]))).astype(np.int64)
+            np.clip(e, 0, n - 1, out=e)
+        else:
+            e = np.searchsorted(u, x, side="right") - 1
+            np.clip(e, 0, n - 1, out=e)
+        xi = (x - u[e]) / (u[e + 1] - u[e])
+        return e, xi
+
+    def _check_inside(self, x):
+        outside = np.zeros(x.shape[0], dtype=bool)
+        for axis, (lo, hi) in enumerate(self.bounds):
+            outside |= (x[:, axis] < lo) | (x[:, axis] > hi)
+        if outside.any():
+            first = int(np.flatnonzero(outside)[0])
+            box = " x ".join(f"[{lo:g}, {hi:g}]" for lo, hi in self.bounds)
+            raise ValueError(
+                f"{int(outside.sum())} point(s) lie outside the grid {box}; "
+                f"the first is index {first} at {x[first].tolist()}"
+            )
+
+    def locate(self, x):
+        """Cells and reference coordinates of points.
+
+        ``x`` has shape (n, dim) (or (n,) in 1D). Returns the scikit-fem
+        element index of every point, shape (n,), and its reference
+        coordinates in [0, 1]^dim, shape (n, dim). Points on a cell boundary
+        belong to the cell on their right (the last cell at the upper end).
+        Raises ``ValueError`` for points outside the grid.
+        """
+        x = as_points("x", x, self.dim)
+        self._check_inside(x)
+        return self._locate_unchecked(x)
+
+    def _locate_unchecked(self, x):
+        e0, xi0 = self._locate_axis(0, x[:, 0])
+        if self.dim == 1:
+            return e0, xi0[:, None]
+        e1, xi1 = self._locate_axis(1, x[:, 1])
+        return e0 + self.cells_per_axis[0] * e1, np.column_stack((xi0, xi1))
+
+    def axis_functions(self, axis, x_axis):
+        """The p + 1 non-zero 1D B-splines of one axis at coordinates ``x_axis``.
+
+        Returns ``(first, values, derivatives)``: the index of the first
+        non-zero function (the cell index on that axis), its values (n, p+1)
+        and derivatives d/dx (n, p+1). Points must lie inside the grid.
+        """
+        p = self.degree
+        e, xi = self._locate_axis(axis, np.asarray(x_axis, dtype=np.float64))
+        Ce = self.extraction[axis][e]
+        values = np.einsum("nij,nj->ni", Ce, bernstein(p, xi))
+        inv_h = 1.0 / self.cell_sizes[axis][e]
+        derivatives = np.einsum("nij,nj->ni", Ce, bernstein_derivative(p, xi)) * inv_h[:, None]
+        return e, values, derivatives
+
+    def shape_functions(self, x, check=True):
+        """Dofs, values and gradients of the non-zero basis functions at points.
+
+        Returns ``dofs`` (n, k) int, ``values`` (n, k) and ``gradients``
+        (n, k, dim), with k = (p + 1)^dim and local order a + (p + 1) b.
+        """
+        x = as_points("x", x, self.dim) if check else x
+        if check:
+            self._check_inside(x)
+        p = self.degree
+        e0, v0, d0 = self.axis_functions(0, x[:, 0])
+        local = np.arange(p + 1)
+        if self.dim == 1:
+            return e0[:, None] + local, v0, d0[:, :, None]
+        e1, v1, d1 = self.axis_functions(1, x[:, 1])
+        nbx = self.basis_per_axis[0]
+        dofs = ((e0[:, None, None] + local[None, None, :])
+                + nbx * (e1[:, None, None] + local[None, :, None])).reshape(len(x), -1)
+        values = (v1[:, :, None] * v0[:, None, :]).reshape(len(x), -1)
+        grads = np.stack(
+            ((v1[:, :, None] * d0[:, None, :]).reshape(len(x), -1),
+             (d1[:, :, None] * v0[:, None, :]).reshape(len(x), -1)),
+            axis=-1,
+        )
+        return dofs, values, grads
+
+    def evaluate(self, coeffs, x, gradient=False):
+        """Values (and gradients) of a spline field at points ``x``.
+
+        ``coeffs`` is (ndofs,) for a scalar field, (ndofs, k) for k fields,
+        or (dim * ndofs,) in the interleaved numbering of the vector basis
+        (read as (ndofs, dim)). Returns values of shape (n,) or (n, k), and
+        with ``gradient=True`` also gradients (n, dim) or (n, k, dim).
+        """
+        c = np.asarray(coeffs, dtype=np.float64)
+        if c.ndim == 1 and c.size == self.dim * self.ndofs and self.dim > 1:
+            c = c.reshape(self.ndofs, self.dim)
+        if c.shape[0] != self.ndofs or c.ndim > 2:
+            raise ValueError(
+                f"coeffs must have shape ({self.ndofs},), ({self.ndofs}, k) or "
+                f"({self.dim * self.ndofs},), got {c.shape}"
+            )
+        dofs, values, grads = self.shape_functions(x)
+        local = c[dofs]  # (n, k) or (n, k, m)
+        if c.ndim == 1:
+            out = (values * local).sum(axis=1)
+            if gradient:
+                return out, np.einsum("nkd,nk->nd", grads, local)
+            return out
+        out = np.einsum("nk,nkm->nm", values, local)
+        if gradient:
+            return out, np.einsum("nkd,nkm->nmd", grads, local)
+        return out
+
+    def vertex_values(self, coeffs):
+        """Field values at the mesh vertices, for ``mesh.save(point_data=...)``."""
+        return self.evaluate(coeffs, self.mesh.p.T)
+
+    def interpolate(self, f):
+        """Spline coefficients of the L2 projection of a callable ``f(x)``
+        (x of shape (n, dim)) onto the space, computed with Gauss quadrature;
+        exact for functions in the space."""
+        basis = self.basis()
+        from skfem import BilinearForm, LinearForm, asm, solve
+
+        @BilinearForm
+        def mass(u, v, _):
+            return u * v
+
+        @LinearForm
+        def load(v, w):
+            return w["f"] * v
+
+        x = np.asarray(basis.global_coordinates())  # (dim, nel, nqp)
+        values = np.asarray(f(x.reshape(self.dim, -1).T), dtype=np.float64).reshape(x.shape[1:])
+        return solve(asm(mass, basis), asm(load, basis, f=values))
+
+    def __repr__(self):
+        cells = " x ".join(str(n) for n in self.cells_per_axis)
+        box = " x ".join(f"[{lo:g}, {hi:g}]" for lo, hi in self.bounds)
+        return (f"SplineGrid(degree={self.degree}, cells={cells}, domain={box}, "
+                f"dofs={self.ndofs})")
