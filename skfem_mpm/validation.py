@@ -50,7 +50,8 @@ def check_finite_array(name, array, shape=None):
             want is None or want == got for want, got in zip(shape, a.shape)
         )
         if not ok:
-            want = "(" + ", ".join("n" if s is None else str(s) for s in shape) + ")"
+            want = "(" + ", ".join("n" if s is None else str(s) for s in shape) + \
+                ("," if len(shape) == 1 else "") + ")"
             raise ValueError(f"{name} must have shape {want}, got {a.shape}")
     if a.size and not np.all(np.isfinite(a)):
         flat = int(np.flatnonzero(~np.isfinite(a.reshape(-1)))[0])

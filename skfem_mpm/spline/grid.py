@@ -11,6 +11,7 @@ import numpy as np
 from skfem import CellBasis, FacetBasis, MeshLine1, MeshQuad1
 from skfem.element import ElementVector
 
+from ..kernels import resolve_backend
 from ..validation import as_points, check_positive_int
 from .bernstein import bernstein, bernstein_derivative
 from .dofs import SplineDofs
@@ -255,8 +256,10 @@ class SplineGrid:
         u = self.breakpoints[axis]
         n = u.size - 1
         if self._uniform[axis]:
-            e = np.floor((x - u[0]) * (n / (u[-1] - u[0]))).astype(np.int64)
+            t = (x - u[0]) * (n / (u[-1] - u[0]))
+            e = t.astype(np.int64)  # t >= 0 inside the grid: truncation is floor
             np.clip(e, 0, n - 1, out=e)
+            return e, t - e
         else:
             e = np.searchsorted(u, x, side="right") - 1
             np.clip(e, 0, n - 1, out=e)
@@ -295,22 +298,44 @@ class SplineGrid:
         e1, xi1 = self._locate_axis(1, x[:, 1])
         return e0 + self.cells_per_axis[0] * e1, np.column_stack((xi0, xi1))
 
-    def axis_functions(self, axis, x_axis):
+    def axis_functions(self, axis, x_axis, backend=None):
         """The p + 1 non-zero 1D B-splines of one axis at coordinates ``x_axis``.
 
         Returns ``(first, values, derivatives)``: the index of the first
         non-zero function (the cell index on that axis), its values (n, p+1)
         and derivatives d/dx (n, p+1). Points must lie inside the grid.
+        ``backend`` is ``"numba"`` (compiled) or ``"numpy"`` (the reference).
         """
         p = self.degree
-        e, xi = self._locate_axis(axis, np.asarray(x_axis, dtype=np.float64))
-        Ce = self.extraction[axis][e]
-        values = np.einsum("nij,nj->ni", Ce, bernstein(p, xi))
+        x_axis = np.asarray(x_axis, dtype=np.float64)
+        if resolve_backend(backend) == "numba":
+            from ..kernels.weights import axis_functions
+            return axis_functions(x_axis, self.breakpoints[axis], self._uniform[axis],
+                                  self.extraction[axis], p)
+        e, xi = self._locate_axis(axis, x_axis)
+        B = bernstein(p, xi)
+        dB = bernstein_derivative(p, xi)
+        C = self.extraction[axis]
+        if self._uniform[axis] and C.shape[0] > 2 * p + 1:
+            # uniform interior cells share one extraction matrix: apply it to
+            # all points, then redo the p boundary cells at each end
+            interior = C[p]
+            values = B @ interior.T
+            derivatives = dB @ interior.T
+            edge = (e < p) | (e >= C.shape[0] - p)
+            if edge.any():
+                Ce = C[e[edge]]
+                values[edge] = np.einsum("nij,nj->ni", Ce, B[edge])
+                derivatives[edge] = np.einsum("nij,nj->ni", Ce, dB[edge])
+            derivatives *= 1.0 / self.cell_sizes[axis][0]
+            return e, values, derivatives
+        Ce = C[e]
+        values = np.einsum("nij,nj->ni", Ce, B)
         inv_h = 1.0 / self.cell_sizes[axis][e]
-        derivatives = np.einsum("nij,nj->ni", Ce, bernstein_derivative(p, xi)) * inv_h[:, None]
+        derivatives = np.einsum("nij,nj->ni", Ce, dB) * inv_h[:, None]
         return e, values, derivatives
 
-    def shape_functions(self, x, check=True):
+    def shape_functions(self, x, check=True, backend=None):
         """Dofs, values and gradients of the non-zero basis functions at points.
 
         Returns ``dofs`` (n, k) int, ``values`` (n, k) and ``gradients``
@@ -320,11 +345,11 @@ class SplineGrid:
         if check:
             self._check_inside(x)
         p = self.degree
-        e0, v0, d0 = self.axis_functions(0, x[:, 0])
+        e0, v0, d0 = self.axis_functions(0, x[:, 0], backend)
         local = np.arange(p + 1)
         if self.dim == 1:
             return e0[:, None] + local, v0, d0[:, :, None]
-        e1, v1, d1 = self.axis_functions(1, x[:, 1])
+        e1, v1, d1 = self.axis_functions(1, x[:, 1], backend)
         nbx = self.basis_per_axis[0]
         dofs = ((e0[:, None, None] + local[None, None, :])
                 + nbx * (e1[:, None, None] + local[None, :, None])).reshape(len(x), -1)
