@@ -1,14 +1,33 @@
 """skfem-mpm: the Material Point Method with B-spline bases, as a scikit-fem plugin."""
 __version__ = "0.1.0"
 
+from .effects import BodyForce, Damping, Fixed, Gravity, Prescribed, Traction
+from .errors import SimulationError
 from .lagrange import LagrangeGrid
+from .materials import LinearElastic, NeoHookean
 from .particles import Particles
 from .quadrature import ParticleBasis, transfer_matrices
+from .scene import Body, Scene
+from .solve import Method, fem, simulate
 from .spline import (ElementLineBSpline, ElementQuadBSpline, MappingRectangular,
                      SplineGrid)
 
 __all__ = [
     "__version__",
+    "Body",
+    "BodyForce",
+    "Damping",
+    "Fixed",
+    "Gravity",
+    "LinearElastic",
+    "Method",
+    "NeoHookean",
+    "Prescribed",
+    "Scene",
+    "SimulationError",
+    "Traction",
+    "fem",
+    "simulate",
     "ElementLineBSpline",
     "ElementQuadBSpline",
     "MappingRectangular",

@@ -124,9 +124,17 @@ class LagrangeGrid:
         ref = self.new_mapping().invF(x.T[:, :, None], tind=cells)[:, :, 0].T
         return cells, np.ascontiguousarray(ref)
 
-    def shape_functions(self, x, check=True):
+    def inside(self, x):
+        """Boolean mask of the points (n, dim) that lie in the mesh."""
+        return self._find_triangles(np.asarray(x, dtype=np.float64), _CANDIDATES) >= 0
+
+    def locate_axes(self, x):
+        """Location data for :meth:`shape_functions` (cells, reference coordinates)."""
+        return self.locate(x)
+
+    def shape_functions(self, x, check=True, backend=None, located=None):
         """Dofs (n, k), values (n, k) and gradients (n, k, dim) at points."""
-        cells, ref = self.locate(x)
+        cells, ref = self.locate(x) if located is None else located
         mapping = self.new_mapping()
         X = ref.T[:, :, None]
         nloc = self.dofs.element_dofs.shape[0]
@@ -148,6 +156,17 @@ class LagrangeGrid:
             return (out, np.einsum("nkd,nk->nd", grads, local)) if gradient else out
         out = np.einsum("nk,nkm->nm", values, local)
         return (out, np.einsum("nkd,nkm->nmd", grads, local)) if gradient else out
+
+    def gauss_rule(self, points_per_axis, cells=None):
+        """Quadrature points (n, dim), weights (n,) and cell index (n,) of
+        scikit-fem's rule exact to degree 2 points_per_axis - 1."""
+        basis = CellBasis(self.mesh, self.element, intorder=2 * int(points_per_axis) - 1,
+                          elements=None if cells is None else np.asarray(cells))
+        pts = np.asarray(basis.global_coordinates())
+        x = pts.reshape(self.dim, -1).T
+        w = np.asarray(basis.dx).ravel()
+        cells = np.arange(self.ncells) if cells is None else np.asarray(cells)
+        return x, w, np.repeat(cells, pts.shape[-1])
 
     # ----------------------------------------------------------- scikit-fem
     def basis(self, intorder=None, vector=False):

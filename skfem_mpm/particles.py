@@ -103,6 +103,19 @@ class Particles:
         out.info = dict(self.info)
         return out
 
+    def replaced(self, **arrays):
+        """A new Particles object with some arrays replaced (the others are
+        shared, not copied: the solver never edits arrays in place)."""
+        out = Particles.__new__(Particles)
+        for k, a in self._arrays().items():
+            setattr(out, k, a)
+        for k, a in arrays.items():
+            if k not in self.FIELDS:
+                raise ValueError(f"unknown particle array {k!r}; valid: {self.FIELDS}")
+            setattr(out, k, a)
+        out.info = self.info
+        return out
+
     def subset(self, which):
         """The particles selected by a boolean mask or an index array."""
         which = np.asarray(which)

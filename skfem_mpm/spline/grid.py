@@ -306,13 +306,17 @@ class SplineGrid:
         and derivatives d/dx (n, p+1). Points must lie inside the grid.
         ``backend`` is ``"numba"`` (compiled) or ``"numpy"`` (the reference).
         """
-        p = self.degree
         x_axis = np.asarray(x_axis, dtype=np.float64)
         if resolve_backend(backend) == "numba":
             from ..kernels.weights import axis_functions
             return axis_functions(x_axis, self.breakpoints[axis], self._uniform[axis],
-                                  self.extraction[axis], p)
+                                  self.extraction[axis], self.degree)
         e, xi = self._locate_axis(axis, x_axis)
+        return (e,) + self._axis_values(axis, e, xi)
+
+    def _axis_values(self, axis, e, xi):
+        """Values and d/dx of the p + 1 functions of cells ``e`` at ``xi``."""
+        p = self.degree
         B = bernstein(p, xi)
         dB = bernstein_derivative(p, xi)
         C = self.extraction[axis]
@@ -328,35 +332,55 @@ class SplineGrid:
                 values[edge] = np.einsum("nij,nj->ni", Ce, B[edge])
                 derivatives[edge] = np.einsum("nij,nj->ni", Ce, dB[edge])
             derivatives *= 1.0 / self.cell_sizes[axis][0]
-            return e, values, derivatives
+            return values, derivatives
         Ce = C[e]
         values = np.einsum("nij,nj->ni", Ce, B)
         inv_h = 1.0 / self.cell_sizes[axis][e]
-        derivatives = np.einsum("nij,nj->ni", Ce, dB) * inv_h[:, None]
-        return e, values, derivatives
+        return values, np.einsum("nij,nj->ni", Ce, dB) * inv_h[:, None]
 
-    def shape_functions(self, x, check=True, backend=None):
+    def inside(self, x):
+        """Boolean mask of the points (n, dim) that lie in the grid."""
+        ok = np.ones(x.shape[0], dtype=bool)
+        for axis, (lo, hi) in enumerate(self.bounds):
+            ok &= (x[:, axis] >= lo) & (x[:, axis] <= hi)
+        return ok
+
+    def locate_axes(self, x):
+        """Per axis (cell index, reference coordinate) of points inside the
+        grid (no checks): the first half of :meth:`shape_functions`."""
+        return tuple(self._locate_axis(axis, x[:, axis]) for axis in range(self.dim))
+
+    def shape_functions(self, x, check=True, backend=None, located=None):
         """Dofs, values and gradients of the non-zero basis functions at points.
 
         Returns ``dofs`` (n, k) int, ``values`` (n, k) and ``gradients``
         (n, k, dim), with k = (p + 1)^dim and local order a + (p + 1) b.
+        ``located`` (from :meth:`locate_axes`) skips the location step.
         """
-        x = as_points("x", x, self.dim) if check else x
         if check:
+            x = as_points("x", x, self.dim)
             self._check_inside(x)
+        if located is None:
+            axes = [self.axis_functions(a, x[:, a], backend) for a in range(self.dim)]
+        else:
+            axes = [(e,) + self._axis_values(a, e, xi) for a, (e, xi) in enumerate(located)]
+        return self._tensor_product(axes, x.shape[0])
+
+    def _tensor_product(self, axes, n):
         p = self.degree
-        e0, v0, d0 = self.axis_functions(0, x[:, 0], backend)
         local = np.arange(p + 1)
+        e0, v0, d0 = axes[0]
         if self.dim == 1:
             return e0[:, None] + local, v0, d0[:, :, None]
-        e1, v1, d1 = self.axis_functions(1, x[:, 1], backend)
+        e1, v1, d1 = axes[1]
         nbx = self.basis_per_axis[0]
+        k = (p + 1) ** 2
         dofs = ((e0[:, None, None] + local[None, None, :])
-                + nbx * (e1[:, None, None] + local[None, :, None])).reshape(len(x), -1)
-        values = (v1[:, :, None] * v0[:, None, :]).reshape(len(x), -1)
+                + nbx * (e1[:, None, None] + local[None, :, None])).reshape(n, k)
+        values = (v1[:, :, None] * v0[:, None, :]).reshape(n, k)
         grads = np.stack(
-            ((v1[:, :, None] * d0[:, None, :]).reshape(len(x), -1),
-             (d1[:, :, None] * v0[:, None, :]).reshape(len(x), -1)),
+            ((v1[:, :, None] * d0[:, None, :]).reshape(n, k),
+             (d1[:, :, None] * v0[:, None, :]).reshape(n, k)),
             axis=-1,
         )
         return dofs, values, grads
@@ -388,6 +412,33 @@ class SplineGrid:
         if gradient:
             return out, np.einsum("nkd,nkm->nmd", grads, local)
         return out
+
+    def gauss_rule(self, points_per_axis, cells=None):
+        """Gauss points (n, dim), weights (n,) and cell index (n,) of the
+        tensor Gauss rule with ``points_per_axis`` points per axis on the
+        given cells (default: all), cell by cell."""
+        k = int(points_per_axis)
+        ref, wref = np.polynomial.legendre.leggauss(k)
+        ref, wref = 0.5 * (ref + 1.0), 0.5 * wref
+        cells = np.arange(self.ncells) if cells is None else np.asarray(cells)
+        if self.dim == 1:
+            e = (cells,)
+        else:
+            nx = self.cells_per_axis[0]
+            e = (cells % nx, cells // nx)
+        lo = [self.breakpoints[a][e[a]] for a in range(self.dim)]
+        size = [self.cell_sizes[a][e[a]] for a in range(self.dim)]
+        if self.dim == 1:
+            x = (lo[0][:, None] + size[0][:, None] * ref[None, :]).reshape(-1, 1)
+            w = (size[0][:, None] * wref[None, :]).ravel()
+            return x, w, np.repeat(cells, k)
+        # local point (a, b) -> a + k b, x varying fastest
+        xa = lo[0][:, None] + size[0][:, None] * ref[None, :]          # (cells, k)
+        yb = lo[1][:, None] + size[1][:, None] * ref[None, :]
+        x = np.stack((np.broadcast_to(xa[:, None, :], (cells.size, k, k)),
+                      np.broadcast_to(yb[:, :, None], (cells.size, k, k))), axis=-1)
+        w = (size[0] * size[1])[:, None, None] * (wref[None, None, :] * wref[None, :, None])
+        return x.reshape(-1, 2), w.ravel(), np.repeat(cells, k * k)
 
     def vertex_values(self, coeffs):
         """Field values at the mesh vertices, for ``mesh.save(point_data=...)``."""

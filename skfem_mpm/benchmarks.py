@@ -1,0 +1,568 @@
+"""The benchmark problems of the project (shared/BENCHMARKS.md), each able to
+build a :class:`Scene` and knowing its exact solution.
+
+    get_benchmark("vibrating-string", variant="small", L=1.0)
+
+Every benchmark has ``defaults`` (parameters), ``variants`` (named parameter
+sets; the first is the default), ``scene(cells, degree, ppc, ...)``,
+``displacement(X, t)``, ``velocity(X, t)``, ``stress(X, t)`` where an exact
+stress exists, ``amplitude`` (the displacement scale errors are divided by)
+and ``errors(result)``. ``cells`` counts the cells over the body's length per
+axis; grids that must extend beyond the body (traction bar) add cells of the
+same size.
+
+Error measure (relative to ``amplitude`` unless the name says ``_abs``):
+
+    e_RMS(t) = sqrt( (1/n_p) sum_p |u_h(X_p, t) - u(X_p, t)|^2 )
+"""
+import numpy as np
+
+from .effects import BodyForce, Fixed, Gravity, Traction
+from .materials import LinearElastic, NeoHookean, lame_parameters
+from .particles import Particles
+from .scene import Body, Scene
+from .spline import SplineGrid
+
+__all__ = ["BENCHMARKS", "get_benchmark", "Benchmark"]
+
+
+class Benchmark:
+    """Base class: parameters, variants, scene building and error measures."""
+
+    name = ""
+    title = ""
+    dim = 1
+    defaults = {}
+    variants = {}
+    has_exact = True
+
+    def __init__(self, variant=None, **params):
+        names = list(self.variants)
+        if variant is None:
+            variant = names[0]
+        if variant not in self.variants:
+            raise ValueError(f"variant must be one of {names} for {self.name}, got {variant!r}")
+        unknown = set(params) - set(self.defaults)
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {sorted(unknown)} for {self.name}; "
+                             f"valid: {sorted(self.defaults)}")
+        self.variant = variant
+        self.explicit = set(params)
+        self.params = {**self.defaults, **self.variants[variant], **params}
+        for k, v in self.params.items():
+            if v is None:
+                continue
+            if not isinstance(v, (int, float, np.floating, np.integer)) or not np.isfinite(v):
+                raise ValueError(f"parameter {k} must be a finite number, got {v!r}")
+        self._check_params()
+        self.t_end = float(self.params["t_end"]) if self.params.get("t_end") else self.default_t_end()
+
+    def _check_params(self):
+        for k in ("E", "rho", "rho0", "L", "H"):
+            if k in self.params and not self.params[k] > 0:
+                raise ValueError(f"parameter {k} must be > 0, got {self.params[k]}")
+        if "nu" in self.params and not -1 < self.params["nu"] < 0.5:
+            raise ValueError(f"parameter nu must lie in (-1, 0.5), got {self.params['nu']}")
+
+    def __getattr__(self, key):
+        params = self.__dict__.get("params")
+        if params is not None and key in params:
+            return params[key]
+        raise AttributeError(key)
+
+    def __repr__(self):
+        return f"{type(self).__name__}(variant={self.variant!r}, {self.params})"
+
+    # to be provided by subclasses ---------------------------------------------
+    def default_t_end(self):
+        raise NotImplementedError
+
+    def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
+        raise NotImplementedError
+
+    def stress(self, X, t):
+        return None
+
+    def velocity_amplitude(self):
+        return None
+
+    def stress_amplitude(self):
+        return None
+
+    # errors -------------------------------------------------------------------
+    def errors(self, result):
+        """Error measures of a run (relative to the amplitudes)."""
+        if not self.has_exact:
+            raise ValueError(f"{self.name} has no exact solution; use its checks()")
+        h = result.history
+        rms = []
+        for k, t in enumerate(result.times):
+            X = h["X"][k]
+            du = h["u"][k] - self.displacement(X, t)
+            rms.append(float(np.sqrt(np.mean(np.sum(du * du, axis=1)))))
+        X, t = h["X"][-1], result.times[-1]
+        out = {
+            "error_rms": rms[-1] / self.amplitude,
+            "error_max": max(rms) / self.amplitude,
+            "error_rms_abs": rms[-1],
+        }
+        dv = h["v"][-1] - self.velocity(X, t)
+        out["velocity_error_rms"] = float(np.sqrt(np.mean(np.sum(dv * dv, axis=1)))) \
+            / self.velocity_amplitude()
+        s_exact = self.stress(X, t)
+        if s_exact is not None:
+            ds = h["stress"][-1] - s_exact
+            out["stress_error_rms"] = float(np.sqrt(np.mean(np.sum(ds * ds, axis=(1, 2))))) \
+                / self.stress_amplitude()
+        return out
+
+
+def _column(a):
+    return np.asarray(a, dtype=np.float64).reshape(-1, 1)
+
+
+# ----------------------------------------------------------------------- S1
+class VibratingString(Benchmark):
+    """S1: rho u_tt = E u_xx on (0, L), both ends fixed, initial velocity
+    v0 sin(pi x / L); u = (v0 / w) sin(w t) sin(pi x / L), w = (pi / L) c."""
+
+    name = "vibrating-string"
+    title = "S1 vibrating string"
+    defaults = {"L": 25.0, "E": 100.0, "rho": 1.0, "v0": 0.1, "t_end": None}
+    variants = {"small": {}, "seed": {"v0": 0.1}}
+
+    @property
+    def c(self):
+        return float(np.sqrt(self.E / self.rho))
+
+    @property
+    def omega(self):
+        return np.pi / self.L * self.c
+
+    def _check_params(self):
+        super()._check_params()
+        if self.variant == "small" and "v0" not in self.explicit:
+            self.params["v0"] = 1e-6 * self.c  # peak strain v0 / c = 1e-6
+
+    def default_t_end(self):
+        return 0.25 * 2 * np.pi / self.omega  # quarter period: largest displacement
+
+    @property
+    def amplitude(self):
+        return self.v0 / self.omega
+
+    def velocity_amplitude(self):
+        return self.v0
+
+    def stress_amplitude(self):
+        return self.E * self.amplitude * np.pi / self.L
+
+    def displacement(self, X, t):
+        X = _column(X)
+        return self.amplitude * np.sin(self.omega * t) * np.sin(np.pi * X / self.L)
+
+    def velocity(self, X, t):
+        X = _column(X)
+        return self.v0 * np.cos(self.omega * t) * np.sin(np.pi * X / self.L)
+
+    def stress(self, X, t):
+        X = _column(X)
+        eps = self.amplitude * np.sin(self.omega * t) * np.pi / self.L * np.cos(np.pi * X / self.L)
+        return (self.E * eps)[:, :, None]
+
+    def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
+        grid = SplineGrid.line(0.0, self.L, cells, degree)
+        particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0,
+                                   velocity=lambda X: self.velocity(X, 0.0))
+        return Scene(grid, Body(particles, LinearElastic(self.E)), t_end or self.t_end,
+                     effects=[Fixed("left"), Fixed("right")])
+
+
+# ----------------------------------------------------------------------- S2
+class SoilColumn(Benchmark):
+    """S2: a column fixed at its base, gravity switched on at t = 0 (series
+    solution; optional top traction p0)."""
+
+    name = "soil-column"
+    title = "S2 soil column under self-weight"
+    defaults = {"H": 1.0, "E": 1e5, "rho": 1e3, "g": 9.81, "p0": 0.0, "periods": 2.0,
+                "t_end": None, "terms": 200}
+    variants = {"large": {"E": 1e5}, "small": {"E": 1e10}}
+
+    @property
+    def c(self):
+        return float(np.sqrt(self.E / self.rho))
+
+    def default_t_end(self):
+        return self.periods * 4 * self.H / self.c
+
+    def _modes(self):
+        n = np.arange(1, int(self.terms) + 1)
+        k = (2 * n - 1) * np.pi / (2 * self.H)
+        coef = 2 * self.g / (self.H * self.c ** 2 * k ** 3) \
+            - 2 * self.p0 * (-1.0) ** (n + 1) / (self.E * self.H * k ** 2)
+        return k, coef
+
+    def _static(self, y):
+        return -(self.g / self.c ** 2) * (self.H * y - 0.5 * y ** 2) + self.p0 * y / self.E
+
+    def displacement(self, X, t):
+        y = _column(X)[:, 0]
+        k, coef = self._modes()
+        modes = np.sin(np.outer(y, k)) @ (coef * np.cos(self.c * k * t))
+        return (self._static(y) + modes)[:, None]
+
+    def velocity(self, X, t):
+        y = _column(X)[:, 0]
+        k, coef = self._modes()
+        return (np.sin(np.outer(y, k)) @ (-coef * self.c * k * np.sin(self.c * k * t)))[:, None]
+
+    def stress(self, X, t):
+        y = _column(X)[:, 0]
+        k, coef = self._modes()
+        static = -(self.g / self.c ** 2) * (self.H - y) + self.p0 / self.E
+        modes = np.cos(np.outer(y, k)) @ (coef * k * np.cos(self.c * k * t))
+        return (self.E * (static + modes))[:, None, None]
+
+    @property
+    def amplitude(self):
+        """The largest exact displacement, max over t of |u(H, t)|."""
+        ts = np.linspace(0.0, 4 * self.H / self.c, 2001)
+        top = [abs(self.displacement(np.array([self.H]), t)[0, 0]) for t in ts]
+        return float(max(top))
+
+    def velocity_amplitude(self):
+        return self.amplitude * self.c * np.pi / (2 * self.H)
+
+    def stress_amplitude(self):
+        return self.rho * self.g * self.H + abs(self.p0)
+
+    def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
+        grid = SplineGrid.line(0.0, self.H, cells, degree)
+        particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0)
+        effects = [Fixed("left"), Gravity(-self.g)]
+        if self.p0:
+            effects.append(Traction("right", self.p0))
+        return Scene(grid, Body(particles, LinearElastic(self.E)), t_end or self.t_end,
+                     effects=effects)
+
+
+# ----------------------------------------------------------------------- S3
+class TractionBar(Benchmark):
+    """S3: a bar fixed at x = 0 and loaded at its free end by the traction
+    that keeps u = A sin(k x) sin(c k t), k = 3 pi / (4 L), exact."""
+
+    name = "traction-bar"
+    title = "S3 vibrating bar with a dynamic end traction"
+    defaults = {"L": 1.0, "E": 100.0, "rho": 1.0, "A": 0.01, "margin": 0.25, "t_end": None}
+    variants = {"small": {"A": 1e-7}, "large": {"A": 0.01}}
+
+    @property
+    def c(self):
+        return float(np.sqrt(self.E / self.rho))
+
+    @property
+    def k(self):
+        return 3 * np.pi / (4 * self.L)
+
+    def default_t_end(self):
+        return 2 * np.pi / (self.c * self.k)
+
+    @property
+    def amplitude(self):
+        return self.A
+
+    def velocity_amplitude(self):
+        return self.A * self.c * self.k
+
+    def stress_amplitude(self):
+        return self.E * self.A * self.k
+
+    def traction(self, t):
+        return self.E * self.A * self.k * np.cos(self.k * self.L) * np.sin(self.c * self.k * t)
+
+    def displacement(self, X, t):
+        return self.A * np.sin(self.k * _column(X)) * np.sin(self.c * self.k * t)
+
+    def velocity(self, X, t):
+        return self.A * self.c * self.k * np.sin(self.k * _column(X)) * np.cos(self.c * self.k * t)
+
+    def stress(self, X, t):
+        eps = self.A * self.k * np.cos(self.k * _column(X)) * np.sin(self.c * self.k * t)
+        return (self.E * eps)[:, :, None]
+
+    def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
+        h = self.L / cells
+        extra = 0 if fem else int(np.ceil(self.margin * cells))
+        grid = SplineGrid(np.linspace(0.0, self.L + extra * h, cells + extra + 1), degree)
+        particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0,
+                                   region=((0.0, self.L),),
+                                   velocity=lambda X: self.velocity(X, 0.0))
+        effects = [Fixed("left"), Traction("right", self.traction)]
+        return Scene(grid, Body(particles, LinearElastic(self.E)), t_end or self.t_end,
+                     effects=effects)
+
+
+# ----------------------------------------------------------------------- S4
+class NeoHookeanBar(Benchmark):
+    """S4: manufactured large-deformation solution of a neo-Hookean bar,
+    u = G sin(pi X) sin(c pi t), with the body force that makes it exact."""
+
+    name = "neo-hookean-bar"
+    title = "S4 large-deformation neo-Hookean bar"
+    defaults = {"E": 1e7, "rho0": 1e3, "G": 0.05, "t_end": 0.02}
+    variants = {"large": {"G": 0.05}, "small": {"G": 1e-4}}
+
+    @property
+    def c(self):
+        return float(np.sqrt(self.E / self.rho0))
+
+    def default_t_end(self):
+        return 0.02
+
+    @property
+    def amplitude(self):
+        return self.G
+
+    def velocity_amplitude(self):
+        return self.G * self.c * np.pi
+
+    def stress_amplitude(self):
+        return self.E * self.G * np.pi
+
+    def displacement(self, X, t):
+        return self.G * np.sin(np.pi * _column(X)) * np.sin(self.c * np.pi * t)
+
+    def velocity(self, X, t):
+        return self.G * self.c * np.pi * np.sin(np.pi * _column(X)) * np.cos(self.c * np.pi * t)
+
+    def deformation_gradient(self, X, t):
+        return 1 + np.pi * self.G * np.cos(np.pi * _column(X)) * np.sin(self.c * np.pi * t)
+
+    def first_piola(self, F):
+        mu = self.E / 2
+        return mu * (F - 1 / F)
+
+    def stress(self, X, t):
+        return self.first_piola(self.deformation_gradient(X, t))[:, :, None]
+
+    def body_force(self, X, t):
+        """b = (pi^2 u / rho0) (lambda (1 - ln F) / F^2 + mu (1 + 1/F^2) - E), lambda = 0."""
+        u = self.displacement(X, t)
+        F = self.deformation_gradient(X, t)
+        mu = self.E / 2
+        return (np.pi ** 2 * u / self.rho0) * (mu * (1 + 1 / F ** 2) - self.E)
+
+    def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
+        grid = SplineGrid.line(0.0, 1.0, cells, degree)
+        particles = Particles.seed(grid, ppc, self.rho0, layout=layout, seed=0,
+                                   velocity=lambda X: self.velocity(X, 0.0))
+        return Scene(grid, Body(particles, NeoHookean(self.E)), t_end or self.t_end,
+                     effects=[Fixed("left"), Fixed("right"), BodyForce(self.body_force)])
+
+
+# ----------------------------------------------------------------------- D1
+def _sliding_walls():
+    return [Fixed("left", 0), Fixed("right", 0), Fixed("bottom", 1), Fixed("top", 1)]
+
+
+class AxisAligned2D(Benchmark):
+    """D1: manufactured axis-aligned finite deformation of the unit square
+    (compressible neo-Hookean, plane strain), sliding walls."""
+
+    name = "axis-aligned-2d"
+    title = "D1 axis-aligned displacement (neo-Hookean, 2D)"
+    dim = 2
+    defaults = {"E": 1e4, "nu": 0.3, "rho0": 1.0, "A": 0.05, "t_end": None}
+    variants = {"large": {"A": 0.05}, "small": {"A": 1e-4}}
+
+    @property
+    def c(self):
+        return float(np.sqrt(self.E / self.rho0))
+
+    def default_t_end(self):
+        return 2.0 / self.c
+
+    @property
+    def amplitude(self):
+        return self.A
+
+    def velocity_amplitude(self):
+        return self.A * self.c * np.pi
+
+    def stress_amplitude(self):
+        lam, mu = lame_parameters(self.E, self.nu)
+        return (lam + 2 * mu) * self.A * np.pi
+
+    def _phase(self, t):
+        return np.sin(self.c * np.pi * t), np.sin(self.c * np.pi * t + np.pi)
+
+    def displacement(self, X, t):
+        sx, sy = self._phase(t)
+        return np.column_stack((self.A * np.sin(np.pi * X[:, 0]) * sx,
+                                self.A * np.sin(np.pi * X[:, 1]) * sy))
+
+    def velocity(self, X, t):
+        cx = np.cos(self.c * np.pi * t)
+        cy = np.cos(self.c * np.pi * t + np.pi)
+        w = self.A * self.c * np.pi
+        return np.column_stack((w * np.sin(np.pi * X[:, 0]) * cx, w * np.sin(np.pi * X[:, 1]) * cy))
+
+    def deformation_gradient(self, X, t):
+        sx, sy = self._phase(t)
+        F = np.zeros((X.shape[0], 2, 2))
+        F[:, 0, 0] = 1 + self.A * np.pi * np.cos(np.pi * X[:, 0]) * sx
+        F[:, 1, 1] = 1 + self.A * np.pi * np.cos(np.pi * X[:, 1]) * sy
+        return F
+
+    def stress(self, X, t):
+        return NeoHookean(self.E, self.nu).cauchy_stress(self.deformation_gradient(X, t))
+
+    def body_force(self, X, t):
+        """b_i = pi^2 U_i (mu / rho0 - c^2 - (lambda (ln J - 1) - mu) / (rho0 F_ii^2))."""
+        lam, mu = lame_parameters(self.E, self.nu)
+        U = self.displacement(X, t)
+        F = self.deformation_gradient(X, t)
+        lnJ = np.log(F[:, 0, 0] * F[:, 1, 1])
+        out = np.empty_like(U)
+        for i in range(2):
+            out[:, i] = np.pi ** 2 * U[:, i] * (
+                mu / self.rho0 - self.c ** 2 - (lam * (lnJ - 1) - mu) / (self.rho0 * F[:, i, i] ** 2))
+        return out
+
+    def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
+        grid = SplineGrid.rectangle((0, 1), (0, 1), cells, degree)
+        particles = Particles.seed(grid, ppc, self.rho0, layout=layout, seed=0,
+                                   velocity=lambda X: self.velocity(X, 0.0))
+        return Scene(grid, Body(particles, NeoHookean(self.E, self.nu)), t_end or self.t_end,
+                     effects=_sliding_walls() + [BodyForce(self.body_force)])
+
+
+# ----------------------------------------------------------------------- D2
+class VibratingPlate2D(Benchmark):
+    """D2: the dilatational mode of a plate with sliding walls (linear
+    elastic, plane strain), exact."""
+
+    name = "vibrating-plate-2d"
+    title = "D2 vibrating plate (linear elastic, 2D)"
+    dim = 2
+    defaults = {"E": 100.0, "nu": 0.3, "rho": 1.0, "A": 1e-3, "t_end": None}
+    variants = {"small": {"A": 1e-7}, "large": {"A": 1e-3}}
+
+    @property
+    def omega(self):
+        lam, mu = lame_parameters(self.E, self.nu)
+        return float(np.pi * np.sqrt(2 * (lam + 2 * mu) / self.rho))
+
+    def default_t_end(self):
+        return np.pi / (2 * self.omega)
+
+    @property
+    def amplitude(self):
+        return self.A
+
+    def velocity_amplitude(self):
+        return self.A * self.omega
+
+    def stress_amplitude(self):
+        lam, mu = lame_parameters(self.E, self.nu)
+        return (lam + 2 * mu) * self.A * np.pi
+
+    def _shape(self, X):
+        x, y = X[:, 0], X[:, 1]
+        return np.column_stack((np.sin(np.pi * x) * np.cos(np.pi * y),
+                                np.cos(np.pi * x) * np.sin(np.pi * y)))
+
+    def displacement(self, X, t):
+        return self.A * np.sin(self.omega * t) * self._shape(X)
+
+    def velocity(self, X, t):
+        return self.A * self.omega * np.cos(self.omega * t) * self._shape(X)
+
+    def stress(self, X, t):
+        lam, mu = lame_parameters(self.E, self.nu)
+        x, y = X[:, 0], X[:, 1]
+        s = self.A * np.pi * np.sin(self.omega * t)
+        exx = s * np.cos(np.pi * x) * np.cos(np.pi * y)
+        eyy = exx
+        exy = -s * np.sin(np.pi * x) * np.sin(np.pi * y)
+        out = np.zeros((X.shape[0], 2, 2))
+        out[:, 0, 0] = lam * (exx + eyy) + 2 * mu * exx
+        out[:, 1, 1] = lam * (exx + eyy) + 2 * mu * eyy
+        out[:, 0, 1] = out[:, 1, 0] = 2 * mu * exy
+        return out
+
+    def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
+        grid = SplineGrid.rectangle((0, 1), (0, 1), cells, degree)
+        particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0,
+                                   velocity=lambda X: self.velocity(X, 0.0))
+        return Scene(grid, Body(particles, LinearElastic(self.E, self.nu)), t_end or self.t_end,
+                     effects=_sliding_walls())
+
+
+# ----------------------------------------------------------------------- D3
+class CollidingDisks(Benchmark):
+    """D3: two elastic disks collide and separate (Sulsky, Chen, Schreyer
+    1994). No exact solution: :meth:`checks` measures energy, momentum,
+    point symmetry and separation."""
+
+    name = "colliding-disks"
+    title = "D3 colliding disks"
+    dim = 2
+    has_exact = False
+    defaults = {"E": 1000.0, "nu": 0.3, "rho": 1000.0, "radius": 0.2, "speed": 0.1,
+                "t_end": 3.5}
+    variants = {"default": {}}
+
+    def default_t_end(self):
+        return 3.5
+
+    amplitude = 1.0
+
+    def scene(self, cells=20, degree=2, ppc=2, layout="uniform", fem=False, t_end=None):
+        grid = SplineGrid.rectangle((0, 1), (0, 1), cells, degree)
+        bodies = []
+        for centre, sign in (((0.2, 0.2), 1.0), ((0.8, 0.8), -1.0)):
+            disk = (lambda X, c=centre: (X[:, 0] - c[0]) ** 2 + (X[:, 1] - c[1]) ** 2
+                    < self.radius ** 2)
+            p = Particles.seed(grid, ppc, self.rho, layout=layout, region=disk, seed=0,
+                               velocity=np.array([sign * self.speed, sign * self.speed]))
+            bodies.append(Body(p, LinearElastic(self.E, self.nu)))
+        return Scene(grid, bodies, t_end or self.t_end)
+
+    def checks(self, result):
+        """Energy growth, momentum and symmetry figures of a run."""
+        e = result.energies["total"]
+        h = result.history
+        m = result.particles.m
+        first = result.particles.body == 0
+        p0 = np.linalg.norm(m[first] @ h["v"][0][first])
+        momentum = max(np.linalg.norm(m @ v) for v in h["v"]) / p0
+        # point reflection about (0.5, 0.5): particle i of disk 0 <-> its mirror in disk 1
+        x = h["x"][-1]
+        X = h["X"][0]
+        mirror = _mirror_index(X)
+        sym = float(np.abs(x + x[mirror] - 1.0).max())
+        d0 = x[first].mean(axis=0)
+        d1 = x[~first].mean(axis=0)
+        gap = float(np.linalg.norm(d1 - d0) - 2 * self.radius)
+        return {"energy_growth": float((e.max() - e[0]) / e[0]), "momentum": float(momentum),
+                "symmetry": sym, "centre_gap": gap}
+
+
+def _mirror_index(X):
+    from scipy.spatial import cKDTree
+
+    _, idx = cKDTree(X).query(1.0 - X)
+    return idx
+
+
+BENCHMARKS = {cls.name: cls for cls in (VibratingString, SoilColumn, TractionBar, NeoHookeanBar,
+                                        AxisAligned2D, VibratingPlate2D, CollidingDisks)}
+
+
+def get_benchmark(name, variant=None, **params):
+    """The benchmark ``name`` (see ``BENCHMARKS``) with a variant and overrides."""
+    if name not in BENCHMARKS:
+        raise ValueError(f"unknown benchmark {name!r}; valid: {', '.join(BENCHMARKS)}")
+    return BENCHMARKS[name](variant, **params)

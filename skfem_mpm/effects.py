@@ -1,0 +1,292 @@
+"""Effects: the opt-in terms of a scene. Each contributes one term.
+
+    Gravity(g)                        f_p = m_p g
+    BodyForce(b)                      f_p = m_p b(X_p, t)         (b per unit reference mass)
+    Traction(where, tau)              f_p = a_p tau(t)            (a_p: the particle's share
+                                                                   of the loaded surface)
+    Fixed(side, component=None)       v_i = 0 on the side's dofs
+    Prescribed(side, component, velocity)   v_i = velocity(t) on the side's dofs
+    Damping(alpha)                    f_i <- f_i - alpha |f_i| sign(v_i)   (local damping)
+
+A scene that does not declare an effect never evaluates it: there is no
+default gravity, no boundary search without a traction, no damping pass.
+Forces on particles reach the grid through the same transfer as every other
+particle quantity (N^T f_p); constraints act on grid dofs.
+"""
+import inspect
+
+import numpy as np
+
+from .validation import check_finite_array
+
+__all__ = ["Effect", "Gravity", "BodyForce", "Traction", "Fixed", "Prescribed", "Damping"]
+
+
+class Effect:
+    """Base class. ``kind`` is ``"force"`` (a force on particles),
+    ``"constraint"`` (grid dofs with known velocity) or ``"damping"``."""
+
+    kind = None
+
+    def check(self, grid):
+        """Validate against the scene's grid (raise ValueError)."""
+
+
+def _vector(name, value, dim):
+    a = np.atleast_1d(np.asarray(value, dtype=np.float64))
+    if a.shape != (dim,):
+        raise ValueError(f"{name} must have {dim} component(s) for a {dim}D grid, got {a.shape}")
+    return check_finite_array(name, a)
+
+
+class Gravity(Effect):
+    """Gravitational acceleration in the user's axes: ``Gravity((0.0, -9.81))``
+    in 2D, ``Gravity(-9.81)`` in 1D (negative points toward -x)."""
+
+    kind = "force"
+
+    def __init__(self, g):
+        self.g = np.atleast_1d(np.asarray(g, dtype=np.float64))
+        check_finite_array("g", self.g)
+
+    def __repr__(self):
+        return f"Gravity({self.g.tolist()})"
+
+    def check(self, grid):
+        self.g = _vector("g", self.g, grid.dim)
+
+    def bind(self, particles):
+        return self
+
+    def forces(self, particles, t):
+        return particles.m[:, None] * self.g[None, :]
+
+
+class BodyForce(Effect):
+    """A body force per unit reference mass ``b(X, t)``, X of shape (n, dim);
+    returns (n, dim) (or (n,) in 1D). Used by manufactured solutions."""
+
+    kind = "force"
+
+    def __init__(self, b):
+        if not callable(b):
+            raise ValueError(f"BodyForce needs a callable b(X, t), got {b!r}")
+        self.b = b
+
+    def __repr__(self):
+        return f"BodyForce({getattr(self.b, '__name__', 'b')})"
+
+    def bind(self, particles):
+        return self
+
+    def forces(self, particles, t):
+        n, dim = particles.n, particles.dim
+        b = np.asarray(self.b(particles.X, t), dtype=np.float64)
+        if dim == 1 and b.shape == (n,):
+            b = b[:, None]
+        if b.shape != (n, dim):
+            raise ValueError(f"BodyForce b(X, t) must return shape ({n}, {dim}), got {b.shape}")
+        return particles.m[:, None] * b
+
+
+def _positional_count(fn):
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return 1
+    return sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) for p in params)
+
+
+SIDES = ("left", "right", "bottom", "top")
+
+
+class Traction(Effect):
+    """A force per unit area of the body's surface (per unit cross-section in 1D).
+
+    ``where`` is a side of the body (``'left'``, ``'right'``, ``'bottom'``,
+    ``'top'``) or a boolean particle mask. ``tau(t)`` or ``tau(x, t)``
+    returns the traction vector (a float in 1D); a normal pressure p on the
+    top side is ``Traction('top', lambda t: (0.0, -p))``.
+
+    The force is carried by the particles of a surface layer of thickness
+    ``depth`` (in the reference configuration), each with the area share
+    a_p = V0_p / depth:
+
+    * side name: the particles whose reference coordinate lies within
+      ``depth`` (default: one cell of the grid) of the outermost particle on
+      that side, so a uniform seeding puts exactly one cell's worth of
+      material in the layer and the total force is tau times the side's area;
+    * mask: the masked particles; ``depth`` defaults (1D only) to their total
+      volume, so the total force is tau.
+
+    With ``fem`` a side name loads the grid's side with Gauss quadrature.
+    """
+
+    kind = "force"
+
+    def __init__(self, where, tau, depth=None, body=None):
+        if isinstance(where, str):
+            if where not in SIDES:
+                raise ValueError(f"where must be one of {SIDES} or a boolean mask, got {where!r}")
+        else:
+            where = np.asarray(where)
+            if where.dtype != bool or where.ndim != 1:
+                raise ValueError("where must be a side name or a 1-D boolean particle mask")
+            if not where.any():
+                raise ValueError("the traction mask selects no particle")
+        if not callable(tau):
+            value = np.atleast_1d(np.asarray(tau, dtype=np.float64))
+            tau = (lambda t, _v=value: _v)
+        self.where = where
+        self.tau = tau
+        self._takes_x = _positional_count(tau) >= 2
+        if depth is not None and not (np.isfinite(depth) and depth > 0):
+            raise ValueError(f"depth must be finite and > 0, got {depth!r}")
+        self.depth = depth
+        self.body = body
+
+    def __repr__(self):
+        where = self.where if isinstance(self.where, str) else f"mask({int(self.where.sum())})"
+        return f"Traction({where!r})"
+
+    def check(self, grid):
+        if isinstance(self.where, str) and grid.dim == 1 and self.where not in ("left", "right"):
+            raise ValueError(f"where must be 'left' or 'right' in 1D, got {self.where!r}")
+
+    def traction(self, x, t):
+        return self.tau(x, t) if self._takes_x else self.tau(t)
+
+    def bind(self, particles, grid):
+        """The loaded particles and their area shares, fixed in the
+        reference configuration (called once per run)."""
+        dim = particles.dim
+        if isinstance(self.where, str):
+            axis = 0 if self.where in ("left", "right") else 1
+            sign = 1.0 if self.where in ("right", "top") else -1.0
+            depth = self.depth if self.depth is not None else float(grid.h[axis])
+            coord = sign * particles.X[:, axis]
+            candidates = np.ones(particles.n, dtype=bool) if self.body is None \
+                else particles.body == self.body
+            edge = coord[candidates].max()
+            mask = candidates & (coord > edge - depth * (1 - 1e-9))
+        else:
+            mask = self.where
+            if mask.shape != (particles.n,):
+                raise ValueError(
+                    f"the traction mask has {mask.shape[0]} entries for {particles.n} particles"
+                )
+            depth = self.depth
+            if depth is None:
+                if dim != 1:
+                    raise ValueError("a traction on a particle mask in 2D needs depth= "
+                                     "(the thickness of the loaded layer)")
+                depth = float(particles.V0[mask].sum())
+        return BoundTraction(self, np.flatnonzero(mask), particles.V0[mask] / depth)
+
+
+class BoundTraction:
+    """A traction bound to its particles (indices and area shares)."""
+
+    kind = "force"
+
+    def __init__(self, effect, index, share):
+        self.effect = effect
+        self.index = index
+        self.share = share
+
+    def forces(self, particles, t):
+        dim, k = particles.dim, self.index.size
+        x = particles.x[self.index]
+        tau = np.asarray(self.effect.traction(x, t), dtype=np.float64)
+        if tau.ndim == 2 or (dim == 1 and tau.shape == (k,) and k > 1):
+            tau = tau.reshape(k, dim)
+        elif tau.size == dim:
+            tau = np.broadcast_to(tau.reshape(dim), (k, dim))
+        else:
+            raise ValueError(f"tau must return {dim} component(s) (or ({k}, {dim})), got {tau.shape}")
+        out = np.zeros((particles.n, dim))
+        out[self.index] = self.share[:, None] * tau
+        return out
+
+
+def _check_component(component, dim):
+    if component is None:
+        return tuple(range(dim))
+    if isinstance(component, bool) or not isinstance(component, (int, np.integer)) \
+            or not 0 <= component < dim:
+        raise ValueError(f"component must be None or an integer in [0, {dim - 1}], got {component!r}")
+    return (int(component),)
+
+
+class Fixed(Effect):
+    """Zero velocity (and displacement) of the spline dofs on a grid side:
+    ``component`` 0/1 fixes one component (a sliding wall fixes the normal
+    one), None all of them."""
+
+    kind = "constraint"
+
+    def __init__(self, side, component=None):
+        self.side = side
+        self.component = component
+
+    def __repr__(self):
+        return f"Fixed({self.side!r}, component={self.component})"
+
+    def check(self, grid):
+        grid.boundary_dofs(self.side)
+        _check_component(self.component, grid.dim)
+
+    def constraints(self, grid):
+        """[(component, scalar dofs, velocity(t) or None)]"""
+        dofs = grid.boundary_dofs(self.side)
+        return [(c, dofs, None) for c in _check_component(self.component, grid.dim)]
+
+
+class Prescribed(Effect):
+    """A prescribed velocity ``velocity(t)`` of one component on a grid side
+    (moving walls, loading plates)."""
+
+    kind = "constraint"
+
+    def __init__(self, side, component, velocity):
+        if not callable(velocity):
+            value = float(velocity)
+            velocity = (lambda t, _v=value: _v)
+        self.side = side
+        self.component = component
+        self.velocity = velocity
+
+    def __repr__(self):
+        return f"Prescribed({self.side!r}, component={self.component})"
+
+    def check(self, grid):
+        grid.boundary_dofs(self.side)
+        if self.component is None:
+            raise ValueError("Prescribed needs a component (0 or 1)")
+        _check_component(self.component, grid.dim)
+
+    def constraints(self, grid):
+        return [(int(self.component), grid.boundary_dofs(self.side), self.velocity)]
+
+
+class Damping(Effect):
+    """Local (non-viscous) damping of geomechanics codes (Cundall 1987;
+    Al-Kafaji 2013, Sec. 3.5): every grid force component is reduced by
+    alpha times its magnitude against the direction of the grid velocity,
+
+        f_i <- f_i - alpha |f_i| sign(v_i),      0 <= alpha < 1.
+    """
+
+    kind = "damping"
+
+    def __init__(self, alpha):
+        if isinstance(alpha, bool) or not isinstance(alpha, (int, float, np.floating)) \
+                or not 0.0 <= float(alpha) < 1.0:
+            raise ValueError(f"alpha must be a number in [0, 1), got {alpha!r}")
+        self.alpha = float(alpha)
+
+    def __repr__(self):
+        return f"Damping({self.alpha:g})"
+
+    def apply(self, force, velocity):
+        return force - self.alpha * np.abs(force) * np.sign(velocity)

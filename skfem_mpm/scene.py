@@ -1,0 +1,76 @@
+"""A scene: a grid, bodies (particles + material), effects and an end time."""
+import numpy as np
+
+from .effects import Effect
+from .materials import Material
+from .particles import Particles
+from .validation import check_positive
+
+__all__ = ["Body", "Scene"]
+
+
+class Body:
+    """Particles of one material."""
+
+    def __init__(self, particles, material):
+        if not isinstance(particles, Particles):
+            raise ValueError(f"particles must be a Particles object, got {type(particles).__name__}")
+        if not isinstance(material, Material):
+            raise ValueError(f"material must be a Material (e.g. LinearElastic), got {material!r}")
+        material.check_dim(particles.dim)
+        self.particles = particles
+        self.material = material
+
+    def __repr__(self):
+        return f"Body({self.particles!r}, {self.material!r})"
+
+
+class Scene:
+    """What to simulate: ``Scene(grid, bodies, t_end, effects=())``.
+
+    ``bodies`` is a Body or a list of them, ``effects`` a sequence of
+    :mod:`skfem_mpm.effects` objects; only declared effects are simulated.
+    ``simulate`` and ``fem`` never modify a scene.
+    """
+
+    def __init__(self, grid, bodies, t_end, effects=()):
+        if isinstance(bodies, Body):
+            bodies = [bodies]
+        bodies = list(bodies)
+        if not bodies or not all(isinstance(b, Body) for b in bodies):
+            raise ValueError("bodies must be a Body or a non-empty list of Body objects")
+        for i, b in enumerate(bodies):
+            if b.particles.dim != grid.dim:
+                raise ValueError(
+                    f"body {i} has {b.particles.dim}D particles on a {grid.dim}D grid"
+                )
+            grid.locate(b.particles.x)  # raises for particles outside the grid
+        self.grid = grid
+        self.bodies = bodies
+        self.t_end = check_positive("t_end", t_end)
+        effects = tuple(effects)
+        for e in effects:
+            if not isinstance(e, Effect):
+                raise ValueError(f"effects must be Effect objects (Gravity, Fixed, ...), got {e!r}")
+            e.check(grid)
+        self.effects = effects
+
+    @property
+    def finite_strain(self):
+        return any(b.material.finite_strain for b in self.bodies)
+
+    def particles(self):
+        """All bodies' particles in one set (a copy), ``body`` = body index,
+        with F = I when some material needs finite strain."""
+        parts = [b.particles for b in self.bodies]
+        if self.finite_strain:
+            parts = [p.copy() for p in parts]
+            for p in parts:
+                if p.F is None:
+                    p.F = np.broadcast_to(np.eye(p.dim), (p.n, p.dim, p.dim)).copy()
+        out = Particles.concatenate(parts, bodies=range(len(parts)))
+        return out
+
+    def __repr__(self):
+        return (f"Scene({self.grid!r}, bodies={len(self.bodies)}, t_end={self.t_end:g}, "
+                f"effects={list(self.effects)})")

@@ -1,0 +1,340 @@
+"""``fem``: the same scene solved with standard FEM and Gauss quadrature.
+
+The reference for every MPM study: the grid's own space (B-splines or
+Lagrange), Gauss quadrature with p + 1 points per axis, a total Lagrangian
+formulation for finite strain (small strain otherwise), the same mass type
+and the same explicit integrator as the MPM method:
+
+    M a^n = f_ext(t^n) - f_int(u^n)
+    v^(n+1) = v^n + dt a^n,   u^(n+1) = u^n + dt v^(n+1)     (musl/usl/usf)
+    the first velocity step is halved for 'cd' (central difference)
+
+    f_int,i = sum_g w_g sigma(eps(u))(X_g) grad N_i(X_g)          (small strain)
+    f_int,i = sum_g w_g P(I + grad_X u)(X_g) grad_X N_i(X_g)      (finite strain)
+
+Gauss points are particles that do not move, so the same transfer matrices
+serve both methods. The scene's particles are carried as material points:
+their displacement is interpolated at their reference positions, so errors
+are measured at the same points as MPM's. The body must fill the grid.
+Initial velocity (and stress) fields are fitted from the particles by
+mass-weighted discrete least squares (which reproduces every field of the
+space, so it keeps the order p + 1).
+"""
+import time
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.spatial import cKDTree
+
+from ..effects import Traction
+from ..errors import SimulationError
+from ..kernels import resolve_backend
+from ..particles import Particles
+from ..quadrature import transfer_matrices
+from .grid_system import Constraints, GridSystem
+from .method import Method
+from .result import Recorder
+from .timestep import critical_time_step
+from .timing import PhaseTimer
+
+__all__ = ["fem"]
+
+
+def _check_fills_grid(scene, particles):
+    grid = scene.grid
+    grid_volume = float(np.prod([hi - lo for lo, hi in grid.bounds])) if hasattr(
+        grid, "breakpoints") else float(np.sum(grid.gauss_rule(1)[1]))
+    volume = float(particles.V0.sum())
+    cells, _ = grid.locate(particles.X)
+    empty = grid.ncells - np.unique(cells).size
+    if abs(volume - grid_volume) > 1e-9 * grid_volume or empty:
+        raise ValueError(
+            f"fem needs a body that fills the grid: the particles cover a volume of "
+            f"{volume:.6g} of the grid's {grid_volume:.6g} and leave {empty} cell(s) empty; "
+            f"build the FEM scene on a grid that matches the body")
+
+
+def _side_rule(grid, side, k):
+    """Gauss points and weights on a side of the grid."""
+    if grid.dim == 1:
+        lo, hi = grid.bounds[0]
+        return np.array([[lo if side == "left" else hi]]), np.ones(1)
+    axis = 0 if side in ("left", "right") else 1
+    other = 1 - axis
+    value = grid.bounds[axis][0 if side in ("left", "bottom") else 1]
+    breaks = grid.breakpoints[other]
+    ref, wref = np.polynomial.legendre.leggauss(k)
+    ref, wref = 0.5 * (ref + 1.0), 0.5 * wref
+    h = np.diff(breaks)
+    s = (breaks[:-1, None] + h[:, None] * ref[None, :]).ravel()
+    w = (h[:, None] * wref[None, :]).ravel()
+    x = np.empty((s.size, 2))
+    x[:, axis] = value
+    x[:, other] = s
+    return x, w
+
+
+class _FemModel:
+    """Gauss-point data and operators of one FEM run."""
+
+    def __init__(self, scene, method, particles, timer):
+        grid = scene.grid
+        self.grid, self.method, self.timer = grid, method, timer
+        k = grid.degree + 1
+        with timer("basis"):
+            xg, wg, _ = grid.gauss_rule(k)
+            self.Ng, self.Gg = transfer_matrices(grid, xg)
+            self.Np, self.Gp = transfer_matrices(grid, particles.X)
+        nearest = cKDTree(particles.X).query(xg)[1]
+        rho = (particles.m / particles.V0)[nearest]
+        body = particles.body[nearest]
+        self.gauss = Particles(xg, rho * wg, wg.copy(), body=body)
+        self.wg, self.rho = wg, rho
+        self.materials = [b.material for b in scene.bodies]
+        self.groups = [(m, np.flatnonzero(body == i)) for i, m in enumerate(self.materials)]
+        self.groups = [(m, idx) for m, idx in self.groups if idx.size]
+        self.finite = scene.finite_strain
+        dim = grid.dim
+        if self.finite:
+            self.gauss.F = np.broadcast_to(np.eye(dim), (xg.shape[0], dim, dim)).copy()
+        with timer("p2g"):
+            NgT = self.Ng.T.tocsr()
+            M = (NgT @ self.Ng.multiply((rho * wg)[:, None]).tocsr()).tocsr()
+            self.lumped = np.asarray(M.sum(axis=1)).ravel()
+            self.consistent = M if method.mass == "consistent" else None
+        self.NgT = NgT
+        self.GgT = tuple(G.T.tocsr() for G in self.Gg)
+        # initial fields by mass-weighted least squares at the particles
+        NpT = self.Np.T.tocsr()
+        A = (NpT @ self.Np.multiply(particles.m[:, None]).tocsr()).tocsc()
+        self._fit = spla.factorized(A + sp.identity(A.shape[0]) * 1e-300)
+        self.v0 = self._fit(NpT @ (particles.m[:, None] * particles.v))
+        s0 = particles.stress
+        self.has_initial_stress = bool(np.any(s0 != 0))
+        if self.has_initial_stress:
+            if self.finite:
+                raise ValueError("fem with a finite-strain material starts stress-free; "
+                                 "the scene's particles carry an initial stress")
+            coeffs = self._fit(NpT @ (particles.m[:, None] * s0.reshape(s0.shape[0], -1)))
+            self.stress0_g = (self.Ng @ coeffs).reshape(-1, dim, dim)
+            self.stress0_p = (self.Np @ coeffs).reshape(-1, dim, dim)
+        forces = [e for e in scene.effects if e.kind == "force"]
+        self.gravity = [e for e in forces if e.__class__.__name__ == "Gravity"]
+        self.body_forces = [e for e in forces if e.__class__.__name__ == "BodyForce"]
+        self.tractions = []
+        for e in forces:
+            if isinstance(e, Traction):
+                if not isinstance(e.where, str):
+                    raise ValueError("fem applies tractions on named sides; this scene loads "
+                                     "a particle mask (use a side name such as 'right')")
+                xs, ws = _side_rule(grid, e.where, k)
+                Ns, _ = transfer_matrices(grid, xs)
+                self.tractions.append((e, xs, ws, Ns))
+        self.damping = [e for e in scene.effects if e.kind == "damping"]
+        with timer("effects"):
+            self.f_gravity = sum((NgT @ (rho * wg)[:, None] * e.g[None, :] for e in self.gravity),
+                                 np.zeros((grid.ndofs, dim))) if self.gravity else None
+
+    def gradient(self, G, u):
+        return np.stack([Gd @ u for Gd in G], axis=-1)  # (n, comps, dim)
+
+    def stress_at(self, grad_u, body, initial=None):
+        """First Piola stress and F (finite strain), or Cauchy stress and None
+        (small strain: sigma0 + C : eps), at points of the given bodies."""
+        dim = grad_u.shape[-1]
+        out = np.zeros_like(grad_u) if initial is None else initial.copy()
+        F = np.eye(dim) + grad_u if self.finite else None
+        eps = None if self.finite else 0.5 * (grad_u + np.swapaxes(grad_u, 1, 2))
+        for i, m in enumerate(self.materials):
+            idx = np.flatnonzero(body == i)
+            if not idx.size:
+                continue
+            if self.finite:
+                out[idx] = m.first_piola(F[idx])
+            elif dim == 1:
+                out[idx] += m.E * eps[idx]
+            else:
+                e = eps[idx]
+                tr = e[:, 0, 0] + e[:, 1, 1]
+                s = 2 * m.mu * e
+                s[:, 0, 0] += m.lam * tr
+                s[:, 1, 1] += m.lam * tr
+                out[idx] += s
+        return out, F
+
+    def cauchy(self, F, body):
+        out = np.zeros_like(F)
+        for i, m in enumerate(self.materials):
+            idx = body == i
+            if idx.any():
+                out[idx] = m.cauchy_stress(F[idx])
+        return out
+
+    def internal_force(self, u):
+        with self.timer("constitutive"):
+            grad_u = self.gradient(self.Gg, u)
+            init = self.stress0_g if self.has_initial_stress else None
+            S, F = self.stress_at(grad_u, self.gauss.body, init)
+        with self.timer("p2g"):
+            ws = self.wg[:, None, None] * S
+            f = -sum(self.GgT[d] @ ws[:, :, d] for d in range(len(self.GgT)))
+        return f, S, F
+
+    def external_force(self, u, t):
+        if not (self.gravity or self.body_forces or self.tractions):
+            return None
+        with self.timer("effects"):
+            f = np.zeros_like(u) if self.f_gravity is None else self.f_gravity.copy()
+            for e in self.body_forces:
+                g = self.gauss
+                b = np.asarray(e.b(g.x, t), dtype=np.float64).reshape(g.n, -1)
+                f += self.NgT @ ((self.rho * self.wg)[:, None] * b)
+            for e, xs, ws, Ns in self.tractions:
+                x = xs + Ns @ u
+                tau = np.asarray(e.traction(x, t), dtype=np.float64)
+                tau = np.broadcast_to(tau.reshape(-1, u.shape[1]) if tau.ndim else tau,
+                                      (xs.shape[0], u.shape[1]))
+                f += Ns.T @ (ws[:, None] * tau)
+        return f
+
+
+class _FemState:
+    """Duck-typed stand-in for the MPM State in the Recorder."""
+
+    def __init__(self, scene, method, model, particles, timer):
+        self.scene, self.method, self.grid = scene, method, scene.grid
+        self.model, self.timer = model, timer
+        self.particles = particles
+        self.index = np.arange(particles.n)
+        self.t, self.step, self.removed = 0.0, 0, 0
+        self.external_work = 0.0
+        self.reactions = {}
+        self.small_dofs_max = 0
+        self.u = np.zeros((scene.grid.ndofs, scene.grid.dim))
+        self.v = model.v0.copy()
+        self.reference = particles
+
+    def reported_velocity(self):
+        return self.particles.v
+
+    def energies(self):
+        m = self.model
+        if m.consistent is not None:
+            kinetic = 0.5 * float(np.sum(self.v * (m.consistent @ self.v)))
+        else:
+            kinetic = 0.5 * float(np.sum(m.lumped[:, None] * self.v ** 2))
+        return kinetic, self.strain
+
+    def refresh_particles(self):
+        """Particle positions, velocities and stresses from the grid fields,
+        and the strain energy at the Gauss points."""
+        m, ref = self.model, self.reference
+        with self.timer("g2p"):
+            u_p = m.Np @ self.u
+            grad_u = m.gradient(m.Gp, self.u)
+            init = m.stress0_p if m.has_initial_stress else None
+            S, F = m.stress_at(grad_u, ref.body, init)
+            stress = m.cauchy(F, ref.body) if m.finite else S
+            self.particles = ref.replaced(x=ref.X + u_p, v=m.Np @ self.v, stress=stress,
+                                          F=F if m.finite else ref.F)
+        g = m.gauss
+        energy = 0.0
+        for mat, idx in m.groups:
+            sub = g.subset(idx)
+            if m.finite:
+                sub = sub.replaced(F=self._F_g[idx])
+            else:
+                sub = sub.replaced(stress=self._S_g[idx])
+            energy += mat.strain_energy(sub)
+        self.strain = energy
+
+
+def fem(scene, method=None, save_every=None, progress=False):
+    """Solve ``scene`` with Gauss-quadrature FEM on its grid (see the module
+    docstring); returns the same :class:`Result` type as ``simulate``.
+    The reconstruction option of ``method`` does not apply and is ignored."""
+    method = Method() if method is None else method
+    if not isinstance(method, Method):
+        raise ValueError(f"method must be a Method, got {method!r}")
+    if save_every is not None and (isinstance(save_every, bool) or int(save_every) != save_every
+                                   or save_every < 1):
+        raise ValueError(f"save_every must be a positive integer, got {save_every!r}")
+    resolve_backend(method.backend)
+    timer = PhaseTimer()
+    particles = scene.particles()
+    _check_fills_grid(scene, particles)
+    model = _FemModel(scene, method, particles, timer)
+    state = _FemState(scene, method, model, particles, timer)
+    constraints = Constraints(scene.grid, [e for e in scene.effects if e.kind == "constraint"])
+    solver = method.mass_solver if method.mass_solver != "auto" else "direct"
+    system = GridSystem(model.lumped, constraints, model.consistent, None, 0.0, solver, {})
+    state.constraints = constraints
+    # time step
+    def wave_speed():
+        g = model.gauss
+        return max(mat.wave_speed(g.subset(idx) if len(model.groups) > 1 else g)
+                   for mat, idx in model.groups)
+    dt_crit = critical_time_step(scene.grid, wave_speed(), method.mass)
+    if method.dt is not None and method.dt > dt_crit and not method.allow_unstable:
+        raise ValueError(f"dt = {method.dt:.6g} exceeds the critical time step dt_crit = "
+                         f"{dt_crit:.6g}; use a smaller dt or allow_unstable=True")
+    dt = method.dt if method.dt is not None else method.cfl * dt_crit
+    n_steps = max(1, int(np.ceil(scene.t_end / dt * (1 - 1e-12))))
+    dt = scene.t_end / n_steps
+    state.dt, state.dt_crit = dt, dt_crit
+    # initial state
+    f_int, S, F = model.internal_force(state.u)
+    state._S_g, state._F_g = S, F
+    state.refresh_particles()
+    recorder = Recorder()
+    recorder.save(state)
+    values = constraints.values
+    t0 = time.perf_counter()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        import sys
+
+        bar = tqdm(total=n_steps, unit="step", disable=not sys.stderr.isatty(), leave=False)
+    for n in range(n_steps):
+        t = n * dt
+        force = f_int
+        f_ext = model.external_force(state.u, t)
+        if f_ext is not None:
+            force = force + f_ext
+        if model.damping:
+            for d in model.damping:
+                force = d.apply(force, state.v)
+        with timer("solve"):
+            a_values = (values(t + dt) - values(t)) / dt if constraints.prescribed \
+                else np.zeros_like(force)
+            a = system.solve(force, a_values, "acceleration")
+            if constraints.any:
+                state.reactions = constraints.reactions(system.residual(a, force))
+            factor = 0.5 if (method.scheme == "cd" and n == 0) else 1.0
+            state.v = state.v + factor * dt * a
+            du = dt * state.v
+            if f_ext is not None:
+                state.external_work += float(np.sum(f_ext * du))
+            state.u = state.u + du
+        f_int, S, F = model.internal_force(state.u)
+        if not (np.all(np.isfinite(state.u)) and np.all(np.isfinite(state.v))):
+            result = recorder.result(state, time.perf_counter() - t0, 0.0, kind="fem")
+            raise SimulationError(f"fem step {n + 1} produced NaN or Inf", result=result,
+                                  step=n + 1, time=t)
+        state._S_g, state._F_g = S, F
+        state.step = n + 1
+        state.t = state.step * dt if state.step < n_steps else scene.t_end
+        if bar is not None:
+            bar.update(1)
+        if save_every is not None and state.step % save_every == 0:
+            state.refresh_particles()
+            recorder.save(state)
+    if bar is not None:
+        bar.close()
+    if recorder.last_step_saved != state.step:
+        state.refresh_particles()
+        recorder.save(state)
+    return recorder.result(state, time.perf_counter() - t0, 0.0, kind="fem",
+                           extra={"grid_displacement": state.u, "grid_velocity": state.v})

@@ -1,0 +1,101 @@
+"""``Method``: how a scene is solved (scheme, mass, reconstruction, dt)."""
+import numbers
+
+from ..validation import check_choice, check_positive
+
+__all__ = ["Method", "SCHEMES", "MASSES", "RECONSTRUCTIONS"]
+
+SCHEMES = ("musl", "usl", "usf", "cd")
+MASSES = ("lumped", "consistent")
+RECONSTRUCTIONS = ("none", "spline", "tls", "mls")
+ON_EXIT = ("raise", "remove")
+MASS_SOLVERS = ("auto", "direct", "cg")
+
+
+class Method:
+    """The numerical method of a run.
+
+    Parameters
+    ----------
+    scheme
+        ``"musl"`` (modified update-stress-last, Al-Kafaji 2013: particle
+        velocities from the nodal accelerations, nodal velocities recomputed
+        from the updated particle momentum, then strains and positions; the
+        default), ``"usl"`` (update stress last), ``"usf"`` (update stress
+        first) or ``"cd"`` (central difference: USL with staggered
+        velocities, second order in time).
+    mass
+        ``"lumped"`` (row sums) or ``"consistent"`` (sparse solve).
+    reconstruction
+        ``"none"`` (particles are the quadrature points), ``"spline"``,
+        ``"tls"``, ``"mls"`` (see :mod:`skfem_mpm.reconstruct`), or a callable
+        with the same signature as those functions.
+    dt
+        Time step; None means ``cfl * dt_crit``. A dt above dt_crit raises
+        ``ValueError`` unless ``allow_unstable``.
+    cfl
+        Fraction of the critical time step used when ``dt`` is None.
+    on_exit
+        ``"raise"``: a particle leaving the grid stops the run with
+        ``SimulationError``; ``"remove"``: it is removed and counted.
+    small_mass
+        Relative threshold of the tiny-mass guard (see
+        :mod:`skfem_mpm.solve.grid_system`); 0 disables it.
+    weak_support
+        Consistent mass only: dofs whose particles see their function only
+        weakly (M_ii < weak_support m_i) get lumped rows (see
+        :mod:`skfem_mpm.solve.grid_system`); 0 disables it.
+    mass_solver
+        ``"direct"`` (sparse LU), ``"cg"`` (lumped-preconditioned conjugate
+        gradients, warm started) or ``"auto"`` (direct below 20000 dofs).
+    backend
+        ``"numba"`` (compiled kernels where they apply), ``"numpy"`` (the
+        reference) or None (the default, see :mod:`skfem_mpm.kernels`).
+    reconstruction_options
+        Keyword arguments passed to the reconstruction function.
+    """
+
+    def __init__(self, scheme="musl", mass="lumped", reconstruction="none", dt=None, cfl=0.5,
+                 allow_unstable=False, on_exit="raise", small_mass=1e-3, weak_support=0.3,
+                 mass_solver="auto", backend=None, reconstruction_options=None):
+        self.scheme = check_choice("scheme", scheme, SCHEMES)
+        self.mass = check_choice("mass", mass, MASSES)
+        if not callable(reconstruction):
+            check_choice("reconstruction", reconstruction, RECONSTRUCTIONS)
+        self.reconstruction = reconstruction
+        self.dt = None if dt is None else check_positive("dt", dt)
+        self.cfl = check_positive("cfl", cfl)
+        if not isinstance(allow_unstable, bool):
+            raise ValueError(f"allow_unstable must be True or False, got {allow_unstable!r}")
+        self.allow_unstable = allow_unstable
+        self.on_exit = check_choice("on_exit", on_exit, ON_EXIT)
+        if isinstance(small_mass, bool) or not isinstance(small_mass, numbers.Real) \
+                or not 0 <= small_mass < 1:
+            raise ValueError(f"small_mass must be a number in [0, 1), got {small_mass!r}")
+        self.small_mass = float(small_mass)
+        if isinstance(weak_support, bool) or not isinstance(weak_support, numbers.Real) \
+                or not 0 <= weak_support < 1:
+            raise ValueError(f"weak_support must be a number in [0, 1), got {weak_support!r}")
+        self.weak_support = float(weak_support)
+        self.mass_solver = check_choice("mass_solver", mass_solver, MASS_SOLVERS)
+        if backend is not None:
+            check_choice("backend", backend, ("numba", "numpy"))
+        self.backend = backend
+        self.reconstruction_options = dict(reconstruction_options or {})
+
+    @property
+    def reconstruction_name(self):
+        r = self.reconstruction
+        return r if isinstance(r, str) else getattr(r, "__name__", "custom")
+
+    def as_dict(self):
+        return {"scheme": self.scheme, "mass": self.mass,
+                "reconstruction": self.reconstruction_name, "dt": self.dt, "cfl": self.cfl,
+                "allow_unstable": self.allow_unstable, "on_exit": self.on_exit,
+                "small_mass": self.small_mass, "weak_support": self.weak_support,
+                "mass_solver": self.mass_solver,
+                "backend": self.backend}
+
+    def __repr__(self):
+        args = ", ".join(f"{k}={v!r}" for k, v in self.as_dict().items())
+        return f"Method({args})"

@@ -1,0 +1,147 @@
+"""``Result`` of a run (MPM or FEM) and the recorder that fills it."""
+import numpy as np
+
+from .timing import PHASES
+
+__all__ = ["Result", "Recorder"]
+
+HISTORY_FIELDS = ("X", "x", "u", "v", "stress", "index")
+ENERGY_FIELDS = ("kinetic", "strain", "external_work", "total")
+
+
+class Result:
+    """What a run returns.
+
+    Attributes
+    ----------
+    particles
+        The final (or, after a failure, last good) particle state.
+    times
+        Saved times, shape (saves,).
+    history
+        Per save: ``X`` reference positions, ``x`` positions, ``u``
+        displacements, ``v`` velocities, ``stress``, ``index`` (each
+        particle's index in the initial set; differs only after removals).
+        Stacked into arrays of shape (saves, n, ...) when no particle was
+        removed, otherwise lists.
+    energies
+        Per save: ``kinetic``, ``strain``, ``external_work`` (work done by
+        the declared forces since t = 0) and ``total`` = kinetic + strain.
+    reactions
+        Per save, {effect: total reaction force (dim,)} of Fixed/Prescribed.
+    timings
+        Seconds per phase (locate, basis, p2g, solve, g2p, constitutive,
+        reconstruct, effects); ``phase_counts`` how often each ran.
+    counts
+        particles, cells, dofs, steps, removed, small_dofs_max.
+    dt, dt_crit, wall_time, jit_time, method, kind ('mpm' or 'fem').
+    """
+
+    def __init__(self, **fields):
+        for k, v in fields.items():
+            setattr(self, k, v)
+
+    @property
+    def final_time(self):
+        return float(self.times[-1])
+
+    def phase_table(self):
+        return {p: float(self.timings.get(p, 0.0)) for p in PHASES}
+
+    def save(self, path, grid=True):
+        """Write the saved states as a VTU time series with a ParaView
+        ``.pvd`` collection (see :func:`skfem_mpm.io.save_result`)."""
+        from ..io import save_result
+
+        return save_result(self, path, grid=grid)
+
+    def summary(self):
+        """A flat dict of the run's numbers (for tables and JSON)."""
+        return {
+            "kind": self.kind,
+            **{k: v for k, v in self.method.items()},
+            "particles": self.counts["particles"], "cells": self.counts["cells"],
+            "dofs": self.counts["dofs"], "steps": self.counts["steps"],
+            "dt": self.dt, "wall_time_s": self.wall_time, "jit_time_s": self.jit_time,
+            "phase_times": self.phase_table(),
+        }
+
+    def __repr__(self):
+        return (f"Result({self.kind}, t={self.final_time:g}, steps={self.counts['steps']}, "
+                f"particles={self.counts['particles']}, wall={self.wall_time:.3g}s)")
+
+
+class Recorder:
+    """Collects saves during a run and builds the Result."""
+
+    def __init__(self):
+        self.times = []
+        self.history = {k: [] for k in HISTORY_FIELDS}
+        self.energies = {k: [] for k in ENERGY_FIELDS}
+        self.reactions = []
+        self.last_step_saved = None
+
+    def save(self, state):
+        p = state.particles
+        self.times.append(float(state.t))
+        v = state.reported_velocity()
+        self.history["X"].append(p.X.copy())
+        self.history["x"].append(p.x.copy())
+        self.history["u"].append(p.x - p.X)
+        self.history["v"].append(np.array(v, copy=True))
+        self.history["stress"].append(p.stress.copy())
+        self.history["index"].append(state.index.copy())
+        kinetic, strain = state.energies()
+        self.energies["kinetic"].append(kinetic)
+        self.energies["strain"].append(strain)
+        self.energies["external_work"].append(float(state.external_work))
+        self.energies["total"].append(kinetic + strain)
+        self.reactions.append({k: v.copy() for k, v in state.reactions.items()})
+        self.last_step_saved = state.step
+
+    def result(self, state, wall_time, jit_time, kind="mpm", extra=None):
+        same = len({a.shape for a in self.history["x"]}) == 1
+        history = {k: (np.stack(v) if same else list(v)) for k, v in self.history.items()}
+        timer = state.timer
+        counts = {
+            "particles": int(state.particles.n), "cells": int(state.grid.ncells),
+            "dofs": int(state.grid.ndofs), "steps": int(state.step),
+            "removed": int(state.removed),
+            "small_dofs_max": int(getattr(state, "small_dofs_max", 0)),
+        }
+        fields = dict(
+            particles=state.particles.copy(), times=np.array(self.times), history=history,
+            energies={k: np.array(v) for k, v in self.energies.items()},
+            reactions=list(self.reactions), timings=timer.table(),
+            phase_counts=dict(timer.counts), fused=dict(timer.fused), counts=counts,
+            dt=float(state.dt), dt_crit=float(state.dt_crit), wall_time=float(wall_time),
+            jit_time=float(jit_time), method=state.method.as_dict(), kind=kind,
+            grid=state.grid,
+        )
+        if extra:
+            fields.update(extra)
+        return Result(**fields)
+
+    # checkpoint support ------------------------------------------------------
+    def state_arrays(self):
+        out = {"rec_times": np.array(self.times)}
+        for k, v in self.history.items():
+            out[f"rec_n_{k}"] = np.array([a.shape[0] for a in v], dtype=np.int64)
+            out[f"rec_{k}"] = np.concatenate(v) if v else np.zeros(0)
+        for k, v in self.energies.items():
+            out[f"rec_e_{k}"] = np.array(v)
+        return out
+
+    @classmethod
+    def from_arrays(cls, data, reactions):
+        rec = cls()
+        rec.times = [float(t) for t in data["rec_times"]]
+        for k in HISTORY_FIELDS:
+            sizes = data[f"rec_n_{k}"]
+            flat = data[f"rec_{k}"]
+            rec.history[k] = [a.copy() for a in np.split(flat, np.cumsum(sizes)[:-1])] \
+                if sizes.size else []
+        for k in ENERGY_FIELDS:
+            rec.energies[k] = [float(x) for x in data[f"rec_e_{k}"]]
+        rec.reactions = reactions
+        return rec

@@ -1,0 +1,127 @@
+"""``simulate``: the MPM time loop over the named step functions."""
+import numbers
+import sys
+import time
+
+from ..errors import InvalidState, SimulationError
+from .method import Method
+from .result import Recorder
+from .schemes import SCHEME_STEPS
+from .state import prepare
+
+__all__ = ["simulate"]
+
+
+def _check_every(name, value):
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+        raise ValueError(f"{name} must be a positive integer number of steps, got {value!r}")
+    return int(value)
+
+
+def _check_checkpoint(checkpoint):
+    if checkpoint is None:
+        return None
+    try:
+        path, every = checkpoint
+    except (TypeError, ValueError):
+        raise ValueError(f"checkpoint must be a pair (path, every_steps), got {checkpoint!r}") \
+            from None
+    return path, _check_every("checkpoint every_steps", every)
+
+
+def _progress_bar(enabled, total):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="step", disable=not sys.stderr.isatty(), leave=False)
+
+
+def warm_up(state):
+    """Compile the kernels the run will use on a tiny input; returns seconds."""
+    if state.backend != "numba":
+        return 0.0
+    from ..kernels.warmup import warm_up_kernels
+
+    t0 = time.perf_counter()
+    warm_up_kernels(state.grid)
+    return time.perf_counter() - t0
+
+
+def simulate(scene, method=None, save_every=None, progress=False, callback=None,
+             checkpoint=None, restart=None):
+    """Run the MPM simulation of ``scene`` with ``method`` (default ``Method()``).
+
+    Parameters
+    ----------
+    save_every
+        Save the state every so many steps; None saves the initial and the
+        final state. Energies are recorded at every save.
+    progress
+        Show a progress bar (tqdm; hidden when stderr is not a terminal).
+    callback
+        ``callback(step, state)`` after every step; returning ``False``
+        stops the run there (the Result ends at that step).
+    checkpoint
+        ``(path, every_steps)``: write a restart file every so many steps.
+    restart
+        Path of a checkpoint to continue from (same scene and method).
+
+    Returns a :class:`~skfem_mpm.solve.result.Result`. Raises
+    :class:`~skfem_mpm.SimulationError` when the run cannot continue (NaN or
+    Inf, J <= 0, a particle leaving the grid with ``on_exit='raise'``); its
+    ``result`` holds the last good state. The scene is never modified.
+    """
+    method = Method() if method is None else method
+    if not isinstance(method, Method):
+        raise ValueError(f"method must be a Method, got {method!r}")
+    save_every = _check_every("save_every", save_every)
+    checkpoint = _check_checkpoint(checkpoint)
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback must be callable, got {callback!r}")
+    state = prepare(scene, method)
+    if restart is not None:
+        from ..io import read_checkpoint, restore_state
+
+        recorder = restore_state(state, read_checkpoint(restart))
+    else:
+        recorder = Recorder()
+        recorder.save(state)
+    step = SCHEME_STEPS[method.scheme]
+    jit_time = warm_up(state)
+    bar = _progress_bar(progress, state.n_steps)
+    t0 = time.perf_counter()
+    try:
+        while not state.done:
+            state.next_step_size()
+            last_good = state.particles
+            try:
+                data = step(state)
+            except InvalidState as exc:
+                state.particles = last_good
+                result = recorder.result(state, time.perf_counter() - t0, jit_time)
+                raise SimulationError(
+                    f"step {state.step + 1} (t = {state.t:.6g} -> {state.t + state.dt:.6g}) "
+                    f"failed: {exc}", result=result, step=state.step + 1, time=state.t,
+                    particle=exc.particle) from exc
+            if data.system is not None:
+                state.small_dofs_max = max(getattr(state, "small_dofs_max", 0),
+                                           data.system.small_dofs)
+            if bar is not None:
+                bar.update(1)
+            if save_every is not None and state.step % save_every == 0:
+                recorder.save(state)
+            if checkpoint is not None and state.step % checkpoint[1] == 0:
+                from ..io import write_checkpoint
+
+                write_checkpoint(checkpoint[0], state, recorder)
+            if callback is not None and callback(state.step, state) is False:
+                break
+    finally:
+        if bar is not None:
+            bar.close()
+    if recorder.last_step_saved != state.step:
+        recorder.save(state)
+    return recorder.result(state, time.perf_counter() - t0, jit_time)

@@ -1,0 +1,159 @@
+"""The state of a run: particles, time, step size, bound effects, timers."""
+import math
+
+import numpy as np
+
+from ..effects import Traction
+from ..kernels import resolve_backend
+from .grid_system import Constraints, dof_adjacency
+from .timestep import critical_time_step
+from .timing import PhaseTimer
+
+__all__ = ["State", "prepare"]
+
+
+class State:
+    """Everything one step reads and writes (see :func:`prepare`).
+
+    Attributes a user's own loop may read: ``particles`` (current), ``t``,
+    ``step``, ``dt``, ``dt_crit``, ``timer``, ``reactions`` (last step's
+    constraint reactions per effect), ``external_work``, ``removed``.
+    """
+
+    def __init__(self, scene, method, particles=None):
+        self.scene = scene
+        self.grid = scene.grid
+        self.method = method
+        self.backend = resolve_backend(method.backend)
+        self.timer = PhaseTimer()
+        self.particles = scene.particles() if particles is None else particles
+        self.index = np.arange(self.particles.n)
+        self.initial_count = self.particles.n
+        self.small_dofs_max = 0
+        self.t = 0.0
+        self.step = 0
+        self.removed = 0
+        self.external_work = 0.0
+        self.reactions = {}
+        self.warm = {}
+        self.particle_acceleration = None
+        self.reconstruct = None
+        self.materials = [b.material for b in scene.bodies]
+        self.forces_declared = [e for e in scene.effects if e.kind == "force"]
+        self.damping = [e for e in scene.effects if e.kind == "damping"]
+        self.constraints = Constraints(self.grid, [e for e in scene.effects
+                                                   if e.kind == "constraint"])
+        self.forces = []
+        self.bodies = []
+        if self.forces_declared:
+            with self.timer("effects"):
+                self._bind_forces()
+        self._bind_bodies()
+        self.adjacency = dof_adjacency(self.grid) if method.small_mass > 0 else None
+        solver = method.mass_solver
+        if solver == "auto":
+            solver = "direct" if self.grid.ndofs < 20000 else "cg"
+        self.mass_solver = solver
+        self._choose_time_step()
+
+    # --------------------------------------------------------------- binding
+    def _bind_forces(self):
+        self.forces = [e.bind(self.particles, self.grid) if isinstance(e, Traction)
+                       else e.bind(self.particles) for e in self.forces_declared]
+
+    def _bind_bodies(self):
+        body = self.particles.body
+        self.bodies = [(m, np.flatnonzero(body == b)) for b, m in enumerate(self.materials)]
+        self.bodies = [(m, idx) for m, idx in self.bodies if idx.size] or \
+            [(self.materials[0], np.arange(0))]
+
+    def rebind(self, keep):
+        """After particles were removed (``keep`` is the mask of survivors)."""
+        new_position = np.cumsum(keep) - 1
+        for f in self.forces:
+            if hasattr(f, "index"):
+                alive = keep[f.index]
+                f.index = new_position[f.index[alive]]
+                f.share = f.share[alive]
+        self._bind_bodies()
+
+    # ------------------------------------------------------------ time step
+    @property
+    def adaptive(self):
+        return self.method.dt is None and self.scene.finite_strain
+
+    def wave_speed(self):
+        p = self.particles
+        speeds = [m.wave_speed(p if len(self.bodies) == 1 else p.subset(idx))
+                  for m, idx in self.bodies if idx.size]
+        return max(speeds)
+
+    def _choose_time_step(self):
+        m = self.method
+        self.dt_crit = critical_time_step(self.grid, self.wave_speed(), m.mass)
+        t_end = self.scene.t_end
+        if m.dt is not None:
+            if m.dt > self.dt_crit and not m.allow_unstable:
+                raise ValueError(
+                    f"dt = {m.dt:.6g} exceeds the critical time step dt_crit = "
+                    f"{self.dt_crit:.6g} (degree {self.grid.degree}, {m.mass} mass); use a "
+                    f"smaller dt, dt=None (cfl * dt_crit) or allow_unstable=True")
+            dt = m.dt
+        else:
+            dt = m.cfl * self.dt_crit
+        if self.adaptive:
+            self.dt = min(dt, t_end)
+            self.n_steps = None
+        else:
+            self.n_steps = max(1, math.ceil(t_end / dt * (1 - 1e-12)))
+            self.dt = t_end / self.n_steps
+
+    def next_step_size(self):
+        """Set ``dt`` for the coming step (finite strain: from the current
+        wave speed; the last step ends exactly at t_end)."""
+        if not self.adaptive:
+            return self.dt
+        self.dt_crit = critical_time_step(self.grid, self.wave_speed(), self.method.mass)
+        remaining = self.scene.t_end - self.t
+        dt = self.method.cfl * self.dt_crit
+        self.dt = remaining if dt >= remaining * (1 - 1e-12) else dt
+        return self.dt
+
+    def t_next(self):
+        if self.adaptive:
+            return self.scene.t_end if self.finished_after_step() else self.t + self.dt
+        return self.step * self.dt if self.step < self.n_steps else self.scene.t_end
+
+    def finished_after_step(self):
+        return self.t + self.dt >= self.scene.t_end * (1 - 1e-14)
+
+    @property
+    def done(self):
+        if self.adaptive:
+            return self.t >= self.scene.t_end * (1 - 1e-14)
+        return self.step >= self.n_steps
+
+    # --------------------------------------------------------------- output
+    def reported_velocity(self):
+        """Particle velocities at the current time (the central-difference
+        scheme stores v at half steps and adds dt/2 of the last acceleration)."""
+        v = self.particles.v
+        if self.method.scheme == "cd" and self.particle_acceleration is not None:
+            return v + 0.5 * self.dt * self.particle_acceleration
+        return v
+
+    def energies(self):
+        p = self.particles
+        v = self.reported_velocity()
+        kinetic = 0.5 * float(np.sum(p.m * np.sum(v * v, axis=1)))
+        strain = 0.0
+        for material, idx in self.bodies:
+            if idx.size:
+                strain += material.strain_energy(p if len(self.bodies) == 1 else p.subset(idx))
+        return kinetic, strain
+
+
+def prepare(scene, method):
+    """A new State for ``scene`` (which is never modified) and ``method``;
+    raises ValueError for a time step above the stable limit."""
+    return State(scene, method)

@@ -1,0 +1,265 @@
+"""The MPM step as named functions a user can call in their own loop.
+
+    state = prepare(scene, method)
+    while state.t < scene.t_end:
+        grid = particles_to_grid(state)          # mass, momentum, forces on the grid
+        solve_grid(state, grid)                  # nodal accelerations (and velocities)
+        L = grid_to_particles(state, grid)       # particle velocities, positions
+        update_stress(state, L)                  # constitutive update
+        commit(state, grid)                      # checks, the new state becomes current
+
+``simulate`` is this loop (with the scheme's ordering, saves and guards).
+The formulas (sums over particles p and grid dofs i, N_ip = N_i(x_p)):
+
+    lumped mass        m_i = sum_p m_p N_ip
+    consistent mass    M_ij = sum_p m_p N_ip N_jp
+    momentum           P_i = sum_p m_p v_p N_ip
+    internal force     f_i = - sum_p V_p sigma_p grad N_i(x_p)
+    external force     f_i += sum_p f_p N_ip         (Gravity, BodyForce, Traction)
+    velocity gradient  L_p = sum_i v_i (x) grad N_i(x_p)
+
+The new state is built in fresh arrays; the previous one stays untouched
+until ``commit`` accepts the new one, so a failed step leaves the last good
+state intact.
+"""
+import numpy as np
+
+from ..errors import InvalidState
+from ..quadrature import _csr, _csr_pattern
+
+__all__ = ["Transfer", "GridData", "particles_to_grid", "solve_grid", "grid_to_particles",
+           "update_stress", "commit", "particle_forces", "internal_force"]
+
+
+class Transfer:
+    """N and grad N at the current particle positions (one step).
+
+    ``to_grid(a)`` = N^T a, ``to_particles(g)`` = N g,
+    ``divergence_to_grid(s)`` = sum_d grad_d N^T s[..., d],
+    ``gradient_to_particles(g)`` = (grad N g) with shape (n, comps, dim).
+    """
+
+    def __init__(self, grid, x, timer, backend=None):
+        with timer("locate"):
+            located = grid.locate_axes(x)
+        with timer("basis"):
+            dofs, values, grads = grid.shape_functions(x, check=False, backend=backend,
+                                                       located=located)
+            pattern = _csr_pattern(dofs)
+            shape = (x.shape[0], grid.ndofs)
+            self.N = _csr(values, pattern, shape)
+            self.grad_N = tuple(_csr(np.ascontiguousarray(grads[:, :, d]), pattern, shape)
+                                for d in range(grid.dim))
+        self.dofs, self.values = dofs, values
+        self.NT = self.N.T.tocsr()
+        self.grad_NT = tuple(G.T.tocsr() for G in self.grad_N)
+
+    def to_grid(self, a):
+        return self.NT @ a
+
+    def to_particles(self, g):
+        return self.N @ g
+
+    def divergence_to_grid(self, s):
+        """sum_d (grad_d N)^T s[:, :, d]; s has shape (n, comps, dim)."""
+        out = self.grad_NT[0] @ s[:, :, 0]
+        for d in range(1, len(self.grad_NT)):
+            out += self.grad_NT[d] @ s[:, :, d]
+        return out
+
+    def gradient_to_particles(self, g):
+        """L[p, c, d] = sum_i g[i, c] dN_i/dx_d (x_p)."""
+        return np.stack([G @ g for G in self.grad_N], axis=-1)
+
+    def consistent_mass(self, m):
+        """M = N^T diag(m) N."""
+        return (self.NT @ self.N.multiply(m[:, None]).tocsr()).tocsr()
+
+
+class GridData:
+    """What the particles put on the grid in one step."""
+
+    def __init__(self, transfer, lumped, consistent, momentum, force, external, system=None):
+        self.transfer = transfer
+        self.lumped = lumped
+        self.consistent = consistent
+        self.momentum = momentum
+        self.force = force
+        self.external = external
+        self.system = system
+        self.acceleration = None
+        self.velocity = None       # grid velocity used to move the particles
+        self.velocity_old = None   # grid velocity from the particle momentum
+        self.new = {}              # arrays of the new particle state
+
+
+def particle_forces(state):
+    """Sum of the declared particle forces f_p (n, dim), or None without any."""
+    if not state.forces:
+        return None
+    with state.timer("effects"):
+        total = None
+        for f in state.forces:
+            term = f.forces(state.particles, state.t)
+            total = term if total is None else total + term
+    return total
+
+
+def internal_force(state, transfer, particles=None):
+    """f_i = - sum_p V_p sigma_p grad N_i(x_p), shape (dofs, dim)."""
+    p = state.particles if particles is None else particles
+    return -transfer.divergence_to_grid(p.V[:, None, None] * p.stress)
+
+
+def particles_to_grid(state):
+    """Mass (lumped, and consistent if the method needs it), momentum, and
+    internal plus external forces on the grid at the current positions."""
+    p = state.particles
+    transfer = Transfer(state.grid, p.x, state.timer, state.backend)
+    f_p = particle_forces(state)
+    if state.reconstruct is not None:
+        with state.timer("reconstruct"):
+            data = state.reconstruct(state, transfer, f_p)
+        data.external = f_p
+        return data
+    with state.timer("p2g"):
+        lumped = transfer.to_grid(p.m)
+        consistent = transfer.consistent_mass(p.m) if state.method.mass == "consistent" else None
+        momentum = transfer.to_grid(p.m[:, None] * p.v)
+        force = internal_force(state, transfer)
+        if f_p is not None:
+            force += transfer.to_grid(f_p)
+    return GridData(transfer, lumped, consistent, momentum, force, f_p)
+
+
+def _system(state, data):
+    from .grid_system import GridSystem
+
+    if data.system is None:
+        data.system = GridSystem(data.lumped, state.constraints, data.consistent,
+                                 state.adjacency, state.method.small_mass,
+                                 state.mass_solver, state.warm,
+                                 weak_support=state.method.weak_support)
+    return data.system
+
+
+def grid_velocity(state, data, momentum, t):
+    """v with M v = P, constrained dofs set to their velocity at time t."""
+    with state.timer("solve"):
+        system = _system(state, data)
+        v = system.solve(momentum, state.constraints.values(t), "velocity")
+        system.remember("velocity", v)
+    return v
+
+
+def solve_grid(state, data, need_old_velocity=False):
+    """Nodal accelerations a with M a = f (damping applied if declared):
+    fixed dofs get a = 0, prescribed ones (v(t + dt) - v(t)) / dt."""
+    t, dt = state.t, state.dt
+    if need_old_velocity or state.damping:
+        data.velocity_old = grid_velocity(state, data, data.momentum, t)
+    force = data.force
+    if state.damping:
+        with state.timer("effects"):
+            for d in state.damping:
+                force = d.apply(force, data.velocity_old)
+    with state.timer("solve"):
+        system = _system(state, data)
+        c = state.constraints
+        values = (c.values(t + dt) - c.values(t)) / dt if c.prescribed else np.zeros_like(force)
+        a = system.solve(force, values, "acceleration")
+        system.remember("acceleration", a)
+        data.acceleration = a
+        if c.any:
+            state.reactions = c.reactions(system.residual(a, force))
+    return a
+
+
+def grid_to_particles(state, data, velocity_factor=1.0):
+    """Particle velocities v_p + f dt N a (f = velocity_factor) and positions
+    x_p + dt N v_grid; returns the velocity gradient L at the old positions.
+
+    MUSL recomputes the grid velocity from the updated particle momentum
+    (``data.velocity`` is None on entry); USL/CD use v_old + dt a."""
+    p, dt = state.particles, state.dt
+    tr = data.transfer
+    with state.timer("g2p"):
+        dv = tr.to_particles(data.acceleration)
+        v_new = p.v + (velocity_factor * dt) * dv
+    if data.velocity is None:  # MUSL: project the new particle momentum
+        with state.timer("p2g"):
+            momentum = tr.to_grid(p.m[:, None] * v_new)
+        data.velocity = grid_velocity(state, data, momentum, state.t + dt)
+    with state.timer("g2p"):
+        x_new = p.x + dt * tr.to_particles(data.velocity)
+        L = tr.gradient_to_particles(data.velocity)
+    data.new.update(v=v_new, x=x_new)
+    data.particle_acceleration = dv
+    return L
+
+
+def update_stress(state, L, data=None, particles=None):
+    """Stress, volume (and F) of every body from its material and L."""
+    p = state.particles if particles is None else particles
+    with state.timer("constitutive"):
+        if len(state.bodies) == 1:
+            stress, V, F = state.bodies[0][0].update(p, L, state.dt)
+        else:
+            stress, V = p.stress.copy(), p.V.copy()
+            F = None if p.F is None else p.F.copy()
+            for material, index in state.bodies:
+                sub = p.subset(index)
+                s_b, V_b, F_b = material.update(sub, L[index], state.dt)
+                stress[index], V[index] = s_b, V_b
+                if F_b is not None:
+                    F[index] = F_b
+        if F is None:
+            F = p.F
+        bad = ~(V > 0)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise InvalidState(f"volume {V[k]:.3g} <= 0 (J <= 0) at particle {k}", particle=k)
+    if data is not None:
+        data.new.update(stress=stress, V=V, F=F)
+    return stress, V, F
+
+
+def _first_bad(*arrays):
+    for a in arrays:
+        if a is None:
+            continue
+        flat = np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
+        if not flat.all():
+            return int(np.flatnonzero(~flat)[0])
+    return None
+
+
+def commit(state, data):
+    """Check the new state (finite, inside the grid) and make it current."""
+    new = dict(data.new)
+    p = state.particles
+    with state.timer("g2p"):
+        bad = _first_bad(new.get("x"), new.get("v"), new.get("stress"), new.get("F"))
+        if bad is not None:
+            raise InvalidState(
+                f"non-finite state (NaN or Inf) at particle {bad}", particle=bad)
+        nxt = p.replaced(**new)
+        outside = ~state.grid.inside(nxt.x)
+        if outside.any():
+            k = int(np.flatnonzero(outside)[0])
+            if state.method.on_exit == "raise":
+                raise InvalidState(
+                    f"particle {k} left the grid at {nxt.x[k].tolist()} "
+                    f"({int(outside.sum())} outside); use Method(on_exit='remove') to drop them",
+                    particle=k)
+            keep = ~outside
+            if not keep.any():
+                raise InvalidState("every particle has left the grid", particle=k)
+            nxt = nxt.subset(keep)
+            state.removed += int(outside.sum())
+            state.index = state.index[keep]
+            state.particle_acceleration = None
+            state.rebind(keep)
+    state.particles = nxt
+    state.step += 1
+    state.t = state.t_next()

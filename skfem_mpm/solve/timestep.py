@@ -1,0 +1,59 @@
+"""The critical time step of explicit time integration on a grid.
+
+The central-difference (and symplectic Euler) scheme is stable for
+dt <= 2 / omega_max, omega_max^2 the largest eigenvalue of M^-1 K
+(Belytschko, Liu & Moran, "Nonlinear Finite Elements", 2000, Sec. 6.3).
+On a tensor grid with wave speed c (P-wave) and cell sizes h_d,
+
+    omega_max^2 <= c^2 sum_d Lambda(p, mass) / h_d^2,
+    dt_crit = 2 / (c sqrt(sum_d Lambda(p, mass) / h_d^2)),
+
+where Lambda(p, mass) is the largest eigenvalue of the 1D problem
+K v = Lambda M v (K = int N' N', M = int N N or its row sums) for B-splines
+of degree p on unit cells with open knot vectors. It includes the boundary
+"outlier" frequencies of open knot vectors (Cottrell, Reali, Bazilevs,
+Hughes 2006, CMAME 195:5257-5296), which exceed the interior ones for p >= 2.
+Lambda is computed here, once per (p, mass), with Gauss quadrature on a
+64-cell grid (values: p=1 lumped 4, consistent 12; see ``spectral_radius``).
+For a grid with non-uniform cells h_d is the smallest cell of axis d.
+"""
+from functools import lru_cache
+
+import numpy as np
+from scipy.linalg import eigh
+from skfem import BilinearForm, asm
+from skfem.helpers import dot, grad
+
+__all__ = ["spectral_radius", "critical_time_step"]
+
+
+@BilinearForm
+def _stiffness(u, v, _):
+    return dot(grad(u), grad(v))
+
+
+@BilinearForm
+def _mass(u, v, _):
+    return u * v
+
+
+@lru_cache(maxsize=None)
+def spectral_radius(degree, mass):
+    """Lambda(p, mass): the largest eigenvalue of K v = Lambda M v for the 1D
+    unit-cell B-spline space of degree p ('lumped' or 'consistent' mass)."""
+    from ..spline import SplineGrid
+
+    grid = SplineGrid.line(0.0, 64.0, 64, degree)
+    basis = grid.basis()
+    K = asm(_stiffness, basis).toarray()
+    M = asm(_mass, basis).toarray()
+    if mass == "lumped":
+        M = np.diag(M.sum(axis=1))
+    return float(eigh(K, M, eigvals_only=True)[-1])
+
+
+def critical_time_step(grid, wave_speed, mass="lumped"):
+    """dt_crit = 2 / (c sqrt(sum_d Lambda(p, mass) / h_d^2)) for the grid."""
+    lam = spectral_radius(grid.degree, mass)
+    h = np.asarray(grid.h, dtype=np.float64)
+    return float(2.0 / (wave_speed * np.sqrt(np.sum(lam / h ** 2))))

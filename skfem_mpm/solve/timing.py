@@ -1,0 +1,58 @@
+"""Wall time split by phase.
+
+Phase names (the same in every table): locate, basis, p2g, solve, g2p,
+constitutive, reconstruct, effects. A fused compiled kernel reports its time
+under the first phase it covers and records which phases it fused.
+"""
+import time
+from contextlib import contextmanager
+
+__all__ = ["PHASES", "PhaseTimer"]
+
+PHASES = ("locate", "basis", "p2g", "solve", "g2p", "constitutive", "reconstruct", "effects")
+
+
+class PhaseTimer:
+    """Accumulates seconds and entry counts per phase."""
+
+    def __init__(self):
+        self.seconds = {}
+        self.counts = {}
+        self.fused = {}
+
+    @contextmanager
+    def __call__(self, phase):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.add(phase, time.perf_counter() - t0)
+
+    def add(self, phase, seconds):
+        if phase not in PHASES:
+            raise ValueError(f"phase must be one of {PHASES}, got {phase!r}")
+        self.seconds[phase] = self.seconds.get(phase, 0.0) + seconds
+        self.counts[phase] = self.counts.get(phase, 0) + 1
+
+    def note_fused(self, phase, covers):
+        self.fused[phase] = tuple(covers)
+
+    def ran(self, phase):
+        """True if the phase was entered at least once."""
+        return self.counts.get(phase, 0) > 0
+
+    def table(self):
+        """{phase: seconds} for every phase (0.0 where it never ran)."""
+        return {p: self.seconds.get(p, 0.0) for p in PHASES}
+
+    def state(self):
+        return {"seconds": dict(self.seconds), "counts": dict(self.counts),
+                "fused": {k: list(v) for k, v in self.fused.items()}}
+
+    @classmethod
+    def from_state(cls, state):
+        t = cls()
+        t.seconds = dict(state["seconds"])
+        t.counts = dict(state["counts"])
+        t.fused = {k: tuple(v) for k, v in state.get("fused", {}).items()}
+        return t

@@ -1,0 +1,156 @@
+"""Guards, bad input, restart: a clear error and nothing lost."""
+import numpy as np
+import pytest
+
+from skfem_mpm import (Body, Fixed, Gravity, LinearElastic, Method, NeoHookean, Particles,
+                       Prescribed, Scene, SimulationError, SplineGrid, Traction, simulate)
+from skfem_mpm.benchmarks import get_benchmark
+
+
+def s1_scene(cells=8, p=2, **kw):
+    return get_benchmark("vibrating-string", "small", L=1.0).scene(cells, p, 2, **kw)
+
+
+def test_dt_above_the_critical_step_is_rejected_with_dt_crit():
+    scene = s1_scene()
+    with pytest.raises(ValueError, match=r"dt = 1 exceeds the critical time step dt_crit = "):
+        simulate(scene, Method(dt=1.0))
+
+
+def test_forced_instability_raises_with_last_good_state():
+    b = get_benchmark("vibrating-string", "small", L=1.0)
+    scene = b.scene(8, 2, 2, t_end=100 * 2 * np.pi / b.omega)
+    dt_crit = simulate(b.scene(8, 2, 2), Method()).dt_crit
+    with pytest.raises(SimulationError) as info:
+        simulate(scene, Method(dt=10 * dt_crit, allow_unstable=True, scheme="usl"))
+    err = info.value
+    assert err.step >= 1 and err.time >= 0.0
+    p = err.result.particles
+    assert all(np.all(np.isfinite(a)) for a in (p.x, p.v, p.stress, p.V))
+    assert "step" in str(err)
+
+
+def test_inverted_element_raises_naming_the_particle():
+    grid = SplineGrid.line(0, 1, 8, 2)
+    parts = Particles.seed(grid, 2, 1.0, region=((0.25, 0.75),),
+                           velocity=lambda X: -2000.0 * (X - 0.5))
+    scene = Scene(grid, Body(parts, NeoHookean(1.0)), 0.01)
+    with pytest.raises(SimulationError, match=r"J = det F = .* <= 0 at particle \d+") as info:
+        simulate(scene, Method(dt=1e-3))
+    assert info.value.particle is not None
+    assert np.all(info.value.result.particles.F[:, 0, 0] > 0)
+
+
+def flying_scene():
+    grid = SplineGrid.rectangle((0, 1), (0, 1), 4, 2)
+    parts = Particles.seed(grid, 2, 1.0, region=((0.7, 0.95), (0.4, 0.6)),
+                           velocity=np.array([5.0, 0.0]))
+    return Scene(grid, Body(parts, LinearElastic(1e2, 0.3)), 0.05)
+
+
+def test_particle_leaving_the_grid_raises_or_is_removed():
+    with pytest.raises(SimulationError, match="left the grid"):
+        simulate(flying_scene(), Method())
+    r = simulate(flying_scene(), Method(on_exit="remove"), save_every=1)
+    assert r.counts["removed"] > 0
+    assert r.particles.n + r.counts["removed"] == flying_scene().bodies[0].particles.n
+    assert isinstance(r.history["x"], list)  # particle counts differ between saves
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(scheme="leapfrog"), "scheme must be one of"),
+    (dict(mass="diagonal"), "mass must be one of"),
+    (dict(reconstruction="fft"), "reconstruction must be one of"),
+    (dict(on_exit="ignore"), "on_exit must be one of"),
+    (dict(dt=-1.0), "dt must be finite and > 0"),
+    (dict(cfl=0.0), "cfl must be finite and > 0"),
+    (dict(small_mass=1.5), "small_mass must be a number in"),
+    (dict(mass_solver="gmres"), "mass_solver must be one of"),
+    (dict(backend="cuda"), "backend must be one of"),
+])
+def test_bad_method_options(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        Method(**kwargs)
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: LinearElastic(-1.0), "E must be finite and > 0"),
+    (lambda: LinearElastic(1.0, 0.5), r"nu must lie in \(-1, 0.5\)"),
+    (lambda: NeoHookean(1.0, -1.0), r"nu must lie in \(-1, 0.5\)"),
+    (lambda: Gravity((0.0, np.nan)), "g must be finite"),
+    (lambda: Traction("north", 1.0), "where must be one of"),
+    (lambda: Scene(SplineGrid.line(0, 1, 2, 2), [], 1.0), "bodies must be"),
+])
+def test_bad_constructor_arguments(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_bad_scene_arguments():
+    grid = SplineGrid.line(0, 1, 4, 2)
+    body = Body(Particles.seed(grid, 2, 1.0), LinearElastic(1.0))
+    with pytest.raises(ValueError, match="t_end must be finite and > 0"):
+        Scene(grid, body, 0.0)
+    with pytest.raises(ValueError, match="g must have 1 component"):
+        Scene(grid, body, 1.0, effects=[Gravity((0.0, -1.0))])
+    with pytest.raises(ValueError, match="side must be one of"):
+        Scene(grid, body, 1.0, effects=[Fixed("top")])
+    with pytest.raises(ValueError, match="effects must be Effect objects"):
+        Scene(grid, body, 1.0, effects=["gravity"])
+    outside = Particles(np.array([[1.5]]), np.ones(1), np.ones(1))
+    with pytest.raises(ValueError, match="outside the grid"):
+        Scene(grid, Body(outside, LinearElastic(1.0)), 1.0)
+    with pytest.raises(ValueError, match="Prescribed needs a component"):
+        Scene(grid, body, 1.0, effects=[Prescribed("left", None, 1.0)])
+
+
+def test_bad_simulate_arguments():
+    scene = s1_scene()
+    with pytest.raises(ValueError, match="save_every must be a positive integer"):
+        simulate(scene, save_every=0)
+    with pytest.raises(ValueError, match=r"checkpoint must be a pair"):
+        simulate(scene, checkpoint="file.npz")
+    with pytest.raises(ValueError, match="method must be a Method"):
+        simulate(scene, method="musl")
+    with pytest.raises(ValueError, match="callback must be callable"):
+        simulate(scene, callback=3)
+
+
+@pytest.mark.parametrize("scheme, mass", [("musl", "consistent"), ("cd", "lumped")])
+def test_restart_from_checkpoint_is_bit_for_bit(tmp_path, scheme, mass):
+    b = get_benchmark("soil-column", "small")
+    scene = b.scene(8, 2, 2)
+    method = Method(scheme=scheme, mass=mass)
+    full = simulate(scene, method, save_every=7)
+    path = tmp_path / "run.npz"
+
+    def interrupt(step, state):
+        if step == 30:
+            raise KeyboardInterrupt("stop at 30")
+
+    with pytest.raises(KeyboardInterrupt):
+        simulate(scene, method, save_every=7, checkpoint=(path, 10), callback=interrupt)
+    resumed = simulate(scene, method, save_every=7, restart=path)
+    for k in ("x", "v", "stress", "V"):
+        assert np.array_equal(getattr(resumed.particles, k), getattr(full.particles, k))
+    assert np.array_equal(resumed.times, full.times)
+    assert np.array_equal(resumed.history["u"], full.history["u"])
+    assert np.array_equal(resumed.energies["total"], full.energies["total"])
+
+
+def test_restart_rejects_a_foreign_checkpoint(tmp_path):
+    path = tmp_path / "run.npz"
+    simulate(s1_scene(), Method(), checkpoint=(path, 5))
+    with pytest.raises(ValueError, match="different scene"):
+        simulate(s1_scene(cells=16), Method(), restart=path)
+    with pytest.raises(ValueError, match="written with"):
+        simulate(s1_scene(), Method(mass="consistent"), restart=path)
+    bad = tmp_path / "junk.npz"
+    np.savez(bad, a=np.zeros(2))
+    with pytest.raises(ValueError, match="not a skfem-mpm checkpoint"):
+        simulate(s1_scene(), Method(), restart=bad)
+
+
+def test_callback_can_stop_the_run():
+    r = simulate(s1_scene(), Method(), callback=lambda step, state: step < 5)
+    assert r.counts["steps"] == 5
