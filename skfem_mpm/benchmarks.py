@@ -35,6 +35,12 @@ class Benchmark:
     defaults = {}
     variants = {}
     has_exact = True
+    #: the error measure studies converge on: "error_rms" (at t_end) or
+    #: "error_max" (over the saves) where t_end is a zero of the exact
+    #: displacement (S2 after whole periods, S3 after one period)
+    primary_error = "error_rms"
+    #: saves per run a study needs for ``primary_error``
+    saves = 1
 
     def __init__(self, variant=None, **params):
         names = list(self.variants)
@@ -185,6 +191,8 @@ class SoilColumn(Benchmark):
 
     name = "soil-column"
     title = "S2 soil column under self-weight"
+    primary_error = "error_max"
+    saves = 40
     defaults = {"H": 1.0, "E": 1e5, "rho": 1e3, "g": 9.81, "p0": 0.0, "periods": 2.0,
                 "t_end": None, "terms": 200}
     variants = {"large": {"E": 1e5}, "small": {"E": 1e10}}
@@ -254,6 +262,8 @@ class TractionBar(Benchmark):
 
     name = "traction-bar"
     title = "S3 vibrating bar with a dynamic end traction"
+    primary_error = "error_max"
+    saves = 20
     defaults = {"L": 1.0, "E": 100.0, "rho": 1.0, "A": 0.01, "margin": 0.25, "t_end": None}
     variants = {"small": {"A": 1e-7}, "large": {"A": 0.01}}
 

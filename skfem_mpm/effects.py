@@ -17,6 +17,7 @@ import inspect
 
 import numpy as np
 
+from .errors import InvalidState
 from .validation import check_finite_array
 
 __all__ = ["Effect", "Gravity", "BodyForce", "Traction", "Fixed", "Prescribed", "Damping"]
@@ -108,15 +109,15 @@ class Traction(Effect):
     returns the traction vector (a float in 1D); a normal pressure p on the
     top side is ``Traction('top', lambda t: (0.0, -p))``.
 
-    The force is carried by the particles of a surface layer of thickness
-    ``depth`` (in the reference configuration), each with the area share
-    a_p = V0_p / depth:
+    How the particles carry it:
 
-    * side name: the particles whose reference coordinate lies within
-      ``depth`` (default: one cell of the grid) of the outermost particle on
-      that side, so a uniform seeding puts exactly one cell's worth of
-      material in the layer and the total force is tau times the side's area;
-    * mask: the masked particles; ``depth`` defaults (1D only) to their total
+    * side name: the outermost particles on that side carry it at their
+      outer faces (see :class:`SurfaceTraction`): in 1D exactly at the
+      body's moving end, as FEM applies it, so the traction costs no order
+      of accuracy (a layer one cell deep would smear the load and limit the
+      displacement error to O(h^2));
+    * mask: the masked particles as a layer (f_p = a_p tau with
+      a_p = V0_p / depth); ``depth`` defaults (1D only) to their total
       volume, so the total force is tau.
 
     With ``fem`` a side name loads the grid's side with Gauss quadrature.
@@ -157,35 +158,38 @@ class Traction(Effect):
         return self.tau(x, t) if self._takes_x else self.tau(t)
 
     def bind(self, particles, grid):
-        """The loaded particles and their area shares, fixed in the
-        reference configuration (called once per run)."""
+        """Bind to the particles once per run (reference configuration)."""
         dim = particles.dim
         if isinstance(self.where, str):
             axis = 0 if self.where in ("left", "right") else 1
             sign = 1.0 if self.where in ("right", "top") else -1.0
-            depth = self.depth if self.depth is not None else float(grid.h[axis])
+            size = particles.V0 ** (1.0 / dim)  # reference extent along the normal
             coord = sign * particles.X[:, axis]
             candidates = np.ones(particles.n, dtype=bool) if self.body is None \
                 else particles.body == self.body
-            edge = coord[candidates].max()
-            mask = candidates & (coord > edge - depth * (1 - 1e-9))
-        else:
-            mask = self.where
-            if mask.shape != (particles.n,):
-                raise ValueError(
-                    f"the traction mask has {mask.shape[0]} entries for {particles.n} particles"
-                )
-            depth = self.depth
-            if depth is None:
-                if dim != 1:
-                    raise ValueError("a traction on a particle mask in 2D needs depth= "
-                                     "(the thickness of the loaded layer)")
-                depth = float(particles.V0[mask].sum())
+            if not candidates.any():
+                raise ValueError(f"the traction's body {self.body} has no particles")
+            outer = coord + 0.5 * size
+            edge = outer[candidates].max()
+            mask = candidates & (outer > edge - 0.5 * size)
+            index = np.flatnonzero(mask)
+            return SurfaceTraction(self, index, particles.V0[index] / size[index], size[index],
+                                   axis, sign)
+        mask = self.where
+        if mask.shape != (particles.n,):
+            raise ValueError(
+                f"the traction mask has {mask.shape[0]} entries for {particles.n} particles")
+        depth = self.depth
+        if depth is None:
+            if dim != 1:
+                raise ValueError("a traction on a particle mask in 2D needs depth= "
+                                 "(the thickness of the loaded layer)")
+            depth = float(particles.V0[mask].sum())
         return BoundTraction(self, np.flatnonzero(mask), particles.V0[mask] / depth)
 
 
 class BoundTraction:
-    """A traction bound to its particles (indices and area shares)."""
+    """A traction carried by a layer of particles (a mask): f_p = a_p tau."""
 
     kind = "force"
 
@@ -194,9 +198,10 @@ class BoundTraction:
         self.index = index
         self.share = share
 
-    def forces(self, particles, t):
+    def loads(self, particles, t):
+        """(index, forces (k, dim)) of the loaded particles."""
         dim, k = particles.dim, self.index.size
-        x = particles.x[self.index]
+        x = self.points(particles)
         tau = np.asarray(self.effect.traction(x, t), dtype=np.float64)
         if tau.ndim == 2 or (dim == 1 and tau.shape == (k,) and k > 1):
             tau = tau.reshape(k, dim)
@@ -204,9 +209,53 @@ class BoundTraction:
             tau = np.broadcast_to(tau.reshape(dim), (k, dim))
         else:
             raise ValueError(f"tau must return {dim} component(s) (or ({k}, {dim})), got {tau.shape}")
-        out = np.zeros((particles.n, dim))
-        out[self.index] = self.share[:, None] * tau
+        return self.share[:, None] * tau
+
+    def points(self, particles):
+        return particles.x[self.index]
+
+    def forces(self, particles, t):
+        out = np.zeros((particles.n, particles.dim))
+        out[self.index] = self.loads(particles, t)
         return out
+
+
+class SurfaceTraction(BoundTraction):
+    """A traction on a side of the body, applied where it acts: at the outer
+    face of each outermost particle, x_p + sign (s_p / 2) (V_p / V0_p)^(1/dim)
+    e_axis (in 1D exactly the moving end x_p + V_p / 2), with the face area
+    a_p = V0_p / s_p (s_p = V0_p^(1/dim) the particle's reference size).
+    The grid force is f_i = sum_p a_p tau N_i(face_p), as FEM's surface
+    integral with the faces as quadrature points."""
+
+    def __init__(self, effect, index, share, size, axis, sign):
+        super().__init__(effect, index, share)
+        self.size = size
+        self.axis = axis
+        self.sign = sign
+
+    def points(self, particles):
+        i = self.index
+        stretch = (particles.V[i] / particles.V0[i]) ** (1.0 / particles.dim)
+        x = particles.x[i].copy()
+        x[:, self.axis] += self.sign * 0.5 * self.size * stretch
+        return x
+
+    def grid_forces(self, particles, t, grid):
+        """f_i = sum_p a_p tau(t) N_i(face_p), shape (dofs, dim)."""
+        from .quadrature import transfer_matrices
+
+        faces = self.points(particles)
+        for axis, (lo, hi) in enumerate(grid.bounds):
+            tol = 1e-12 * (hi - lo)  # a face on the grid's edge, up to round-off
+            beyond = (faces[:, axis] < lo - tol) | (faces[:, axis] > hi + tol)
+            if beyond.any():
+                k = int(self.index[np.flatnonzero(beyond)[0]])
+                raise InvalidState(f"the loaded face of particle {k} lies outside the grid "
+                                   f"(axis {axis}); extend the grid beyond the body", particle=k)
+            np.clip(faces[:, axis], lo, hi, out=faces[:, axis])
+        N, _ = transfer_matrices(grid, faces)
+        return N.T @ self.loads(particles, t)
 
 
 def _check_component(component, dim):

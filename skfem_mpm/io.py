@@ -84,7 +84,7 @@ def write_checkpoint(path, state, recorder):
     p = state.particles
     arrays = {
         "format": np.array(FORMAT),
-        "x": p.x, "X": p.X, "v": p.v, "m": p.m, "V": p.V, "V0": p.V0, "stress": p.stress,
+        "x": p.x, "X": p.X, "u": p.u, "v": p.v, "m": p.m, "V": p.V, "V0": p.V0, "stress": p.stress,
         "body": p.body, "index": state.index,
         "has_F": np.array(p.F is not None),
         "F": p.F if p.F is not None else np.zeros(0),
@@ -147,7 +147,7 @@ def restore_state(state, data):
                          "(particle or dof counts differ)")
     F = data["F"] if bool(data["has_F"]) else None
     p = Particles.__new__(Particles)
-    for k in ("x", "X", "v", "m", "V", "V0", "stress", "body"):
+    for k in ("x", "X", "u", "v", "m", "V", "V0", "stress", "body"):
         setattr(p, k, data[k].copy())
     p.F = None if F is None else F.copy()
     p.info = {}

@@ -4,6 +4,8 @@ Names and shapes (the project's conventions):
 
     x      (n, dim)        current positions
     X      (n, dim)        reference (initial) positions
+    u      (n, dim)        displacements, accumulated on their own (x - X
+                           would lose the digits of small amplitudes)
     v      (n, dim)        velocities
     m      (n,)            masses
     V      (n,)            current volumes
@@ -35,14 +37,15 @@ class Particles:
     """A set of material points (see the module docstring for the arrays).
 
     ``Particles(x, m, V)`` validates shapes, finiteness and positivity;
-    optional arrays default to: ``X = x``, ``v = 0``, ``V0 = V``,
+    optional arrays default to: ``X = x``, ``u = x - X``, ``v = 0``, ``V0 = V``,
     ``stress = 0``, ``F = None`` (small strain), ``body = 0``.
     Build them with :meth:`seed`, :meth:`from_mesh` or :meth:`from_meshio`.
     """
 
-    FIELDS = ("x", "X", "v", "m", "V", "V0", "stress", "F", "body")
+    FIELDS = ("x", "X", "u", "v", "m", "V", "V0", "stress", "F", "body")
 
-    def __init__(self, x, m, V, v=None, X=None, stress=None, F=None, body=None, V0=None):
+    def __init__(self, x, m, V, v=None, X=None, stress=None, F=None, body=None, V0=None,
+                 u=None):
         x = np.asarray(x, dtype=np.float64)
         if x.ndim == 1:
             x = x[:, None]
@@ -53,6 +56,8 @@ class Particles:
         self.X = (self.x.copy() if X is None
                   else check_finite_array("X", np.reshape(X, (n, dim)) if np.ndim(X) == 1 and dim == 1 else X,
                                           shape=(n, dim)).copy())
+        self.u = (self.x - self.X if u is None
+                  else check_finite_array("u", u, shape=(n, dim)).copy())
         self.v = (np.zeros((n, dim)) if v is None
                   else check_finite_array("v", np.reshape(v, (n, dim)) if np.ndim(v) == 1 and dim == 1 else v,
                                           shape=(n, dim)).copy())
@@ -154,13 +159,8 @@ class Particles:
     def validate(self):
         """Check every array again (after user edits); raises ValueError."""
         Particles(self.x, self.m, self.V, v=self.v, X=self.X, stress=self.stress,
-                  F=self.F, body=self.body, V0=self.V0)
+                  F=self.F, body=self.body, V0=self.V0, u=self.u)
         return self
-
-    @property
-    def u(self):
-        """Displacements x - X."""
-        return self.x - self.X
 
     @property
     def momentum(self):

@@ -64,10 +64,15 @@ def test_s2_large_deformation_runs_to_the_end(mass):
 
 
 def test_d1_manufactured_neo_hookean_converges_for_quadratic():
-    b = get_benchmark("axis-aligned-2d")
-    errors = [b.errors(simulate(b.scene(n, 2, 2), Method(mass="consistent")))["error_rms"]
-              for n in (8, 16)]
+    # measured: small 1.08e-2, 2.23e-3 (order 2.28); large 8.0e-3, 2.4e-3
+    small = get_benchmark("axis-aligned-2d", "small")
+    errors = [small.errors(simulate(small.scene(n, 2, 2), Method(mass="consistent")))
+              ["error_rms"] for n in (8, 16)]
     assert observed_orders(errors, [1 / 8, 1 / 16])[0] > 2.0, errors
+    large = get_benchmark("axis-aligned-2d", "large")
+    errors = [large.errors(simulate(large.scene(n, 2, 2), Method(mass="consistent")))
+              ["error_rms"] for n in (8, 16)]
+    assert errors[1] < errors[0] / 2.5 and errors[1] < 5e-3, errors
 
 
 @pytest.mark.parametrize("scheme", ("cd", "musl"))

@@ -236,7 +236,7 @@ class _FemState:
             init = m.stress0_p if m.has_initial_stress else None
             S, F = m.stress_at(grad_u, ref.body, init)
             stress = m.cauchy(F, ref.body) if m.finite else S
-            self.particles = ref.replaced(x=ref.X + u_p, v=m.Np @ self.v, stress=stress,
+            self.particles = ref.replaced(x=ref.X + u_p, u=u_p, v=m.Np @ self.v, stress=stress,
                                           F=F if m.finite else ref.F)
         g = m.gauss
         energy = 0.0

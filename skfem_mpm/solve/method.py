@@ -1,6 +1,8 @@
 """``Method``: how a scene is solved (scheme, mass, reconstruction, dt)."""
 import numbers
 
+import numpy as np
+
 from ..validation import check_choice, check_positive
 
 __all__ = ["Method", "SCHEMES", "MASSES", "RECONSTRUCTIONS"]
@@ -41,10 +43,11 @@ class Method:
     small_mass
         Relative threshold of the tiny-mass guard (see
         :mod:`skfem_mpm.solve.grid_system`); 0 disables it.
-    weak_support
-        Consistent mass only: dofs whose particles see their function only
-        weakly (M_ii < weak_support m_i) get lumped rows (see
-        :mod:`skfem_mpm.solve.grid_system`); 0 disables it.
+    frequency_guard
+        Consistent mass only: the rows of dofs whose own frequency would
+        outgrow the time step (a function seen only at the tail of its
+        support) are lumped; the factor scales the limit, 0 disables it
+        (see :mod:`skfem_mpm.solve.grid_system`).
     mass_solver
         ``"direct"`` (sparse LU), ``"cg"`` (lumped-preconditioned conjugate
         gradients, warm started) or ``"auto"`` (direct below 20000 dofs).
@@ -56,7 +59,7 @@ class Method:
     """
 
     def __init__(self, scheme="musl", mass="lumped", reconstruction="none", dt=None, cfl=0.5,
-                 allow_unstable=False, on_exit="raise", small_mass=1e-3, weak_support=0.3,
+                 allow_unstable=False, on_exit="raise", small_mass=1e-3, frequency_guard=1.0,
                  mass_solver="auto", backend=None, reconstruction_options=None):
         self.scheme = check_choice("scheme", scheme, SCHEMES)
         self.mass = check_choice("mass", mass, MASSES)
@@ -73,10 +76,10 @@ class Method:
                 or not 0 <= small_mass < 1:
             raise ValueError(f"small_mass must be a number in [0, 1), got {small_mass!r}")
         self.small_mass = float(small_mass)
-        if isinstance(weak_support, bool) or not isinstance(weak_support, numbers.Real) \
-                or not 0 <= weak_support < 1:
-            raise ValueError(f"weak_support must be a number in [0, 1), got {weak_support!r}")
-        self.weak_support = float(weak_support)
+        if isinstance(frequency_guard, bool) or not isinstance(frequency_guard, numbers.Real) \
+                or not 0 <= frequency_guard < np.inf:
+            raise ValueError(f"frequency_guard must be a finite number >= 0, got {frequency_guard!r}")
+        self.frequency_guard = float(frequency_guard)
         self.mass_solver = check_choice("mass_solver", mass_solver, MASS_SOLVERS)
         if backend is not None:
             check_choice("backend", backend, ("numba", "numpy"))
@@ -92,7 +95,7 @@ class Method:
         return {"scheme": self.scheme, "mass": self.mass,
                 "reconstruction": self.reconstruction_name, "dt": self.dt, "cfl": self.cfl,
                 "allow_unstable": self.allow_unstable, "on_exit": self.on_exit,
-                "small_mass": self.small_mass, "weak_support": self.weak_support,
+                "small_mass": self.small_mass, "frequency_guard": self.frequency_guard,
                 "mass_solver": self.mass_solver,
                 "backend": self.backend}
 

@@ -87,7 +87,7 @@ class Recorder:
         v = state.reported_velocity()
         self.history["X"].append(p.X.copy())
         self.history["x"].append(p.x.copy())
-        self.history["u"].append(p.x - p.X)
+        self.history["u"].append(p.u.copy())
         self.history["v"].append(np.array(v, copy=True))
         self.history["stress"].append(p.stress.copy())
         self.history["index"].append(state.index.copy())

@@ -28,7 +28,7 @@ def _external_work(state, data):
     the displacement the scheme actually gives the particles."""
     f_p = data.external
     if f_p is not None:
-        state.external_work += float(np.sum(f_p * (data.new["x"] - state.particles.x)))
+        state.external_work += float(np.sum(f_p * (data.new["u"] - state.particles.u)))
 
 
 def step_musl(state):
@@ -71,11 +71,18 @@ def step_usf(state):
     with state.timer("g2p"):
         L = data.transfer.gradient_to_particles(v_old)
     stress, V, F = update_stress(state, L, data)
-    with state.timer("p2g"):
-        updated = p.replaced(stress=stress, V=V, F=F)
-        force = internal_force(state, data.transfer, updated)
-        if data.external is not None:
-            force += data.transfer.to_grid(data.external)
+    updated = p.replaced(stress=stress, V=V, F=F)
+    if state.method.reconstruction != "none":
+        saved, state.particles = state.particles, updated
+        try:
+            force = particles_to_grid(state).force
+        finally:
+            state.particles = saved
+    else:
+        with state.timer("p2g"):
+            force = internal_force(state, data.transfer, updated)
+            if data.external_grid is not None:
+                force += data.external_grid
     data.force = force
     data.velocity_old = v_old
     solve_grid(state, data)

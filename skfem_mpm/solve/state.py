@@ -37,7 +37,6 @@ class State:
         self.reactions = {}
         self.warm = {}
         self.particle_acceleration = None
-        self.reconstruct = None
         self.materials = [b.material for b in scene.bodies]
         self.forces_declared = [e for e in scene.effects if e.kind == "force"]
         self.damping = [e for e in scene.effects if e.kind == "damping"]
@@ -90,7 +89,8 @@ class State:
 
     def _choose_time_step(self):
         m = self.method
-        self.dt_crit = critical_time_step(self.grid, self.wave_speed(), m.mass)
+        self.wave_speed_now = self.wave_speed()
+        self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, m.mass)
         t_end = self.scene.t_end
         if m.dt is not None:
             if m.dt > self.dt_crit and not m.allow_unstable:
@@ -113,7 +113,8 @@ class State:
         wave speed; the last step ends exactly at t_end)."""
         if not self.adaptive:
             return self.dt
-        self.dt_crit = critical_time_step(self.grid, self.wave_speed(), self.method.mass)
+        self.wave_speed_now = self.wave_speed()
+        self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, self.method.mass)
         remaining = self.scene.t_end - self.t
         dt = self.method.cfl * self.dt_crit
         self.dt = remaining if dt >= remaining * (1 - 1e-12) else dt

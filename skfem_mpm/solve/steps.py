@@ -25,7 +25,9 @@ state intact.
 import numpy as np
 
 from ..errors import InvalidState
-from ..quadrature import _csr, _csr_pattern
+from ..quadrature import _csr, _csr_pattern, transfer_matrices
+from ..reconstruct import RECONSTRUCTORS, integration_rule
+from .timestep import fast_dof_limit
 
 __all__ = ["Transfer", "GridData", "particles_to_grid", "solve_grid", "grid_to_particles",
            "update_stress", "commit", "particle_forces", "internal_force"]
@@ -79,8 +81,12 @@ class Transfer:
 class GridData:
     """What the particles put on the grid in one step."""
 
-    def __init__(self, transfer, lumped, consistent, momentum, force, external, system=None):
+    def __init__(self, transfer, lumped, consistent, momentum, force, external, system=None,
+                 project_momentum=None, point_mass=None, stiffness_weights=None):
         self.transfer = transfer
+        self._project_momentum = project_momentum
+        self._point_mass = point_mass
+        self._stiffness_weights = stiffness_weights
         self.lumped = lumped
         self.consistent = consistent
         self.momentum = momentum
@@ -91,18 +97,106 @@ class GridData:
         self.velocity = None       # grid velocity used to move the particles
         self.velocity_old = None   # grid velocity from the particle momentum
         self.new = {}              # arrays of the new particle state
+        self.external_grid = None  # grid force of the declared loads
+
+    def stiffness_weights(self):
+        """sum over the integration points of mass * |grad N_i|^2 per dof:
+        K_ii / c^2 of the step's stiffness (for the fast-dof guard)."""
+        if self._stiffness_weights is not None:
+            return self._stiffness_weights()
+        tr = self.transfer
+        return sum(G.multiply(G).T @ self._point_mass for G in tr.grad_N)
+
+    def project_momentum(self, particles, v):
+        """Grid momentum of particle velocities v: N^T (m v), or its
+        reconstructed counterpart."""
+        if self._project_momentum is not None:
+            return self._project_momentum(v)
+        return self.transfer.to_grid(particles.m[:, None] * v)
 
 
-def particle_forces(state):
-    """Sum of the declared particle forces f_p (n, dim), or None without any."""
-    if not state.forces:
+def particle_forces(state, which=None):
+    """Sum of the declared particle forces f_p (n, dim), or None without any.
+    ``which`` = 'volume' (gravity, body forces) or 'surface' (tractions:
+    for work accounting; side tractions reach the grid through
+    :func:`surface_forces`) selects one kind."""
+    chosen = [f for f in state.forces
+              if which is None or (which == "surface") == hasattr(f, "share")]
+    if not chosen:
         return None
     with state.timer("effects"):
         total = None
-        for f in state.forces:
+        for f in chosen:
             term = f.forces(state.particles, state.t)
             total = term if total is None else total + term
     return total
+
+
+def surface_forces(state, external):
+    """Grid forces of the declared tractions: side tractions at the particles'
+    faces, mask tractions through N^T; ``external`` is the Transfer."""
+    total = None
+    with state.timer("effects"):
+        for f in state.forces:
+            if not hasattr(f, "share"):
+                continue
+            if hasattr(f, "grid_forces"):
+                term = f.grid_forces(state.particles, state.t, state.grid)
+            else:
+                term = external.to_grid(f.forces(state.particles, state.t))
+            total = term if total is None else total + term
+    return total
+
+
+def reconstructed_grid_data(state, transfer):
+    """Mass, momentum and forces integrated with Gauss quadrature of
+    reconstructed particle fields (see :mod:`skfem_mpm.reconstruct`)."""
+    p, grid = state.particles, state.grid
+    dim = grid.dim
+    method = state.method
+    recon = method.reconstruction
+    recon = RECONSTRUCTORS[recon] if isinstance(recon, str) else recon
+    options = method.reconstruction_options
+    volume = particle_forces(state, "volume")
+    surface = particle_forces(state, "surface")
+    surface_grid = surface_forces(state, transfer) if surface is not None else None
+    with state.timer("reconstruct"):
+        rule = integration_rule(grid, p, grid.degree + 2)
+        Ng, Gg = transfer_matrices(grid, rule.x)
+        rho = p.m / p.V
+        fields = [rho[:, None], rho[:, None] * p.v, p.stress.reshape(p.n, dim * dim)]
+        if volume is not None:
+            fields.append(volume / p.V[:, None])
+        g = recon(grid, p, np.concatenate(fields, axis=1), rule, **options)
+    with state.timer("p2g"):
+        w = rule.w
+        NgT = Ng.T.tocsr()
+        rho_g = g[:, 0]
+        lumped = NgT @ (w * rho_g)
+        consistent = None
+        if method.mass == "consistent":
+            consistent = (NgT @ Ng.multiply((w * rho_g)[:, None]).tocsr()).tocsr()
+        momentum = NgT @ (w[:, None] * g[:, 1:1 + dim])
+        sigma = g[:, 1 + dim:1 + dim + dim * dim].reshape(-1, dim, dim)
+        ws = w[:, None, None] * sigma
+        force = -sum(Gg[d].T @ ws[:, :, d] for d in range(dim))
+        if volume is not None:
+            force += NgT @ (w[:, None] * g[:, 1 + dim + dim * dim:])
+        if surface_grid is not None:
+            force += surface_grid
+
+    def project_momentum(v):
+        with state.timer("reconstruct"):
+            rv = recon(grid, p, rho[:, None] * v, rule, **options)
+        with state.timer("p2g"):
+            return NgT @ (w[:, None] * rv)
+
+    def stiffness_weights():
+        return sum(G.multiply(G).T @ (w * rho_g) for G in Gg)
+
+    external = volume if surface is None else (surface if volume is None else volume + surface)
+    return GridData(transfer, lumped, consistent, momentum, force, external,
+                    project_momentum=project_momentum, stiffness_weights=stiffness_weights)
 
 
 def internal_force(state, transfer, particles=None):
@@ -116,30 +210,45 @@ def particles_to_grid(state):
     internal plus external forces on the grid at the current positions."""
     p = state.particles
     transfer = Transfer(state.grid, p.x, state.timer, state.backend)
-    f_p = particle_forces(state)
-    if state.reconstruct is not None:
-        with state.timer("reconstruct"):
-            data = state.reconstruct(state, transfer, f_p)
-        data.external = f_p
-        return data
+    if state.method.reconstruction != "none":
+        return reconstructed_grid_data(state, transfer)
+    volume = particle_forces(state, "volume")
+    surface = particle_forces(state, "surface")
+    surface_grid = surface_forces(state, transfer) if surface is not None else None
     with state.timer("p2g"):
         lumped = transfer.to_grid(p.m)
         consistent = transfer.consistent_mass(p.m) if state.method.mass == "consistent" else None
         momentum = transfer.to_grid(p.m[:, None] * p.v)
         force = internal_force(state, transfer)
-        if f_p is not None:
-            force += transfer.to_grid(f_p)
-    return GridData(transfer, lumped, consistent, momentum, force, f_p)
+        external_grid = None
+        if volume is not None:
+            external_grid = transfer.to_grid(volume)
+        if surface_grid is not None:
+            external_grid = surface_grid if external_grid is None else external_grid + surface_grid
+        if external_grid is not None:
+            force += external_grid
+    external = volume if surface is None else (surface if volume is None else volume + surface)
+    data = GridData(transfer, lumped, consistent, momentum, force, external, point_mass=p.m)
+    data.external_grid = external_grid
+    return data
 
 
 def _system(state, data):
     from .grid_system import GridSystem
 
     if data.system is None:
+        fast_rows = None
+        guard = state.method.frequency_guard
+        if data.consistent is not None and guard > 0:
+            limit = guard * fast_dof_limit(state.grid.degree) / (state.dt * state.wave_speed_now) ** 2
+
+            def fast_rows(mass_diagonal):
+                k = data.stiffness_weights()  # sum over points of mass |grad N_i|^2
+                return k > limit * mass_diagonal
+
         data.system = GridSystem(data.lumped, state.constraints, data.consistent,
                                  state.adjacency, state.method.small_mass,
-                                 state.mass_solver, state.warm,
-                                 weak_support=state.method.weak_support)
+                                 state.mass_solver, state.warm, fast_rows=fast_rows)
     return data.system
 
 
@@ -188,12 +297,12 @@ def grid_to_particles(state, data, velocity_factor=1.0):
         v_new = p.v + (velocity_factor * dt) * dv
     if data.velocity is None:  # MUSL: project the new particle momentum
         with state.timer("p2g"):
-            momentum = tr.to_grid(p.m[:, None] * v_new)
+            momentum = data.project_momentum(p, v_new)
         data.velocity = grid_velocity(state, data, momentum, state.t + dt)
     with state.timer("g2p"):
-        x_new = p.x + dt * tr.to_particles(data.velocity)
+        dx = dt * tr.to_particles(data.velocity)
         L = tr.gradient_to_particles(data.velocity)
-    data.new.update(v=v_new, x=x_new)
+    data.new.update(v=v_new, x=p.x + dx, u=p.u + dx)
     data.particle_acceleration = dv
     return L
 

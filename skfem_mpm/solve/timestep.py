@@ -24,7 +24,8 @@ from scipy.linalg import eigh
 from skfem import BilinearForm, asm
 from skfem.helpers import dot, grad
 
-__all__ = ["spectral_radius", "critical_time_step"]
+__all__ = ["spectral_radius", "interior_rayleigh_quotient", "critical_time_step",
+           "fast_dof_limit"]
 
 
 @BilinearForm
@@ -50,6 +51,25 @@ def spectral_radius(degree, mass):
     if mass == "lumped":
         M = np.diag(M.sum(axis=1))
     return float(eigh(K, M, eigvals_only=True)[-1])
+
+
+@lru_cache(maxsize=None)
+def interior_rayleigh_quotient(degree):
+    """q(p) = K_ii / M_ii of an interior dof on unit cells (consistent mass)."""
+    from ..spline import SplineGrid
+
+    grid = SplineGrid.line(0.0, 64.0, 64, degree)
+    basis = grid.basis()
+    i = grid.ndofs // 2
+    return float(asm(_stiffness, basis)[i, i] / asm(_mass, basis)[i, i])
+
+
+def fast_dof_limit(degree):
+    """4 q(p) / Lambda(p, consistent): a dof whose own Rayleigh quotient
+    satisfies dt^2 K_ii / M_ii above this would, amplified by its coupling
+    as an interior dof is, exceed the stability limit omega dt = 2 of the
+    time step chosen from Lambda (see :mod:`skfem_mpm.solve.grid_system`)."""
+    return 4.0 * interior_rayleigh_quotient(degree) / spectral_radius(degree, "consistent")
 
 
 def critical_time_step(grid, wave_speed, mass="lumped"):

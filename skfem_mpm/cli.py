@@ -1,0 +1,254 @@
+"""The ``skfem-mpm`` command line.
+
+    skfem-mpm list
+    skfem-mpm run BENCHMARK [--variant V] [--set NAME=VALUE ...] [--degree P] [--cells N]
+                            [--ppc K] [--mass M] [--reconstruction R] [--scheme S] [--cfl C]
+                            [--dt DT] [--t-end T] [--out DIR] [--json]
+    skfem-mpm fem BENCHMARK ...            (the same options, Gauss-quadrature FEM)
+    skfem-mpm study BENCHMARK [--quick] [--methods M ...] [--cells N ...] [--out DIR]
+                              [--dask ADDRESS] [--serial]
+    skfem-mpm bench [--quick] [--json]
+
+Bad arguments print one line ``skfem-mpm: error: ...`` and exit with code 2.
+"""
+import argparse
+import json
+import os
+import sys
+
+from .errors import SimulationError
+
+__all__ = ["main"]
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise _UsageError(message)
+
+
+class _UsageError(Exception):
+    pass
+
+
+def _parse_set(items):
+    params = {}
+    for item in items or ():
+        if "=" not in item:
+            raise _UsageError(f"--set expects NAME=VALUE, got {item!r}")
+        name, value = item.split("=", 1)
+        try:
+            params[name.strip()] = float(value)
+        except ValueError:
+            raise _UsageError(f"--set {name}: value must be a number, got {value!r}") from None
+    return params
+
+
+def _run_options(p):
+    p.add_argument("benchmark")
+    p.add_argument("--variant", default=None)
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", dest="params")
+    p.add_argument("--degree", type=int, default=2)
+    p.add_argument("--cells", type=int, default=16)
+    p.add_argument("--ppc", type=int, default=2)
+    p.add_argument("--mass", default="consistent")
+    p.add_argument("--reconstruction", default="none")
+    p.add_argument("--scheme", default="musl")
+    p.add_argument("--cfl", type=float, default=0.5)
+    p.add_argument("--dt", type=float, default=None)
+    p.add_argument("--t-end", type=float, default=None, dest="t_end")
+    p.add_argument("--out", default=None, help="write a ParaView series and PNG pictures here")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def build_parser():
+    parser = _Parser(prog="skfem-mpm", description="B-spline MPM and FEM benchmarks "
+                     "(scikit-fem plugin): errors and what they cost in time.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    sub.add_parser("list", help="benchmarks, variants and their defaults")
+    _run_options(sub.add_parser("run", help="run one MPM simulation of a benchmark"))
+    _run_options(sub.add_parser("fem", help="run the FEM reference of a benchmark"))
+    s = sub.add_parser("study", help="convergence and work-precision study")
+    s.add_argument("benchmark")
+    s.add_argument("--variant", default=None)
+    s.add_argument("--set", action="append", metavar="NAME=VALUE", dest="params")
+    s.add_argument("--quick", action="store_true", help="a small study (under a minute)")
+    s.add_argument("--methods", nargs="+", default=None)
+    s.add_argument("--cells", nargs="+", type=int, default=None)
+    s.add_argument("--ppc", type=int, default=None)
+    s.add_argument("--scheme", default=None)
+    s.add_argument("--cfl", type=float, default=None)
+    s.add_argument("--out", default="skfem-mpm-report")
+    s.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="run on a Dask cluster (scheduler address)")
+    s.add_argument("--serial", action="store_true", help="run in this process, one at a time")
+    b = sub.add_parser("bench", help="particle-steps per second of the fast path")
+    b.add_argument("--quick", action="store_true")
+    b.add_argument("--json", action="store_true")
+    b.add_argument("--repeat", type=int, default=None)
+    return parser
+
+
+def _cmd_list(args):
+    from .benchmarks import BENCHMARKS
+
+    for name, cls in BENCHMARKS.items():
+        print(f"{name}: {cls.title} ({cls.dim}D{'' if cls.has_exact else ', no exact solution'})")
+        print(f"    defaults: {', '.join(f'{k}={v}' for k, v in cls.defaults.items())}")
+        for i, (variant, over) in enumerate(cls.variants.items()):
+            extra = ", ".join(f"{k}={v}" for k, v in over.items()) or "the defaults"
+            note = " (default)" if i == 0 else ""
+            if cls.name == "vibrating-string" and variant == "small":
+                extra = "v0 = 1e-6 c (peak strain 1e-6)"
+            print(f"    variant {variant}{note}: {extra}")
+    return 0
+
+
+def _check_run_args(args):
+    if args.degree not in (1, 2, 3):
+        raise _UsageError(f"--degree must be 1, 2 or 3, got {args.degree}")
+    if args.cells < 1:
+        raise _UsageError(f"--cells must be a positive integer, got {args.cells}")
+    if args.ppc < 1:
+        raise _UsageError(f"--ppc must be a positive integer, got {args.ppc}")
+
+
+def _cmd_run(args, kind):
+    from .benchmarks import get_benchmark
+    from .solve import Method, fem, prepare, simulate
+
+    _check_run_args(args)
+    bench = get_benchmark(args.benchmark, args.variant, **_parse_set(args.params))
+    method = Method(scheme=args.scheme, mass=args.mass, reconstruction=args.reconstruction,
+                    cfl=args.cfl, dt=args.dt)
+    scene = bench.scene(args.cells, args.degree, args.ppc, fem=kind == "fem", t_end=args.t_end)
+    save_every = None
+    if args.out:
+        steps = prepare(scene, method).n_steps or 100
+        save_every = max(1, steps // 50)
+    if kind == "fem":
+        result = fem(scene, method, save_every=save_every, progress=not args.json)
+    else:
+        result = simulate(scene, method, save_every=save_every, progress=not args.json)
+    record = {"benchmark": bench.name, "variant": bench.variant, "kind": kind,
+              "degree": args.degree, **method.as_dict(), "cells": args.cells, "ppc": args.ppc,
+              "dofs": scene.grid.ndofs, "particles": result.counts["particles"],
+              "steps": result.counts["steps"], "dt": result.dt, "t_end": result.final_time}
+    if bench.has_exact:
+        record.update(bench.errors(result))
+    else:
+        record.update(bench.checks(result))
+    record.update(wall_time_s=result.wall_time, jit_time_s=result.jit_time,
+                  phase_times=result.phase_table())
+    if args.out:
+        _write_run_pictures(result, bench, args.out)
+        record["out"] = os.path.abspath(args.out)
+    if args.json:
+        print(json.dumps(record, default=float))
+        return 0
+    width = max(len(k) for k in record)
+    for k, v in record.items():
+        if k == "phase_times":
+            print(f"{'phase times [s]':<{width}}  " + ", ".join(f"{p} {s:.3g}" for p, s in v.items()))
+        else:
+            print(f"{k:<{width}}  {v:.6g}" if isinstance(v, float) else f"{k:<{width}}  {v}")
+    return 0
+
+
+def _write_run_pictures(result, bench, out):
+    from .plot import plot_displacement_history, plot_energy, plot_particles
+
+    result.save(out)
+    exact = bench.displacement if bench.has_exact else None
+    plot_particles(result, os.path.join(out, "particles_stress.png"), field="stress")
+    plot_particles(result, os.path.join(out, "particles_velocity.png"), field="velocity")
+    if exact is not None:
+        plot_particles(result, os.path.join(out, "particles_error.png"), field="error",
+                       exact=exact)
+    plot_energy(result, os.path.join(out, "energy.png"))
+    plot_displacement_history(result, os.path.join(out, "displacement.png"), exact=exact)
+
+
+QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.2, "scheme": "cd"}
+
+
+def _cmd_study(args):
+    from .benchmarks import get_benchmark
+    from .study import FULL_METHODS, QUICK_METHODS, convergence, fastest_to, markdown_table, \
+        write_report
+
+    params = _parse_set(args.params)
+    bench = get_benchmark(args.benchmark, args.variant, **params)
+    if not bench.has_exact:
+        raise _UsageError(f"{bench.name} has no exact solution to study; use 'run' for its checks")
+    methods = args.methods or (QUICK_METHODS if args.quick else FULL_METHODS)
+    cells = args.cells or (QUICK["cells"] if args.quick else [8, 16, 32, 64, 128])
+    if bench.dim == 2 and args.cells is None:
+        cells = [4, 8, 16] if args.quick else [4, 8, 16, 32]
+    if any(c < 1 for c in cells):
+        raise _UsageError(f"--cells must be positive integers, got {cells}")
+    ppc = args.ppc or (QUICK["ppc"] if bench.dim == 1 else 2)
+    scheme = args.scheme or QUICK["scheme"]
+    cfl = args.cfl or QUICK["cfl"]
+    executor = None
+    note = (f"Timed runs: a local process pool with {os.cpu_count()} workers, one thread each, "
+            f"so runs never share a core; JIT compilation is excluded (column jit_time_s).")
+    if args.serial:
+        executor = "serial"
+        note = "Timed runs: one at a time in one process; JIT compilation excluded."
+    if args.dask:
+        from dask.distributed import Client
+
+        executor = Client(args.dask)
+        note = (f"Timed runs: Dask cluster at {args.dask} "
+                f"({len(executor.scheduler_info()['workers'])} workers); JIT excluded.")
+    records = convergence(bench.name, methods, cells, ppc=ppc, variant=bench.variant,
+                          params=params, executor=executor, progress=True, scheme=scheme, cfl=cfl)
+    setup = (f"{bench.title}, variant {bench.variant}: ppc {ppc} per axis, scheme {scheme}, "
+             f"cfl {cfl}. Errors: RMS displacement at t_end relative to the amplitude.")
+    paths = write_report(records, args.out, title=f"{bench.name} ({bench.variant})",
+                         timing_note=setup + "\n\n" + note)
+    print(setup)
+    print(note)
+    print(markdown_table(records))
+    fastest = fastest_to(records, 1e-4)
+    if fastest:
+        best = min(fastest, key=fastest.get)
+        print(f"fastest to a relative error of 1e-4: {best} ({fastest[best]:.3g} s)")
+    for key in ("csv", "md", "convergence", "work_precision"):
+        print(f"wrote {paths[key]}")
+    return 0
+
+
+def _cmd_bench(args):
+    from .bench import main as bench_main
+
+    argv = (["--quick"] if args.quick else []) + (["--json"] if args.json else [])
+    if args.repeat is not None:
+        argv += ["--repeat", str(args.repeat)]
+    return bench_main(argv)
+
+
+def main(argv=None):
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        if args.command == "list":
+            return _cmd_list(args)
+        if args.command in ("run", "fem"):
+            return _cmd_run(args, args.command)
+        if args.command == "study":
+            return _cmd_study(args)
+        if args.command == "bench":
+            return _cmd_bench(args)
+    except (_UsageError, ValueError) as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f"skfem-mpm: error: {message}", file=sys.stderr)
+        return 2
+    except SimulationError as exc:
+        print(f"skfem-mpm: run failed: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,249 @@
+"""Convergence and work-precision studies: what accuracy costs in time.
+
+    records = convergence("vibrating-string", ["mpm-p1-lumped", "mpm-p2-consistent",
+                                               "fem-p2-consistent"], cells=[8, 16, 32])
+    write_report(records, "skfem-mpm-report")
+
+A method is named ``kind-pN-mass[-reconstruction][-scheme]``, e.g.
+``mpm-p2-consistent-spline`` or ``fem-p3-consistent``; see :func:`parse_method`.
+
+Runs are independent, so a sweep takes any ``concurrent.futures.Executor``:
+by default a local process pool with one worker per core, each worker held to
+one thread (numba and BLAS), so timed runs never share a core. A
+``dask.distributed.Client`` is accepted too (its workers should also run one
+thread each). Every run compiles (or loads) its kernels before the clock
+starts; the compile time is reported separately as ``jit_time_s``.
+"""
+import csv
+import math
+import os
+from concurrent.futures import Executor, ProcessPoolExecutor
+
+import numpy as np
+
+from .benchmarks import get_benchmark
+from .solve.method import MASSES, RECONSTRUCTIONS, SCHEMES, Method
+from .solve.timing import PHASES
+from .testing import observed_orders
+
+__all__ = ["parse_method", "run_one", "convergence", "work_precision", "write_report",
+           "QUICK_METHODS", "FULL_METHODS", "markdown_table"]
+
+QUICK_METHODS = ("mpm-p1-lumped", "mpm-p2-lumped", "mpm-p2-consistent", "mpm-p3-consistent",
+                 "mpm-p2-consistent-spline", "mpm-p3-consistent-spline", "fem-p2-consistent")
+FULL_METHODS = tuple(
+    [f"mpm-p1-{m}" for m in MASSES]
+    + [f"mpm-p{p}-{m}-{r}" for p in (2, 3) for m in MASSES for r in RECONSTRUCTIONS]
+    + [f"fem-p{p}-{m}" for p in (1, 2, 3) for m in MASSES])
+
+FIELDS = ("benchmark", "variant", "method", "kind", "degree", "mass", "reconstruction", "scheme",
+          "cells", "h", "ppc", "dofs", "particles", "steps", "dt", "error_rms", "error_max",
+          "error_rms_abs", "velocity_error_rms", "stress_error_rms", "order", "wall_time_s",
+          "jit_time_s") + tuple(f"phase_{p}_s" for p in PHASES) + ("status",)
+
+
+def parse_method(name, scheme="musl", cfl=0.5):
+    """``"mpm-p2-consistent-spline-cd"`` -> dict(kind, degree, mass,
+    reconstruction, scheme, cfl). Omitted parts: reconstruction ``none``,
+    the given default scheme."""
+    parts = str(name).split("-")
+    if len(parts) < 3 or parts[0] not in ("mpm", "fem") or not parts[1].startswith("p"):
+        raise ValueError(f"method must look like mpm-p2-consistent[-spline][-cd], got {name!r}")
+    try:
+        degree = int(parts[1][1:])
+    except ValueError:
+        raise ValueError(f"degree in {name!r} must be p1, p2 or p3") from None
+    if degree not in (1, 2, 3):
+        raise ValueError(f"degree in {name!r} must be p1, p2 or p3, got p{degree}")
+    if parts[2] not in MASSES:
+        raise ValueError(f"mass in {name!r} must be one of {MASSES}")
+    spec = {"name": name, "kind": parts[0], "degree": degree, "mass": parts[2],
+            "reconstruction": "none", "scheme": scheme, "cfl": cfl}
+    for token in parts[3:]:
+        if token in RECONSTRUCTIONS:
+            spec["reconstruction"] = token
+        elif token in SCHEMES:
+            spec["scheme"] = token
+        else:
+            raise ValueError(f"unknown part {token!r} in method {name!r}; reconstructions "
+                             f"{RECONSTRUCTIONS}, schemes {SCHEMES}")
+    if spec["kind"] == "fem" and spec["reconstruction"] != "none":
+        raise ValueError(f"fem methods take no reconstruction, got {name!r}")
+    return spec
+
+
+def _limit_threads():
+    """Worker initializer: one thread per timed run."""
+    os.environ["OMP_NUM_THREADS"] = "1"
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    os.environ["MKL_NUM_THREADS"] = "1"
+    try:
+        import numba
+
+        numba.set_num_threads(1)
+    except (ImportError, ValueError):
+        pass
+
+
+def run_one(job):
+    """Run one (benchmark, method, cells) job; returns a record (dict)."""
+    from .errors import SimulationError
+    from .solve import fem, simulate
+
+    bench = get_benchmark(job["benchmark"], job.get("variant"), **job.get("params", {}))
+    spec = job["method"]
+    method = Method(scheme=spec["scheme"], mass=spec["mass"],
+                    reconstruction=spec["reconstruction"], cfl=spec["cfl"], dt=job.get("dt"))
+    fem_run = spec["kind"] == "fem"
+    scene = bench.scene(job["cells"], spec["degree"], job["ppc"], fem=fem_run,
+                        t_end=job.get("t_end"))
+    record = {"benchmark": bench.name, "variant": bench.variant, "method": spec["name"],
+              "kind": spec["kind"], "degree": spec["degree"], "mass": spec["mass"],
+              "reconstruction": spec["reconstruction"], "scheme": spec["scheme"],
+              "cells": job["cells"], "h": float(min(scene.grid.h)), "ppc": job["ppc"],
+              "dofs": scene.grid.ndofs, "status": "ok"}
+    try:
+        result = fem(scene, method) if fem_run else simulate(scene, method)
+    except (SimulationError, ValueError) as exc:
+        record["status"] = f"failed: {str(exc).splitlines()[0][:200]}"
+        return record
+    record.update(particles=result.counts["particles"], steps=result.counts["steps"],
+                  dt=result.dt, wall_time_s=result.wall_time, jit_time_s=result.jit_time)
+    for p, s in result.timings.items():
+        record[f"phase_{p}_s"] = s
+    if bench.has_exact:
+        record.update(bench.errors(result))
+    return record
+
+
+def _executor(executor):
+    if executor is None:
+        return ProcessPoolExecutor(max_workers=os.cpu_count() or 1,
+                                   initializer=_limit_threads), True
+    if hasattr(executor, "get_executor") and not isinstance(executor, Executor):
+        return executor.get_executor(), False  # dask.distributed.Client
+    if not isinstance(executor, Executor):
+        raise ValueError(f"executor must be a concurrent.futures.Executor or a "
+                         f"dask.distributed.Client, got {executor!r}")
+    return executor, False
+
+
+def convergence(benchmark, methods, cells, ppc=2, variant=None, params=None, executor=None,
+                progress=False, scheme="musl", cfl=0.5, t_end=None):
+    """Run every method at every resolution; returns a list of records with
+    errors, observed orders (between successive resolutions of a method),
+    wall time and per-phase times. ``executor`` as in the module docstring;
+    ``"serial"`` runs in this process, one run at a time."""
+    specs = [m if isinstance(m, dict) else parse_method(m, scheme, cfl) for m in methods]
+    cells = [int(c) for c in cells]
+    if not cells or any(c < 1 for c in cells):
+        raise ValueError(f"cells must be positive integers, got {cells}")
+    get_benchmark(benchmark, variant, **(params or {}))  # validate early
+    jobs = [{"benchmark": benchmark, "variant": variant, "params": dict(params or {}),
+             "method": spec, "cells": n, "ppc": ppc, "t_end": t_end}
+            for spec in specs for n in cells]
+    if executor == "serial":
+        records = [run_one(job) for job in _progress(jobs, progress)]
+    else:
+        pool, owned = _executor(executor)
+        try:
+            futures = [pool.submit(run_one, job) for job in jobs]
+            records = [f.result() for f in _progress(futures, progress)]
+        finally:
+            if owned:
+                pool.shutdown()
+    _add_orders(records)
+    return records
+
+
+def work_precision(benchmark, methods, cells, **kwargs):
+    """The same sweep as :func:`convergence`, sorted by wall time per method:
+    the data of the error-against-time picture."""
+    records = convergence(benchmark, methods, cells, **kwargs)
+    return sorted(records, key=lambda r: (r["method"], r.get("wall_time_s", math.inf)))
+
+
+def _progress(items, enabled):
+    if not enabled:
+        return items
+    import sys
+
+    from tqdm import tqdm
+
+    return tqdm(items, unit="run", disable=not sys.stderr.isatty(), leave=False)
+
+
+def _add_orders(records):
+    by_method = {}
+    for r in records:
+        by_method.setdefault(r["method"], []).append(r)
+    for rows in by_method.values():
+        rows.sort(key=lambda r: r["cells"])
+        prev = None
+        for r in rows:
+            r["order"] = None
+            ok = r["status"] == "ok" and r.get("error_rms", 0) > 0
+            if prev is not None and ok:
+                r["order"] = float(observed_orders([prev["error_rms"], r["error_rms"]],
+                                                   [prev["h"], r["h"]])[0])
+            prev = r if ok else None
+
+
+def fastest_to(records, target):
+    """{method: the smallest wall time of a run whose error_rms <= target}."""
+    out = {}
+    for r in records:
+        if r["status"] == "ok" and r.get("error_rms", math.inf) <= target:
+            out[r["method"]] = min(out.get(r["method"], math.inf), r["wall_time_s"])
+    return out
+
+
+# ------------------------------------------------------------------ reports
+def _fmt(value):
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        if value == 0 or not math.isfinite(value):
+            return f"{value:g}"
+        return f"{value:.3e}" if abs(value) < 1e-2 or abs(value) >= 1e4 else f"{value:.4g}"
+    return str(value)
+
+
+def markdown_table(records, columns=("method", "cells", "particles", "steps", "error_rms",
+                                     "order", "wall_time_s", "jit_time_s")):
+    """A Markdown table of the chosen columns."""
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for r in records:
+        lines.append("| " + " | ".join(_fmt(r.get(c)) for c in columns) + " |")
+    return "\n".join(lines)
+
+
+def write_csv(records, path):
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=FIELDS, extrasaction="ignore")
+        writer.writeheader()
+        for r in records:
+            writer.writerow({k: r.get(k) for k in FIELDS})
+
+
+def write_report(records, out, title=None, timing_note=None):
+    """Write ``study.csv``, ``study.md``, ``convergence.png`` and
+    ``work_precision.png`` into the directory ``out``; returns their paths."""
+    from .plot import plot_convergence, plot_work_precision
+
+    os.makedirs(out, exist_ok=True)
+    title = title or f"{records[0]['benchmark']} ({records[0]['variant']})"
+    paths = {"csv": os.path.join(out, "study.csv"), "md": os.path.join(out, "study.md"),
+             "convergence": os.path.join(out, "convergence.png"),
+             "work_precision": os.path.join(out, "work_precision.png")}
+    write_csv(records, paths["csv"])
+    phase_cols = ("method", "cells") + tuple(f"phase_{p}_s" for p in PHASES)
+    with open(paths["md"], "w") as f:
+        f.write(f"# Study: {title}\n\n")
+        if timing_note:
+            f.write(timing_note + "\n\n")
+        f.write(markdown_table(records) + "\n\n## Time per phase [s]\n\n")
+        f.write(markdown_table(records, phase_cols) + "\n")
+    plot_convergence(records, paths["convergence"], title)
+    plot_work_precision(records, paths["work_precision"], title)
+    return paths
