@@ -168,7 +168,7 @@ def _write_run_pictures(result, bench, out):
     plot_displacement_history(result, os.path.join(out, "displacement.png"), exact=exact)
 
 
-QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.2, "scheme": "cd"}
+QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.1, "scheme": "cd"}
 
 
 def _cmd_study(args):

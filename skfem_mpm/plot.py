@@ -26,10 +26,18 @@ def _pyplot():
 def _series(records, x_key):
     groups = {}
     for r in records:
-        if r.get("status", "ok") != "ok" or not r.get("error_rms"):
+        if r.get("status", "ok") != "ok" or not r.get("error"):
             continue
-        groups.setdefault(r["method"], []).append((r[x_key], r["error_rms"]))
+        groups.setdefault(r["method"], []).append((r[x_key], r["error"]))
     return {k: sorted(v) for k, v in groups.items()}
+
+
+def _error_label(records):
+    measure = next((r.get("error_measure") for r in records if r.get("error_measure")),
+                   "error_rms")
+    if measure == "error_max":
+        return "max over time of RMS displacement error / amplitude (-)"
+    return "RMS displacement error at t_end / amplitude (-)"
 
 
 def _style(method):
@@ -57,7 +65,7 @@ def plot_convergence(records, path, title=""):
             ax.annotate(f"h^{order}", (h1, anchor * (h1 / math.sqrt(h0 * h1)) ** order),
                         color="0.4", fontsize=8)
     ax.set_xlabel("cell size h (length units of the benchmark)")
-    ax.set_ylabel("RMS displacement error at t_end / amplitude (-)")
+    ax.set_ylabel(_error_label(records))
     ax.set_title(f"Convergence: {title}")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
@@ -75,7 +83,7 @@ def plot_work_precision(records, path, title=""):
         t, e = zip(*pts)
         ax.loglog(t, e, label=method, **_style(method))
     ax.set_xlabel("wall time of the run [s] (JIT compilation excluded)")
-    ax.set_ylabel("RMS displacement error at t_end / amplitude (-)")
+    ax.set_ylabel(_error_label(records))
     ax.set_title(f"Work-precision: {title}")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)

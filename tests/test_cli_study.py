@@ -1,0 +1,95 @@
+"""The command line, studies and the Dask path."""
+import csv
+import json
+
+import pytest
+
+from skfem_mpm.cli import main
+from skfem_mpm.study import convergence, parse_method
+
+
+def test_list(capsys):
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    for name in ("vibrating-string", "soil-column", "traction-bar", "neo-hookean-bar",
+                 "axis-aligned-2d", "vibrating-plate-2d", "colliding-disks"):
+        assert name in out
+
+
+def test_run_json_has_the_documented_fields(capsys):
+    assert main(["run", "vibrating-string", "--cells", "8", "--set", "L=1", "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    for key in ("benchmark", "variant", "scheme", "mass", "reconstruction", "cells", "ppc",
+                "dofs", "particles", "steps", "dt", "error_rms", "error_max", "error_rms_abs",
+                "velocity_error_rms", "stress_error_rms", "wall_time_s", "jit_time_s",
+                "phase_times"):
+        assert key in record, key
+    assert record["error_rms"] < 1e-2 and record["degree"] == 2
+    assert set(record["phase_times"]) >= {"locate", "basis", "p2g", "solve", "g2p"}
+
+
+def test_fem_command(capsys):
+    assert main(["fem", "soil-column", "--variant", "small", "--cells", "8", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["kind"] == "fem"
+
+
+def test_run_writes_paraview_and_pictures(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", "vibrating-plate-2d", "--cells", "4", "--out", str(out)]) == 0
+    for name in ("particles.pvd", "grid.vtu", "particles_stress.png", "energy.png",
+                 "displacement.png", "particles_error.png"):
+        assert (out / name).exists(), name
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["run", "nope"], "unknown benchmark"),
+    (["run", "vibrating-string", "--degree", "7"], "--degree must be 1, 2 or 3"),
+    (["run", "vibrating-string", "--cells", "0"], "--cells must be a positive integer"),
+    (["run", "vibrating-string", "--mass", "heavy"], "mass must be one of"),
+    (["run", "vibrating-string", "--set", "E=abc"], "value must be a number"),
+    (["study", "vibrating-string", "--methods", "mpm-p9-lumped"], "degree"),
+    (["frobnicate"], "invalid choice"),
+])
+def test_bad_arguments_give_one_line_and_exit_2(argv, fragment, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("skfem-mpm: error:") and fragment in err
+
+
+def test_quick_study_writes_table_and_plots(tmp_path, capsys):
+    out = tmp_path / "report"
+    assert main(["study", "vibrating-string", "--quick", "--cells", "8", "16", "--serial",
+                 "--methods", "mpm-p1-lumped", "fem-p2-consistent", "--out", str(out)]) == 0
+    for name in ("study.csv", "study.md", "convergence.png", "work_precision.png"):
+        assert (out / name).exists()
+    rows = list(csv.DictReader(open(out / "study.csv")))
+    assert len(rows) == 4 and all(r["status"] == "ok" for r in rows)
+    assert float(rows[1]["order"]) > 1.8  # linear MPM, 8 -> 16 cells
+    assert "phase_p2g_s" in rows[0]
+
+
+def test_parse_method():
+    spec = parse_method("mpm-p3-consistent-tls-usl")
+    assert (spec["degree"], spec["mass"], spec["reconstruction"], spec["scheme"]) == \
+        (3, "consistent", "tls", "usl")
+    with pytest.raises(ValueError, match="fem methods take no reconstruction"):
+        parse_method("fem-p2-consistent-spline")
+    with pytest.raises(ValueError, match="unknown part"):
+        parse_method("mpm-p2-lumped-magic")
+
+
+def test_default_process_pool_and_orders():
+    records = convergence("vibrating-string", ["mpm-p1-lumped"], [8, 16], ppc=2,
+                          params={"L": 1.0})
+    assert records[1]["order"] > 1.8 and records[0]["jit_time_s"] >= 0
+
+
+def test_dask_local_cluster():
+    distributed = pytest.importorskip("dask.distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        records = convergence("vibrating-string", ["mpm-p2-consistent"], [8, 16], ppc=2,
+                              params={"L": 1.0}, executor=client)
+    assert [r["status"] for r in records] == ["ok", "ok"]
+    assert records[1]["error"] < records[0]["error"]
