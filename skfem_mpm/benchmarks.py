@@ -246,8 +246,13 @@ class SoilColumn(Benchmark):
         return self.rho * self.g * self.H + abs(self.p0)
 
     def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
-        grid = SplineGrid.line(0.0, self.H, cells, degree)
-        particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0)
+        """``cells`` over the column; with a top tension (p0 > 0) the MPM grid
+        extends a quarter of the height above the column (the top rises)."""
+        h = self.H / cells
+        extra = int(np.ceil(0.25 * cells)) if (self.p0 > 0 and not fem) else 0
+        grid = SplineGrid(np.linspace(0.0, self.H + extra * h, cells + extra + 1), degree)
+        particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0,
+                                   region=((0.0, self.H),))
         effects = [Fixed("left"), Gravity(-self.g)]
         if self.p0:
             effects.append(Traction("right", self.p0))

@@ -35,7 +35,8 @@ def test_inverted_element_raises_naming_the_particle():
     parts = Particles.seed(grid, 2, 1.0, region=((0.25, 0.75),),
                            velocity=lambda X: -2000.0 * (X - 0.5))
     scene = Scene(grid, Body(parts, NeoHookean(1.0)), 0.01)
-    with pytest.raises(SimulationError, match=r"J = det F = .* <= 0 at particle \d+") as info:
+    # the reference path finds det F <= 0, the fast path det(I + dt L) <= 0
+    with pytest.raises(SimulationError, match=r"J = det.* <= 0 at particle \d+") as info:
         simulate(scene, Method(dt=1e-3))
     assert info.value.particle is not None
     assert np.all(info.value.result.particles.F[:, 0, 0] > 0)

@@ -5,9 +5,36 @@ import numpy as np
 __all__ = ["warm_up_kernels"]
 
 
-def warm_up_kernels(grid):
+def warm_up_kernels(grid, fast=False):
     if not hasattr(grid, "breakpoints"):
         return
     x = np.array([b[0] + 0.5 * (b[1] - b[0]) for b in grid.bounds])[None, :]
     for axis in range(grid.dim):
         grid.axis_functions(axis, x[:, axis], backend="numba")
+    if not fast:
+        return
+    from ..materials import LinearElastic
+    from ..particles import Particles
+    from .mpm import Kernels
+
+    k = Kernels(grid)
+    p = Particles(x.copy(), np.ones(1), np.ones(1))
+    new = p.copy()
+    dim = grid.dim
+    zeros = np.zeros((grid.ndofs, dim))
+    material = LinearElastic(1.0, 0.0)
+    for fext in (None, np.zeros((1, dim))):
+        k.p2g(p, fext)
+    k.g2p2g(p, zeros, 0.0, new.v)
+    for fused in (True, False):
+        L = np.empty((1, dim, dim)) if not fused else np.empty((1, 1, 1))
+        for flip in (True, False):
+            for acc in (None, np.empty((1, dim))):
+                k.g2p(p, zeros, zeros, 0.0, 1.0, flip, fused, material, new, L, acc)
+    k.small_mass(np.ones(grid.ndofs), 1e-3)
+    mask = np.zeros((grid.ndofs, dim), dtype=bool)
+    out = np.empty((grid.ndofs, dim))
+    for values in (None, zeros):
+        k.solve(np.ones(grid.ndofs), zeros, np.zeros(dim), mask, values, out)
+        k.usl_grid(np.ones(grid.ndofs), zeros, zeros, np.zeros(dim), mask, values, values, 0.0,
+                   out, zeros.copy(), zeros.copy())

@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit, prange
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def locate_axis_point(x, breaks, uniform, inv_h):
     """Cell index of coordinate x (clamped to the last cell at the end)."""
     ncells = breaks.shape[0] - 1
@@ -33,7 +33,7 @@ def locate_axis_point(x, breaks, uniform, inv_h):
     return e
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def bernstein4(p, xi):
     """Bernstein values of degree p <= 3 (b0..b3) and of degree p - 1 (c0..c3)."""
     one = 1.0 - xi
@@ -45,7 +45,7 @@ def bernstein4(p, xi):
     return b0, b1, b2, b3, c0, c1, c2, c3
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def axis_functions_kernel(x, breaks, uniform, inv_h, C, p, first, values, derivs):
     n = x.shape[0]
     for i in prange(n):

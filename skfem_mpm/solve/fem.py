@@ -337,4 +337,5 @@ def fem(scene, method=None, save_every=None, progress=False):
         state.refresh_particles()
         recorder.save(state)
     return recorder.result(state, time.perf_counter() - t0, 0.0, kind="fem",
-                           extra={"grid_displacement": state.u, "grid_velocity": state.v})
+                           extra={"grid_displacement": state.u, "grid_velocity": state.v,
+                                  "path": "fem"})

@@ -91,6 +91,19 @@ class Constraints:
             out[dofs, c] = float(fn(t))
         return out
 
+    def reactions_at(self, mass, a, force, gravity=None):
+        """Reactions for lumped mass, m a - f (f including m g), evaluated on
+        the constrained dofs only."""
+        totals = {}
+        for e, c, dofs, _ in self.items:
+            key = repr(e)
+            totals.setdefault(key, np.zeros(self.dim))
+            f = force[dofs, c]
+            if gravity is not None:
+                f = f + mass[dofs] * gravity[c]
+            totals[key][c] += float(np.sum(mass[dofs] * a[dofs, c] - f))
+        return totals
+
     def reactions(self, residual):
         """Total reaction force (dim,) of each constraint effect, from the
         residual M x - rhs on its dofs."""

@@ -6,6 +6,7 @@ import time
 from ..errors import InvalidState, SimulationError
 from .method import Method
 from .result import Recorder
+from .fast import FastStepper, fast_path_applies
 from .schemes import SCHEME_STEPS
 from .state import prepare
 
@@ -39,14 +40,14 @@ def _progress_bar(enabled, total):
     return tqdm(total=total, unit="step", disable=not sys.stderr.isatty(), leave=False)
 
 
-def warm_up(state):
+def warm_up(state, fast):
     """Compile the kernels the run will use on a tiny input; returns seconds."""
     if state.backend != "numba":
         return 0.0
     from ..kernels.warmup import warm_up_kernels
 
     t0 = time.perf_counter()
-    warm_up_kernels(state.grid)
+    warm_up_kernels(state.grid, fast=fast)
     return time.perf_counter() - t0
 
 
@@ -89,8 +90,14 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
     else:
         recorder = Recorder()
         recorder.save(state)
-    step = SCHEME_STEPS[method.scheme]
-    jit_time = warm_up(state)
+    fast, why_not = fast_path_applies(state)
+    if fast:
+        step = FastStepper(state).step
+        path = "fast"
+    else:
+        step = SCHEME_STEPS[method.scheme]
+        path = f"reference ({why_not})"
+    jit_time = warm_up(state, fast)
     bar = _progress_bar(progress, state.n_steps)
     t0 = time.perf_counter()
     try:
@@ -101,14 +108,14 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
                 data = step(state)
             except InvalidState as exc:
                 state.particles = last_good
-                result = recorder.result(state, time.perf_counter() - t0, jit_time)
+                result = recorder.result(state, time.perf_counter() - t0, jit_time,
+                                         extra={"path": path})
                 raise SimulationError(
                     f"step {state.step + 1} (t = {state.t:.6g} -> {state.t + state.dt:.6g}) "
                     f"failed: {exc}", result=result, step=state.step + 1, time=state.t,
                     particle=exc.particle) from exc
-            if data.system is not None:
-                state.small_dofs_max = max(getattr(state, "small_dofs_max", 0),
-                                           data.system.small_dofs)
+            if data is not None and data.system is not None:
+                state.small_dofs_max = max(state.small_dofs_max, data.system.small_dofs)
             if bar is not None:
                 bar.update(1)
             if save_every is not None and state.step % save_every == 0:
@@ -122,6 +129,7 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
     finally:
         if bar is not None:
             bar.close()
+    wall = time.perf_counter() - t0
     if recorder.last_step_saved != state.step:
         recorder.save(state)
-    return recorder.result(state, time.perf_counter() - t0, jit_time)
+    return recorder.result(state, wall, jit_time, extra={"path": path})

@@ -34,7 +34,8 @@ class State:
         self.step = 0
         self.removed = 0
         self.external_work = 0.0
-        self.reactions = {}
+        self._reactions = {}
+        self._reaction_source = None
         self.warm = {}
         self.particle_acceleration = None
         self.materials = [b.material for b in scene.bodies]
@@ -133,6 +134,26 @@ class State:
         if self.adaptive:
             return self.t >= self.scene.t_end * (1 - 1e-14)
         return self.step >= self.n_steps
+
+    # ------------------------------------------------------------- reactions
+    @property
+    def reactions(self):
+        """{constraint effect: total reaction force (dim,)} of the last step."""
+        if self._reaction_source is not None:
+            c, mass, a, force, gravity = self._reaction_source
+            self._reactions = c.reactions_at(mass, a, force, gravity)
+            self._reaction_source = None
+        return self._reactions
+
+    @reactions.setter
+    def reactions(self, value):
+        self._reactions = value
+        self._reaction_source = None
+
+    def defer_reactions(self, constraints, mass, a, force, gravity):
+        """Remember what the reactions are computed from (lumped mass); they
+        are evaluated only when read (at saves), before the arrays change."""
+        self._reaction_source = (constraints, mass, a, force, gravity)
 
     # --------------------------------------------------------------- output
     def reported_velocity(self):

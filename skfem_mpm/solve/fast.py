@@ -1,0 +1,233 @@
+"""The compiled fast path of the MPM step on spline grids.
+
+Same method as the reference step functions of :mod:`skfem_mpm.solve.steps`
+(which the tests compare it with), executed by the fused kernels of
+:mod:`skfem_mpm.kernels.mpm`:
+
+    USL / CD   p2g kernel -> grid solve -> g2p kernel (FLIP velocity, positions,
+               velocity gradient; linear elasticity fused)
+    MUSL       p2g kernel -> grid solve (a) -> g2p2g kernel (v_p^new and its
+               grid momentum) -> grid solve (v) -> g2p kernel (positions, L)
+
+It applies to SplineGrid scenes with lumped mass, no reconstruction and the
+schemes usl, cd, musl (``Method(backend="numpy")`` or any other combination
+uses the reference path). Gravity costs one grid operation (g times the
+nodal mass); other particle forces enter the p2g kernel as one array.
+The kernels write the new state into a second set of particle arrays; it
+becomes current only when the step's checks pass, so a failed step leaves
+the last good state untouched. The p2g kernel's time is reported under
+``p2g`` (it fuses locate, basis and p2g), the g2p kernel's under ``g2p``
+(locate, basis, g2p and, for linear elasticity, constitutive).
+"""
+import numpy as np
+
+from ..errors import InvalidState
+from ..materials import LinearElastic
+from ..spline import SplineGrid
+
+__all__ = ["fast_path_applies", "FastStepper"]
+
+
+def fast_path_applies(state):
+    """(True, '') or (False, the reason the reference path is used)."""
+    m = state.method
+    if state.backend != "numba":
+        return False, "backend numpy"
+    if not isinstance(state.grid, SplineGrid):
+        return False, "not a SplineGrid"
+    if m.reconstruction != "none":
+        return False, "reconstruction"
+    if m.mass != "lumped":
+        return False, "consistent mass"
+    if m.scheme not in ("usl", "cd", "musl"):
+        return False, f"scheme {m.scheme}"
+    return True, ""
+
+
+class FastStepper:
+    """Runs the steps of one simulation on the compiled kernels."""
+
+    def __init__(self, state):
+        from ..kernels.mpm import Kernels
+
+        self.kernels = Kernels(state.grid)
+        self.gravity = np.zeros(state.grid.dim)
+        self.gravity_work = False
+        self.other_forces = []
+        for f in state.forces:
+            if f.__class__.__name__ == "Gravity":
+                self.gravity = self.gravity + f.g
+                self.gravity_work = True
+            else:
+                self.other_forces.append(f)
+        self.fused = len(state.bodies) == 1 and type(state.bodies[0][0]) is LinearElastic
+        timer = state.timer
+        timer.note_fused("p2g", ("locate", "basis", "p2g"))
+        timer.note_fused("g2p", ("locate", "basis", "g2p")
+                         + (("constitutive",) if self.fused else ()))
+        self._spare = None
+        self._acc = None
+        nd, dim = state.grid.ndofs, state.grid.dim
+        self._v_old = np.empty((nd, dim))
+        self._v_new = np.empty((nd, dim))
+        self._a = np.empty((nd, dim))
+        self._no_gravity = np.zeros(dim)
+
+    # ---------------------------------------------------------------- buffers
+    def _new_particles(self, p):
+        spare = self._spare
+        if spare is None or spare.n != p.n or (spare.F is None) != (p.F is None):
+            spare = p.copy()
+        for name in ("m", "X", "V0", "body"):
+            setattr(spare, name, getattr(p, name))
+        if not self.fused:
+            spare.stress, spare.V = p.stress, p.V  # replaced by the material update
+        return spare
+
+    # ------------------------------------------------------------------- step
+    def external(self, state):
+        """Particle forces other than gravity (effects phase), the grid force
+        of side tractions, and the particle forces whose work is counted."""
+        p = state.particles
+        fext, grid_force, work_forces = None, None, None
+        if self.other_forces:
+            with state.timer("effects"):
+                for f in self.other_forces:
+                    term = f.forces(p, state.t)
+                    work_forces = term if work_forces is None else work_forces + term
+                    if hasattr(f, "grid_forces"):
+                        g = f.grid_forces(p, state.t, state.grid)
+                        grid_force = g if grid_force is None else grid_force + g
+                    else:
+                        fext = term if fext is None else fext + term
+        return fext, grid_force, work_forces
+
+    def _small_dofs(self, state, mass):
+        """Number of tiny-mass dofs this step (the reference merge takes over
+        when there are any)."""
+        if state.method.small_mass <= 0:
+            return 0
+        _, count = self.kernels.small_mass(mass, state.method.small_mass)
+        state.small_dofs_max = max(state.small_dofs_max, count)
+        return count
+
+    def _reference_solve(self, state, mass, rhs, values, kind, gravity=None):
+        from .grid_system import GridSystem
+
+        full = rhs if gravity is None else rhs + mass[:, None] * gravity[None, :]
+        system = GridSystem(mass, state.constraints, None, state.adjacency,
+                            state.method.small_mass)
+        return system.solve(full, np.zeros_like(rhs) if values is None else values, kind)
+
+    def solve(self, state, mass, rhs, values, kind, out, small, gravity=None):
+        """Lumped M x = rhs (+ gravity as an acceleration on free dofs) with
+        the constraints, into ``out``."""
+        if small:
+            out[:] = self._reference_solve(state, mass, rhs, values, kind, gravity)
+            return out
+        g = self._no_gravity if gravity is None else gravity
+        return self.kernels.solve(mass, rhs, g, state.constraints.mask, values, out)
+
+    def _buffers(self, p):
+        if self._acc is None or self._acc.shape[0] != p.n:
+            self._acc = np.empty((p.n, p.dim))
+            self._L = np.empty((p.n, p.dim, p.dim)) if not self.fused else np.empty((1, 1, 1))
+        return self._acc, self._L
+
+    def step(self, state):
+        p, dt = state.particles, state.dt
+        c = state.constraints
+        k = self.kernels
+        fext, grid_force, work_forces = self.external(state)
+        with state.timer("p2g"):
+            mass, momentum, force = k.p2g(p, fext)
+        scheme = state.method.scheme
+        gravity = self.gravity if self.gravity_work else None
+        with state.timer("solve"):
+            if grid_force is not None:
+                force += grid_force
+            small = self._small_dofs(state, mass)
+            t_values = c.values(state.t) if c.prescribed else None
+            a_values = (c.values(state.t + dt) - t_values) / dt if c.prescribed else None
+        if state.damping:
+            with state.timer("effects"):
+                v_old = self.solve(state, mass, momentum, t_values, "velocity", self._v_old,
+                                   small)
+                if gravity is not None:
+                    force = force + mass[:, None] * gravity[None, :]
+                    gravity = None
+                for d in state.damping:
+                    force = d.apply(force, v_old)
+        factor = 0.5 if (scheme == "cd" and state.step == 0) else 1.0
+        with state.timer("solve"):
+            if scheme != "musl" and not small and not state.damping:
+                k.usl_grid(mass, momentum, force, self._no_gravity if gravity is None
+                           else gravity, c.mask, t_values, a_values, factor * dt,
+                           self._v_old, self._a, self._v_new)
+                a, v_grid = self._a, self._v_new
+            else:
+                a = self.solve(state, mass, force, a_values, "acceleration", self._a, small,
+                               gravity)
+                if scheme != "musl":
+                    v_old = self._v_old if state.damping else self.solve(
+                        state, mass, momentum, t_values, "velocity", self._v_old, small)
+                    v_grid = self._v_new
+                    np.multiply(a, factor * dt, out=v_grid)
+                    v_grid += v_old
+            if c.any:
+                state.defer_reactions(c, mass, a, force, gravity)
+        new = self._new_particles(p)
+        acc, L_out = self._buffers(p)
+        if scheme == "musl":
+            with state.timer("g2p"):
+                momentum_new = k.g2p2g(p, a, dt, new.v)
+            with state.timer("solve"):
+                v_grid = self.solve(state, mass, momentum_new, c.values(state.t + dt)
+                                    if c.prescribed else None, "velocity", self._v_new, small)
+            flip = False
+        else:
+            flip = True
+        material = state.bodies[0][0]
+        with state.timer("g2p"):
+            bad, out, neg = k.g2p(p, a, v_grid, dt, factor, flip, self.fused, material, new,
+                                  L_out, acc if scheme == "cd" else None)
+        if neg >= 0:
+            raise InvalidState(f"J = det(I + dt L) <= 0 at particle {neg}", particle=neg)
+        if bad >= 0:
+            raise InvalidState(f"non-finite state (NaN or Inf) at particle {bad}", particle=bad)
+        if not self.fused:
+            from .steps import update_stress
+
+            new.stress, new.V, new.F = update_stress(state, L_out, particles=p)
+        if self.gravity_work:
+            state.external_work += float(k.mass_times_displacement() @ self.gravity)
+        if work_forces is not None:
+            state.external_work += float(np.sum(work_forces * (new.u - p.u)))
+        if scheme == "cd":
+            state.particle_acceleration = acc
+            self._acc = None  # the state keeps this one; the next step writes a new one
+        if out >= 0:
+            self._finish_with_exits(state, new)
+        else:
+            self._spare = p
+            state.particles = new
+        state.step += 1
+        state.t = state.t_next()
+
+    def _finish_with_exits(self, state, new):
+        outside = ~state.grid.inside(new.x)
+        first = int(np.flatnonzero(outside)[0])
+        if state.method.on_exit == "raise":
+            raise InvalidState(
+                f"particle {first} left the grid at {new.x[first].tolist()} "
+                f"({int(outside.sum())} outside); use Method(on_exit='remove') to drop them",
+                particle=first)
+        keep = ~outside
+        if not keep.any():
+            raise InvalidState("every particle has left the grid", particle=first)
+        state.particles = new.subset(keep)
+        state.removed += int(outside.sum())
+        state.index = state.index[keep]
+        state.particle_acceleration = None
+        state.rebind(keep)
+        self._spare = None

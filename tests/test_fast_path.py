@@ -1,0 +1,78 @@
+"""The compiled fast path agrees with the NumPy reference to 1e-12."""
+import numpy as np
+import pytest
+
+from skfem_mpm import (Body, Fixed, Gravity, LinearElastic, Method, NeoHookean, Particles,
+                       Scene, SimulationError, SplineGrid, Traction, simulate)
+from skfem_mpm.benchmarks import get_benchmark
+
+
+def both(scene, **method):
+    ref = simulate(scene, Method(backend="numpy", **method), save_every=7)
+    fast = simulate(scene, Method(backend="numba", **method), save_every=7)
+    assert fast.path == "fast" and ref.path.startswith("reference")
+    return ref, fast
+
+
+def close(a, b, tol=1e-12):
+    scale = max(np.abs(a).max(), 1e-300)
+    return np.abs(a - b).max() <= tol * scale
+
+
+@pytest.mark.parametrize("scheme", ("usl", "musl", "cd"))
+@pytest.mark.parametrize("degree", (1, 2, 3))
+def test_1d_soil_column_with_gravity_and_top_load(scheme, degree):
+    b = get_benchmark("soil-column", "small", p0=5e3)
+    ref, fast = both(b.scene(12, degree, 2), scheme=scheme)
+    for k in ("u", "v", "stress"):
+        assert close(ref.history[k], fast.history[k]), k
+    assert close(ref.energies["external_work"], fast.energies["external_work"])
+    r_ref = ref.reactions[-1]["Fixed('left', component=None)"]
+    r_fast = fast.reactions[-1]["Fixed('left', component=None)"]
+    assert close(r_ref, r_fast)
+
+
+@pytest.mark.parametrize("scheme", ("usl", "musl", "cd"))
+@pytest.mark.parametrize("degree", (1, 2, 3))
+def test_2d_block_on_a_nonuniform_grid(scheme, degree):
+    grid = SplineGrid((np.array([0.0, 0.1, 0.35, 0.5, 0.8, 1.0]),
+                       np.array([0.0, 0.2, 0.3, 0.6, 0.75, 1.0])), degree)
+    parts = Particles.seed(grid, 2, 2.0, region=((0.12, 0.78), (0.05, 0.7)),
+                           velocity=lambda X: np.column_stack((0.1 * X[:, 1], -0.05 * X[:, 0])))
+    scene = Scene(grid, Body(parts, LinearElastic(1e3, 0.3)), 0.05,
+                  effects=[Gravity((0.0, -9.81)), Fixed("bottom"), Fixed("left", 0)])
+    ref, fast = both(scene, scheme=scheme)
+    for k in ("u", "v", "stress"):
+        assert close(ref.history[k], fast.history[k]), k
+
+
+def test_finite_strain_material_through_the_velocity_gradient():
+    b = get_benchmark("axis-aligned-2d")
+    ref, fast = both(b.scene(4, 2, 2), scheme="usl")
+    assert close(ref.particles.F, fast.particles.F)
+    assert close(ref.history["u"], fast.history["u"])
+
+
+def test_side_traction_and_removal_on_the_fast_path():
+    b = get_benchmark("traction-bar", "large")
+    ref, fast = both(b.scene(8, 2, 2), scheme="musl")
+    assert close(ref.history["u"], fast.history["u"])
+    grid = SplineGrid.rectangle((0, 1), (0, 1), 4, 2)
+    parts = Particles.seed(grid, 2, 1.0, region=((0.7, 0.95), (0.4, 0.6)),
+                           velocity=np.array([5.0, 0.0]))
+    scene = Scene(grid, Body(parts, LinearElastic(1e2, 0.3)), 0.05)
+    ref, fast = both(scene, on_exit="remove")
+    assert ref.counts["removed"] == fast.counts["removed"] > 0
+    assert close(ref.particles.x, fast.particles.x)
+    with pytest.raises(SimulationError, match="left the grid"):
+        simulate(scene, Method(backend="numba"))
+
+
+def test_fast_path_failure_keeps_the_last_good_state():
+    b = get_benchmark("vibrating-string", "small", L=1.0)
+    scene = b.scene(8, 2, 2, t_end=100 * 2 * np.pi / b.omega)
+    dt = 10 * simulate(b.scene(8, 2, 2), Method()).dt_crit
+    with pytest.raises(SimulationError) as info:
+        simulate(scene, Method(dt=dt, allow_unstable=True, scheme="usl", backend="numba"))
+    p = info.value.result.particles
+    assert all(np.all(np.isfinite(a)) for a in (p.x, p.v, p.stress, p.V))
