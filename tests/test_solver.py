@@ -139,8 +139,8 @@ def test_undeclared_effects_cost_nothing(backend):
     grav = get_benchmark("soil-column", "small")
     falling = simulate(grav.scene(8, 2, 2), Method(backend=backend))
     assert falling.energies["external_work"][-1] != 0.0
-    if backend == "numba":  # gravity is g times the nodal mass: no per-particle pass
-        assert not falling.phase_counts.get("effects")
+    if backend == "numba":  # gravity is g times the nodal mass: no per-particle pass,
+        assert falling.phase_counts.get("effects", 0) <= 1  # only the binding at the start
 
 
 def test_fem_rejects_a_body_that_does_not_fill_the_grid():
