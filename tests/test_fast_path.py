@@ -76,3 +76,28 @@ def test_fast_path_failure_keeps_the_last_good_state():
         simulate(scene, Method(dt=dt, allow_unstable=True, scheme="usl", backend="numba"))
     p = info.value.result.particles
     assert all(np.all(np.isfinite(a)) for a in (p.x, p.v, p.stress, p.V))
+
+
+@pytest.mark.parametrize("solver", ("cg", "direct", "auto"))
+def test_consistent_mass_fast_path_matches_reference(solver):
+    b = get_benchmark("vibrating-plate-2d", "small")
+    scene = b.scene(6, 2, 2)
+    ref = simulate(scene, Method(mass="consistent", backend="numpy", mass_solver="direct"))
+    fast = simulate(scene, Method(mass="consistent", mass_solver=solver))
+    assert fast.path == "fast"
+    assert close(ref.particles.u, fast.particles.u, 1e-11)
+    assert close(ref.particles.stress, fast.particles.stress, 1e-11)
+
+
+def test_consistent_mass_kernel_equals_transfer_matrices():
+    from skfem_mpm.kernels.mpm import Kernels
+    from skfem_mpm.solve.steps import Transfer
+    from skfem_mpm.solve.timing import PhaseTimer
+
+    for grid in (SplineGrid.line(0, 1, 7, 2),
+                 SplineGrid((np.array([0, 0.3, 0.5, 1.0]), np.linspace(0, 1, 5)), 3)):
+        p = Particles.seed(grid, 3, 1.0, layout="random", seed=2)
+        M, K = Kernels(grid).consistent_mass(p)
+        tr = Transfer(grid, p.x, PhaseTimer())
+        assert abs(M - tr.consistent_mass(p.m)).max() < 1e-15
+        assert np.abs(K - sum(G.multiply(G).T @ p.m for G in tr.grad_N)).max() < 1e-12

@@ -396,6 +396,84 @@ def g2p_2d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, 
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies):
+    """M_(k, k+d) = sum m_p N_k N_(k+d) into a stencil (dofs, 2p+1), and
+    sum m_p (dN_k/dx)^2 per dof (the fast-dof guard's stiffness weights)."""
+    n = x.shape[0]
+    nt = mass_copies.shape[0]
+    width = 2 * p + 1
+    for t in prange(nt):
+        M = mass_copies[t]
+        K = stiff_copies[t]
+        M[:, :] = 0.0
+        K[:] = 0.0
+        w = np.empty(4)
+        dw = np.empty(4)
+        lo = t * n // nt
+        hi = (t + 1) * n // nt
+        for i in range(lo, hi):
+            e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
+            mi = m[i]
+            for a in range(p + 1):
+                K[e + a] += mi * dw[a] * dw[a]
+                wa = mi * w[a]
+                for a2 in range(p + 1):
+                    M[e + a, a2 - a + p] += wa * w[a2]
+    return width
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, stiff_copies):
+    """The 2D stencil of the consistent mass (offsets -p..p per axis, column
+    (db + p)(2p + 1) + da + p) and the per-dof sum m_p |grad N_k|^2."""
+    n = x.shape[0]
+    nt = mass_copies.shape[0]
+    width = 2 * p + 1
+    for t in prange(nt):
+        M = mass_copies[t]
+        K = stiff_copies[t]
+        M[:, :] = 0.0
+        K[:] = 0.0
+        wx = np.empty(4)
+        dx = np.empty(4)
+        wy = np.empty(4)
+        dy = np.empty(4)
+        lo = t * n // nt
+        hi = (t + 1) * n // nt
+        for i in range(lo, hi):
+            ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
+            ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
+            mi = m[i]
+            for b in range(p + 1):
+                for a in range(p + 1):
+                    k = (ey + b) * nbx + ex + a
+                    gx = dx[a] * wy[b]
+                    gy = wx[a] * dy[b]
+                    K[k] += mi * (gx * gx + gy * gy)
+                    wab = mi * wx[a] * wy[b]
+                    for b2 in range(p + 1):
+                        for a2 in range(p + 1):
+                            s = (b2 - b + p) * width + (a2 - a + p)
+                            M[k, s] += wab * wx[a2] * wy[b2]
+    return width
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def _reduce_stencil(mass_copies, stiff_copies, M, K):
+    nt, nk, ns = mass_copies.shape
+    for k in prange(nk):
+        sk = 0.0
+        for t in range(nt):
+            sk += stiff_copies[t, k]
+        K[k] = sk
+        for s in range(ns):
+            sm = 0.0
+            for t in range(nt):
+                sm += mass_copies[t, k, s]
+            M[k, s] = sm
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def lumped_solve(mass, rhs, gravity, constrained, values, has_values, out):
     """out = rhs / m + gravity on free dofs with mass, the constraint
     values (or 0) on constrained ones, 0 on empty dofs."""
@@ -577,6 +655,63 @@ class Kernels:
             found.append(int(hits.min()) if hits.size else -1)
         return found
 
+    def _stencil_pattern(self):
+        """CSR pattern of the stencil (rows, valid stencil slots, columns)."""
+        if getattr(self, "_pattern", None) is None:
+            import scipy.sparse as sp
+
+            p, width = self.p, 2 * self.p + 1
+            nd = self.ndofs
+            k = np.arange(nd)
+            if self.dim == 1:
+                cols = k[:, None] + (np.arange(width) - p)[None, :]
+                valid = (cols >= 0) & (cols < nd)
+            else:
+                nbx, nby = self.grid.basis_per_axis
+                a, b = k % nbx, k // nbx
+                da = np.tile(np.arange(width) - p, width)
+                db = np.repeat(np.arange(width) - p, width)
+                aa, bb = a[:, None] + da[None, :], b[:, None] + db[None, :]
+                valid = (aa >= 0) & (aa < nbx) & (bb >= 0) & (bb < nby)
+                cols = bb * nbx + aa
+            slots = np.flatnonzero(valid.ravel())
+            indptr = np.concatenate(([0], np.cumsum(valid.sum(axis=1))))
+            self._pattern = (slots, cols.ravel()[slots].astype(np.int32),
+                             indptr.astype(np.int32), sp)
+            width_total = valid.shape[1]
+            self._stencil = np.empty((nd, width_total))
+            self._stencil_copies = np.empty((self.nthreads, nd, width_total))
+            self._stiff_copies = np.empty((self.nthreads, nd))
+        return self._pattern
+
+    def consistent_mass(self, particles):
+        """(M as CSR with the stencil pattern, sum m_p |grad N_k|^2 (dofs,))."""
+        stencil, K = self.consistent_stencil(particles)
+        return self.stencil_csr(stencil), K
+
+    def stencil_csr(self, stencil):
+        """The CSR matrix of a stencil array."""
+        slots, cols, indptr, sp = self._stencil_pattern()
+        return sp.csr_matrix((stencil.ravel()[slots], cols, indptr),
+                             shape=(self.ndofs, self.ndofs))
+
+    def consistent_stencil(self, particles):
+        """(M as a stencil array (dofs, (2p+1)^dim), sum m_p |grad N_k|^2)."""
+        self._stencil_pattern()
+        p = particles
+        if self.dim == 1:
+            (bx, ux, ihx, Cx), = self.args
+            consistent_1d(p.x, p.m, bx, ux, ihx, Cx, self.p, self._stencil_copies,
+                          self._stiff_copies)
+        else:
+            (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
+            consistent_2d(p.x, p.m, bx, by, ux, uy, ihx, ihy, Cx, Cy, self.p, self.nbx,
+                          self._stencil_copies, self._stiff_copies)
+        K = np.empty(self.ndofs)
+        stencil = np.empty_like(self._stencil)
+        _reduce_stencil(self._stencil_copies, self._stiff_copies, stencil, K)
+        return stencil, K
+
     def mass_times_displacement(self):
         """sum_p m_p du_p of the last g2p call, shape (dim,)."""
         return self.sums.sum(axis=0)
@@ -603,3 +738,136 @@ class Kernels:
         has = values is not None
         lumped_solve(mass, rhs, gravity, constrained, values if has else rhs, has, out)
         return out
+
+
+# ------------------------------------------------------- consistent mass solve
+@njit(cache=True, inline="always")
+def _neighbour(k, s, p, nbx, nby, dim):
+    """Dof index of stencil slot s of row k, or -1 outside the grid."""
+    width = 2 * p + 1
+    if dim == 1:
+        j = k + s - p
+        return j if 0 <= j < nbx else -1
+    a = k % nbx + s % width - p
+    b = k // nbx + s // width - p
+    if a < 0 or a >= nbx or b < 0 or b >= nby:
+        return -1
+    return b * nbx + a
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def stencil_prepare(M, p, nbx, nby, dim, fixed, fast, out):
+    """out = M with (1) the rows and columns of ``fast`` dofs lumped (their
+    off-diagonal entries moved onto the diagonal of the row) and (2) the rows
+    and columns of ``fixed`` dofs (constrained or massless) replaced by the
+    identity."""
+    nk, ns = M.shape
+    centre = (ns - 1) // 2
+    for k in prange(nk):
+        for s in range(ns):
+            out[k, s] = 0.0
+        if fixed[k]:
+            out[k, centre] = 1.0
+            continue
+        diag = M[k, centre]
+        for s in range(ns):
+            if s == centre:
+                continue
+            j = _neighbour(k, s, p, nbx, nby, dim)
+            if j < 0:
+                continue
+            if fast[k] or fast[j]:
+                diag += M[k, s]
+            elif not fixed[j]:
+                out[k, s] = M[k, s]
+        out[k, centre] = diag
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def stencil_matvec(M, p, nbx, nby, dim, x, y):
+    """y = M x for a stencil matrix and x of shape (dofs, components)."""
+    nc = x.shape[1]
+    width = 2 * p + 1
+    for b in prange(nby):
+        for a in range(nbx):
+            k = b * nbx + a
+            for c in range(nc):
+                acc = 0.0
+                if dim == 1:
+                    for s in range(width):
+                        j = k + s - p
+                        if j >= 0 and j < nbx:
+                            acc += M[k, s] * x[j, c]
+                else:
+                    for db in range(-p, p + 1):
+                        bb = b + db
+                        if bb < 0 or bb >= nby:
+                            continue
+                        row = (db + p) * width + p
+                        for da in range(-p, p + 1):
+                            aa = a + da
+                            if aa >= 0 and aa < nbx:
+                                acc += M[k, row + da] * x[bb * nbx + aa, c]
+                y[k, c] = acc
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def stencil_pcg(M, p, nbx, nby, dim, inv_diag, b, x, rtol, maxiter):
+    """Conjugate gradients for M x = b (all components at once, each with its
+    own scalars), Jacobi-preconditioned with ``inv_diag`` (the inverse lumped
+    mass), started from x. Returns the iterations of the slowest component."""
+    nk, nc = b.shape
+    r = np.empty_like(b)
+    z = np.empty_like(b)
+    d = np.empty_like(b)
+    q = np.empty_like(b)
+    stencil_matvec(M, p, nbx, nby, dim, x, q)
+    rz = np.zeros(nc)
+    bnorm = np.zeros(nc)
+    for k in range(nk):
+        for c in range(nc):
+            r[k, c] = b[k, c] - q[k, c]
+            z[k, c] = inv_diag[k] * r[k, c]
+            d[k, c] = z[k, c]
+            rz[c] += r[k, c] * z[k, c]
+            bnorm[c] += b[k, c] * b[k, c]
+    done = np.zeros(nc, dtype=np.bool_)
+    for c in range(nc):
+        done[c] = rz[c] <= 0.0 or bnorm[c] == 0.0
+    it = 0
+    while it < maxiter:
+        all_done = True
+        for c in range(nc):
+            if not done[c]:
+                all_done = False
+        if all_done:
+            break
+        it += 1
+        stencil_matvec(M, p, nbx, nby, dim, d, q)
+        dq = np.zeros(nc)
+        for k in range(nk):
+            for c in range(nc):
+                dq[c] += d[k, c] * q[k, c]
+        rz_new = np.zeros(nc)
+        rr = np.zeros(nc)
+        for c in range(nc):
+            if done[c] or dq[c] == 0.0:
+                continue
+            alpha = rz[c] / dq[c]
+            for k in range(nk):
+                x[k, c] += alpha * d[k, c]
+                r[k, c] -= alpha * q[k, c]
+                z[k, c] = inv_diag[k] * r[k, c]
+                rz_new[c] += r[k, c] * z[k, c]
+                rr[c] += r[k, c] * r[k, c]
+        for c in range(nc):
+            if done[c]:
+                continue
+            if rr[c] <= rtol * rtol * bnorm[c]:
+                done[c] = True
+                continue
+            beta = rz_new[c] / rz[c]
+            rz[c] = rz_new[c]
+            for k in range(nk):
+                d[k, c] = z[k, c] + beta * d[k, c]
+    return it

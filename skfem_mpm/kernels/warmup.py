@@ -32,6 +32,17 @@ def warm_up_kernels(grid, fast=False):
             for acc in (None, np.empty((1, dim))):
                 k.g2p(p, zeros, zeros, 0.0, 1.0, flip, fused, material, new, L, acc)
     k.small_mass(np.ones(grid.ndofs), 1e-3)
+    stencil, K = k.consistent_mass(p)[0], None
+    from ..solve.fast import StencilSystem
+    from ..solve.grid_system import Constraints
+
+    st, K = k.consistent_stencil(p)
+    system = StencilSystem(k, st + np.eye(1, st.shape[1], (st.shape[1] - 1) // 2),
+                           np.ones(grid.ndofs), Constraints(grid, []),
+                           np.zeros(grid.ndofs, dtype=np.bool_), {})
+    system.solve(np.ones((grid.ndofs, dim)), np.zeros((grid.ndofs, dim)), "velocity")
+    system.residual(np.ones((grid.ndofs, dim)), np.ones((grid.ndofs, dim)))
+    del stencil
     mask = np.zeros((grid.ndofs, dim), dtype=bool)
     out = np.empty((grid.ndofs, dim))
     for values in (None, zeros):
