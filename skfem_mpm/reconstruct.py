@@ -24,23 +24,26 @@ smeared over that cell; TLS still conserves mass and momentum exactly).
 Gauss rules use p + 2 points per axis (exact for a cubic field times two
 degree-p functions).
 
-``spline``  1D (default ``knots="grid"``): least squares in the cubic splines
-            on the grid's knots that are C^(p-2) there, with a small penalty
-            on derivative jumps at the knots for what the particles leave
-            open (fewer than 5 - p particles per cell). The particle stress
-            samples grad u_h of the degree-p spline solution, which has kinks
-            at the grid knots; this space contains it (and the velocity) and
-            its design matrix moves continuously with the particles.
-            ``knots="particles"`` is the seed's approach: the not-a-knot
-            cubic spline through the particle values (sorted, coincident
-            positions merged), one per connected piece of the body. Being C2
-            across the knots it smooths the kinks, an error of size about
+``spline``  1D (default ``knots="particles"``, the seed's approach): the
+            not-a-knot cubic spline through the particle values (sorted,
+            coincident positions merged), one per connected piece of the
+            body. It moves continuously with the particles, which is what
+            grid crossing needs: on the large-deformation soil column (S2,
+            10-20% strain) quadratic MPM with it converges (consistent mass,
+            20-160 cells: 0.15%, 0.09%, 0.05%, 0.02% against a converged
+            solution of the same model) with smooth stress, where particle
+            quadrature diverges (0.4% to 9.9%) with oscillating stress.
+            Being C2 across the grid knots, where the stress of a degree-p
+            spline solution has its kinks, it smooths them: an error of about
             h^2 / ppc^2 that caps quadratic MPM at order 2 with 4 particles
-            per cell (measured on S1, consistent mass, 16-32-64 cells:
-            orders 2.15, 2.03; with the grid knots 2.93, 2.74) and limits S3
-            (7.8e-6 against 4.1e-7 at 16 cells, 8 ppc). A first version that
-            refitted a spline per cell removed the cap too but switched as
-            particles crossed cells (S4 with G = 0.05: 5.9e-4 at 128 cells).
+            per cell on small deformations (S1: orders 2.15, 2.03).
+            ``knots="grid"``: least squares in the cubic splines on the grid's
+            knots with the data's continuity C^(p-2) there and a small
+            penalty (``penalty``) on derivative jumps for what the particles
+            leave open. It lifts the cap (S1, 4 ppc: 2.93, 2.74; S3 at 16
+            cells 4.1e-7 against 7.8e-6) but fails where a free surface moves
+            through partly filled cells (S2 large: J <= 0 after ~120 steps);
+            use it for small deformations.
             2D: least squares in the cubic B-spline space of the grid (C2),
             with a second-difference penalty on the coefficients that the
             particles barely see (empty cells). Reproduces cubic polynomials.
@@ -133,7 +136,7 @@ def integration_rule(grid, particles, points_per_axis):
 
 
 # ------------------------------------------------------------------- spline
-def reconstruct_spline(grid, particles, values, rule, knots="grid", penalty=1e-6):
+def reconstruct_spline(grid, particles, values, rule, knots="particles", penalty=1e-6):
     """Cubic-spline reconstruction (see the module docstring).
 
     1D, ``knots="particles"``: the seed's not-a-knot cubic spline through

@@ -757,10 +757,10 @@ def _neighbour(k, s, p, nbx, nby, dim):
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def stencil_prepare(M, p, nbx, nby, dim, fixed, fast, out):
-    """out = M with (1) the rows and columns of ``fast`` dofs lumped (their
-    off-diagonal entries moved onto the diagonal of the row) and (2) the rows
-    and columns of ``fixed`` dofs (constrained or massless) replaced by the
-    identity."""
+    """out = M with (1) the fraction max(fast_i, fast_j) of every
+    off-diagonal entry moved onto the diagonal of its row (``fast`` in [0, 1]
+    per dof) and (2) the rows and columns of ``fixed`` dofs (constrained or
+    massless) replaced by the identity."""
     nk, ns = M.shape
     centre = (ns - 1) // 2
     for k in prange(nk):
@@ -776,10 +776,10 @@ def stencil_prepare(M, p, nbx, nby, dim, fixed, fast, out):
             j = _neighbour(k, s, p, nbx, nby, dim)
             if j < 0:
                 continue
-            if fast[k] or fast[j]:
-                diag += M[k, s]
-            elif not fixed[j]:
-                out[k, s] = M[k, s]
+            theta = fast[k] if fast[k] > fast[j] else fast[j]
+            diag += theta * M[k, s]
+            if not fixed[j]:
+                out[k, s] = (1.0 - theta) * M[k, s]
         out[k, centre] = diag
 
 

@@ -39,7 +39,7 @@ def warm_up_kernels(grid, fast=False):
     st, K = k.consistent_stencil(p)
     system = StencilSystem(k, st + np.eye(1, st.shape[1], (st.shape[1] - 1) // 2),
                            np.ones(grid.ndofs), Constraints(grid, []),
-                           np.zeros(grid.ndofs, dtype=np.bool_), {})
+                           np.zeros(grid.ndofs), {})
     system.solve(np.ones((grid.ndofs, dim)), np.zeros((grid.ndofs, dim)), "velocity")
     system.residual(np.ones((grid.ndofs, dim)), np.ones((grid.ndofs, dim)))
     del stencil

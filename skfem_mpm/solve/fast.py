@@ -58,7 +58,7 @@ class StencilSystem:
         self.small_dofs = 0
         self.lumped = lumped
         inactive = lumped <= 0
-        no_fixed = np.zeros(lumped.size, dtype=np.bool_)
+        fast = np.asarray(fast, dtype=np.float64)
         self.full = np.empty_like(stencil)  # fast rows lumped, nothing fixed
         stencil_prepare(stencil, *self.geometry, inactive, fast, self.full)
         self.inv_diag = np.where(inactive, 1.0, 1.0 / np.where(inactive, 1.0, lumped))
@@ -72,7 +72,6 @@ class StencilSystem:
                 stencil_prepare(stencil, *self.geometry, fixed, fast, prepared)
                 self.groups[key] = ([], fixed, prepared)
             self.groups[key][0].append(c)
-        del no_fixed
         self.iterations = 0
 
     def _matvec(self, M, x):
@@ -272,20 +271,21 @@ class FastStepper:
         general grid system (sparse LU with ``mass_solver="direct"``, and
         whenever tiny-mass dofs must be merged)."""
         from .grid_system import GridSystem
-        from .timestep import fast_dof_limit
+        from .timestep import fast_dof_limit, lumping_fraction
 
         guard = state.method.frequency_guard
         limit = None
         if guard > 0:
             limit = guard * fast_dof_limit(state.grid.degree) / (state.dt * state.wave_speed_now) ** 2
         small = self._small_dofs(state, mass)
-        fast_rows = None if limit is None else (lambda diag: K > limit * diag)
+        fast_rows = None if limit is None else (
+            lambda diag: lumping_fraction(K / (limit * np.maximum(diag, 1e-300))))
         self._fast_rows_fn = fast_rows
         self._stencil_K = (stencil, K)
         if self._use_cg(state) and not small:
             diagonal = stencil[:, (stencil.shape[1] - 1) // 2]
-            fast = (K > limit * diagonal) & (mass > 0) if limit is not None \
-                else np.zeros(mass.size, dtype=np.bool_)
+            fast = np.where(mass > 0, fast_rows(diagonal), 0.0) if limit is not None \
+                else np.zeros(mass.size)
             return StencilSystem(self.kernels, stencil, mass, state.constraints, fast, state.warm)
         M = self.kernels.stencil_csr(stencil)
         solver = "cg" if state.method.mass_solver == "cg" else "direct"

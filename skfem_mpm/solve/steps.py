@@ -27,7 +27,7 @@ import numpy as np
 from ..errors import InvalidState
 from ..quadrature import _csr, _csr_pattern, transfer_matrices
 from ..reconstruct import RECONSTRUCTORS, integration_rule
-from .timestep import fast_dof_limit
+from .timestep import fast_dof_limit, lumping_fraction
 
 __all__ = ["Transfer", "GridData", "particles_to_grid", "solve_grid", "grid_to_particles",
            "update_stress", "commit", "particle_forces", "internal_force"]
@@ -244,7 +244,7 @@ def _system(state, data):
 
             def fast_rows(mass_diagonal):
                 k = data.stiffness_weights()  # sum over points of mass |grad N_i|^2
-                return k > limit * mass_diagonal
+                return lumping_fraction(k / (limit * np.maximum(mass_diagonal, 1e-300)))
 
         data.system = GridSystem(data.lumped, state.constraints, data.consistent,
                                  state.adjacency, state.method.small_mass,

@@ -25,7 +25,7 @@ from skfem import BilinearForm, asm
 from skfem.helpers import dot, grad
 
 __all__ = ["spectral_radius", "interior_rayleigh_quotient", "critical_time_step",
-           "fast_dof_limit"]
+           "fast_dof_limit", "lumping_fraction"]
 
 
 @BilinearForm
@@ -70,6 +70,12 @@ def fast_dof_limit(degree):
     as an interior dof is, exceed the stability limit omega dt = 2 of the
     time step chosen from Lambda (see :mod:`skfem_mpm.solve.grid_system`)."""
     return 4.0 * interior_rayleigh_quotient(degree) / spectral_radius(degree, "consistent")
+
+
+def lumping_fraction(ratio):
+    """theta = smoothstep(2 ratio - 1): 0 for ratio <= 1/2, 1 for ratio >= 1."""
+    s = np.clip(2.0 * np.asarray(ratio, dtype=np.float64) - 1.0, 0.0, 1.0)
+    return s * s * (3.0 - 2.0 * s)
 
 
 def critical_time_step(grid, wave_speed, mass="lumped"):
