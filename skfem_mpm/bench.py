@@ -11,8 +11,9 @@ The problems (as in the project's performance issue):
 Each figure is the median of ``repeat`` runs of the project's own
 ``simulate`` (USL, and MUSL beside it), with JIT compilation excluded and
 reported separately. Peak memory per particle is measured in a child
-process: its peak resident memory during the run minus its resident memory
-before the particles were made (tracemalloc does not see numba's arrays).
+process: its peak resident memory during ``simulate`` minus its resident
+memory just before, with the scene (the user's particles) already built
+(tracemalloc does not see numba's arrays).
 The scaling series keeps 4 x 4 particles per cell and grows the grid with
 the particles.
 
@@ -91,11 +92,12 @@ from skfem_mpm.bench import scene_{dim}d, _rss_kb
 from skfem_mpm.solve import Method, simulate
 small, dt = scene_{dim}d(cells=8, steps=2)
 simulate(small, Method(scheme="usl", dt=dt * (1 - 1e-9)))   # imports and JIT
+scene, dt = scene_{dim}d(cells={cells}, steps={steps})   # the user's particles
+method = Method(scheme="usl", dt=dt * (1 - 1e-9))
 with open("/proc/self/clear_refs", "w") as f:
     f.write("5")   # reset the peak
 base = _rss_kb("VmRSS")
-scene, dt = scene_{dim}d(cells={cells}, steps={steps})
-r = simulate(scene, Method(scheme="usl", dt=dt * (1 - 1e-9)))
+r = simulate(scene, method)
 peak = _rss_kb("VmHWM")
 print(json.dumps({{"bytes_per_particle": (peak - base) * 1024 / r.counts["particles"]}}))
 """

@@ -122,7 +122,14 @@ class Particles:
         return out
 
     def subset(self, which):
-        """The particles selected by a boolean mask or an index array."""
+        """The particles selected by a boolean mask or an index array (copies),
+        or by a slice (views)."""
+        if isinstance(which, slice):
+            out = Particles.__new__(Particles)
+            for k, a in self._arrays().items():
+                setattr(out, k, None if a is None else a[which])
+            out.info = dict(self.info)
+            return out
         which = np.asarray(which)
         if which.dtype == bool and which.shape != (self.n,):
             raise ValueError(f"a mask must have shape ({self.n},), got {which.shape}")

@@ -60,9 +60,15 @@ class Scene:
         return any(b.material.finite_strain for b in self.bodies)
 
     def particles(self):
-        """All bodies' particles in one set (a copy), ``body`` = body index,
-        with F = I when some material needs finite strain."""
+        """All bodies' particles in one set, ``body`` = body index, with F = I
+        when some material needs finite strain. A single body that needs
+        nothing added is shared, not copied: the solvers never write into the
+        scene's arrays."""
         parts = [b.particles for b in self.bodies]
+        only = parts[0]
+        if len(parts) == 1 and not np.any(only.body) and \
+                (only.F is not None or not self.finite_strain):
+            return only.replaced()
         if self.finite_strain:
             parts = [p.copy() for p in parts]
             for p in parts:

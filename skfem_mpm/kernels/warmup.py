@@ -6,8 +6,16 @@ __all__ = ["warm_up_kernels"]
 
 
 def warm_up_kernels(grid, fast=False):
+    """Compile on a small grid of the same dimension and degree (the machine
+    code does not depend on the grid's size, and no grid-sized buffer is
+    allocated)."""
     if not hasattr(grid, "breakpoints"):
         return
+    from ..spline import SplineGrid
+
+    cells = 2 * grid.degree + 2  # interior and boundary cells both occur
+    grid = (SplineGrid.line(0.0, 1.0, cells, grid.degree) if grid.dim == 1
+            else SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), cells, grid.degree))
     x = np.array([b[0] + 0.5 * (b[1] - b[0]) for b in grid.bounds])[None, :]
     for axis in range(grid.dim):
         grid.axis_functions(axis, x[:, axis], backend="numba")

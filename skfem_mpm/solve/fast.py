@@ -144,6 +144,7 @@ class FastStepper:
         timer.note_fused("g2p", ("locate", "basis", "g2p")
                          + (("constitutive",) if self.fused else ()))
         self._spare = None
+        self._owned = set()
         self._acc = None
         nd, dim = state.grid.ndofs, state.grid.dim
         self._v_old = np.empty((nd, dim))
@@ -152,11 +153,22 @@ class FastStepper:
         self._no_gravity = np.zeros(dim)
 
     # ---------------------------------------------------------------- buffers
+    WRITTEN = ("x", "v", "u", "stress", "V")
+
     def _new_particles(self, p):
+        """The arrays the kernels write the new state into: the state before
+        the current one, if this stepper allocated its arrays (the scene's
+        own arrays are never written), else fresh ones."""
         spare = self._spare
-        if spare is None or spare.n != p.n or (spare.F is None) != (p.F is None):
-            spare = p.copy()
-        for name in ("m", "X", "V0", "body"):
+        owned = spare is not None and spare.n == p.n and \
+            all(id(getattr(spare, k)) in self._owned for k in self.WRITTEN)
+        if not owned:
+            spare = p.replaced()
+            for k in self.WRITTEN:
+                a = np.empty_like(getattr(p, k))
+                setattr(spare, k, a)
+                self._owned.add(id(a))
+        for name in ("m", "X", "V0", "body", "F"):
             setattr(spare, name, getattr(p, name))
         if not self.fused:
             spare.stress, spare.V = p.stress, p.V  # replaced by the material update

@@ -71,8 +71,25 @@ class Result:
                 f"particles={self.counts['particles']}, wall={self.wall_time:.3g}s)")
 
 
+class History(dict):
+    """The saved states: each entry is a list of per-save arrays, stacked
+    into one array (saves, n, ...) on first access when all saves have the
+    same particles (otherwise the list is returned)."""
+
+    def __getitem__(self, key):
+        value = super().__getitem__(key)
+        if isinstance(value, list) and value and len({a.shape for a in value}) == 1:
+            value = np.stack(value)
+            super().__setitem__(key, value)
+        return value
+
+
 class Recorder:
-    """Collects saves during a run and builds the Result."""
+    """Collects saves during a run and builds the Result.
+
+    The reference positions and particle indices are stored once for as
+    long as they do not change, and the initial save shares the arrays of
+    the state it was given (nothing writes into them)."""
 
     def __init__(self):
         self.times = []
@@ -81,16 +98,19 @@ class Recorder:
         self.reactions = []
         self.last_step_saved = None
 
-    def save(self, state):
+    def save(self, state, share=False):
+        """Record the state; ``share`` keeps references instead of copies
+        (for the initial state, which no step writes into)."""
         p = state.particles
         self.times.append(float(state.t))
         v = state.reported_velocity()
-        self.history["X"].append(p.X.copy())
-        self.history["x"].append(p.x.copy())
-        self.history["u"].append(p.u.copy())
-        self.history["v"].append(np.array(v, copy=True))
-        self.history["stress"].append(p.stress.copy())
-        self.history["index"].append(state.index.copy())
+        keep = (lambda a: a) if share else (lambda a: np.array(a, copy=True))
+        self.history["X"].append(p.X)  # constant while the particle set is
+        self.history["index"].append(state.index)
+        self.history["x"].append(keep(p.x))
+        self.history["u"].append(keep(p.u))
+        self.history["v"].append(keep(v))
+        self.history["stress"].append(keep(p.stress))
         kinetic, strain = state.energies()
         self.energies["kinetic"].append(kinetic)
         self.energies["strain"].append(strain)
@@ -100,8 +120,7 @@ class Recorder:
         self.last_step_saved = state.step
 
     def result(self, state, wall_time, jit_time, kind="mpm", extra=None):
-        same = len({a.shape for a in self.history["x"]}) == 1
-        history = {k: (np.stack(v) if same else list(v)) for k, v in self.history.items()}
+        history = History({k: list(v) for k, v in self.history.items()})
         timer = state.timer
         counts = {
             "particles": int(state.particles.n), "cells": int(state.grid.ncells),
@@ -110,7 +129,7 @@ class Recorder:
             "small_dofs_max": int(getattr(state, "small_dofs_max", 0)),
         }
         fields = dict(
-            particles=state.particles.copy(), times=np.array(self.times), history=history,
+            particles=state.particles, times=np.array(self.times), history=history,
             energies={k: np.array(v) for k, v in self.energies.items()},
             reactions=list(self.reactions), timings=timer.table(),
             phase_counts=dict(timer.counts), fused=dict(timer.fused), counts=counts,

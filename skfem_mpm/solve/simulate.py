@@ -89,7 +89,7 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
         recorder = restore_state(state, read_checkpoint(restart))
     else:
         recorder = Recorder()
-        recorder.save(state)
+        recorder.save(state, share=True)
     fast, why_not = fast_path_applies(state)
     if fast:
         step = FastStepper(state).step

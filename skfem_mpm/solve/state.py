@@ -49,7 +49,7 @@ class State:
             with self.timer("effects"):
                 self._bind_forces()
         self._bind_bodies()
-        self.adjacency = dof_adjacency(self.grid) if method.small_mass > 0 else None
+        self._adjacency = None
         solver = method.mass_solver
         if solver == "auto":
             solver = "direct" if self.grid.ndofs < 20000 else "cg"
@@ -62,6 +62,9 @@ class State:
                        else e.bind(self.particles) for e in self.forces_declared]
 
     def _bind_bodies(self):
+        if len(self.materials) == 1:  # all particles: no index array needed
+            self.bodies = [(self.materials[0], slice(None))]
+            return
         body = self.particles.body
         self.bodies = [(m, np.flatnonzero(body == b)) for b, m in enumerate(self.materials)]
         self.bodies = [(m, idx) for m, idx in self.bodies if idx.size] or \
@@ -77,6 +80,13 @@ class State:
                 f.share = f.share[alive]
         self._bind_bodies()
 
+    @property
+    def adjacency(self):
+        """Dofs sharing a cell (for the tiny-mass merge), built on first use."""
+        if self._adjacency is None and self.method.small_mass > 0:
+            self._adjacency = dof_adjacency(self.grid)
+        return self._adjacency
+
     # ------------------------------------------------------------ time step
     @property
     def adaptive(self):
@@ -85,7 +95,7 @@ class State:
     def wave_speed(self):
         p = self.particles
         speeds = [m.wave_speed(p if len(self.bodies) == 1 else p.subset(idx))
-                  for m, idx in self.bodies if idx.size]
+                  for m, idx in self.bodies]
         return max(speeds)
 
     def _choose_time_step(self):
@@ -165,13 +175,17 @@ class State:
         return v
 
     def energies(self):
+        """(kinetic, strain) energy, in blocks of particles (bounded memory)."""
         p = self.particles
         v = self.reported_velocity()
-        kinetic = 0.5 * float(np.sum(p.m * np.sum(v * v, axis=1)))
+        kinetic = 0.5 * float(np.einsum("i,ij,ij->", p.m, v, v))
         strain = 0.0
+        block = 1 << 15
         for material, idx in self.bodies:
-            if idx.size:
-                strain += material.strain_energy(p if len(self.bodies) == 1 else p.subset(idx))
+            sub = p if len(self.bodies) == 1 else p.subset(idx)
+            for start in range(0, sub.n, block):
+                strain += material.strain_energy(sub.subset(slice(start, start + block))
+                                                 if sub.n > block else sub)
         return kinetic, strain
 
 
