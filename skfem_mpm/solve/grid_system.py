@@ -14,10 +14,13 @@ m_i^-1 f_i blows up. A dof is *small* when
 (``Method(small_mass=tol)``, default 1e-3; lumped masses m = N^T m_p). Each
 small free dof is merged into the heaviest dof it shares a cell with (its
 "master", followed until a dof that is not small): the two functions move
-as one, N_master + N_small. This is the extension idea of extended B-splines
-(Hollig, Reif, Wipper 2001) applied to mass: with the 0/1 merging matrix T
+as one, N_master + N_small. When several neighbours tie for heaviest (to a
+relative 1e-9, as in any symmetric body), the small dof is shared equally
+between them, N_a + N_small / 2 and N_b + N_small / 2, so that the merge
+keeps the body's symmetry. This is the extension idea of extended B-splines
+(Hollig, Reif, Wipper 2001) applied to mass: with the merging matrix T
 (dofs x kept dofs) the reduced system is T^T M T x_r = T^T rhs, x = T x_r.
-Because T 1 = 1 (every dof belongs to exactly one kept dof), constant
+Because T 1 = 1 (every dof's row of weights sums to one), constant
 velocities are still represented and the total momentum change
 1^T M x = 1^T T^T rhs = sum_i rhs_i is exactly what it would be without the
 merge: no momentum is lost or created (a test measures this to round-off).
@@ -123,45 +126,61 @@ class _Reduction:
     """Merging of tiny-mass dofs and the free/constrained split for one
     constraint pattern (shared by the components that have it)."""
 
+    TIE = 1e-9  # masters within this relative mass of the heaviest share the dof
+
     def __init__(self, lumped, constrained, adjacency, tol):
         nd = lumped.size
         active = lumped > 0
-        master = np.arange(nd)
+        small = np.zeros(nd, dtype=bool)
         if tol > 0 and adjacency is not None:
             weighted = adjacency.multiply(lumped[None, :]).tocsr()
             neighbour_max = np.asarray(weighted.max(axis=1).todense()).ravel()
             small = active & ~constrained & (lumped < tol * neighbour_max)
-            if small.any():
-                rows = np.flatnonzero(small)
-                master[rows] = np.asarray(weighted[rows].argmax(axis=1)).ravel()
-                for _ in range(64):
-                    nxt = master[master]
-                    if np.array_equal(nxt, master):
-                        break
-                    master = nxt
-        self.small = int(np.count_nonzero(master != np.arange(nd)))
-        kept, rindex = np.unique(master[active], return_inverse=True)
         self.active = np.flatnonzero(active)
+        if small.any():
+            T = self._merging(weighted, neighbour_max, small, active)
+        else:
+            T = sp.identity(nd, format="csr")[:, self.active]
+        self.small = int(np.count_nonzero(small))
+        kept = np.flatnonzero(active & ~small)
         self.kept = kept
-        self.rindex = rindex  # reduced index of every active dof
+        self.T = T.tocsr()  # dofs x kept dofs, rows of active dofs sum to 1
+        self._Ta = self.T[self.active]
         self.nr = kept.size
-        self.T = sp.csr_matrix((np.ones(self.active.size), (self.active, rindex)),
-                               shape=(nd, self.nr))
         self.constrained = constrained[kept]
         self.free = np.flatnonzero(~self.constrained)
         self.fixed = np.flatnonzero(self.constrained)
-        self.m_r = np.bincount(rindex, weights=lumped[self.active], minlength=self.nr)
+        self.m_r = self._Ta.T @ lumped[self.active]
+
+    def _merging(self, weighted, neighbour_max, small, active):
+        """T: each small dof goes to its heaviest neighbour, shared equally
+        between neighbours whose masses tie to TIE (a symmetric body stays
+        symmetric), followed through small masters until a kept dof."""
+        nd = small.size
+        rows = np.flatnonzero(small)
+        sub = weighted[rows].tocoo()
+        top = sub.data >= (1.0 - self.TIE) * neighbour_max[rows[sub.row]]
+        r, c = rows[sub.row[top]], sub.col[top]
+        share = 1.0 / np.bincount(r, minlength=nd)[r]
+        keep = np.flatnonzero(active & ~small)
+        step = sp.csr_matrix((np.concatenate([share, np.ones(keep.size)]),
+                              (np.concatenate([r, keep]), np.concatenate([c, keep]))),
+                             shape=(nd, nd))
+        T = step
+        for _ in range(64):  # masters are strictly heavier: no cycles
+            nxt = (T @ step).tocsr()
+            if (nxt != T).nnz == 0:
+                break
+            T = nxt
+        return T[:, keep]
 
     def restrict(self, rhs):
         """T^T rhs for rhs of shape (dofs, k)."""
-        out = np.empty((self.nr, rhs.shape[1]))
-        for j in range(rhs.shape[1]):
-            out[:, j] = np.bincount(self.rindex, weights=rhs[self.active, j], minlength=self.nr)
-        return out
+        return np.asarray(self._Ta.T @ rhs[self.active])
 
     def prolong(self, x_r, nd):
         out = np.zeros((nd, x_r.shape[1]))
-        out[self.active] = x_r[self.rindex]
+        out[self.active] = self._Ta @ x_r
         return out
 
 
