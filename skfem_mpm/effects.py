@@ -33,6 +33,14 @@ class Effect:
         """Validate against the scene's grid (raise ValueError)."""
 
 
+def _numbers(name, value, what):
+    """value as a float64 array, or a ValueError naming the argument."""
+    try:
+        return np.atleast_1d(np.asarray(value, dtype=np.float64))
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be {what}, got {value!r}") from None
+
+
 def _vector(name, value, dim):
     a = np.atleast_1d(np.asarray(value, dtype=np.float64))
     if a.shape != (dim,):
@@ -47,7 +55,7 @@ class Gravity(Effect):
     kind = "force"
 
     def __init__(self, g):
-        self.g = np.atleast_1d(np.asarray(g, dtype=np.float64))
+        self.g = _numbers("g", g, "a number (1D) or a vector of numbers")
         check_finite_array("g", self.g)
 
     def __repr__(self):
@@ -136,7 +144,8 @@ class Traction(Effect):
             if not where.any():
                 raise ValueError("the traction mask selects no particle")
         if not callable(tau):
-            value = np.atleast_1d(np.asarray(tau, dtype=np.float64))
+            value = check_finite_array("tau", _numbers(
+                "tau", tau, "a number, a vector or a callable tau(t) / tau(x, t)"))
             tau = (lambda t, _v=value: _v)
         self.where = where
         self.tau = tau
@@ -275,6 +284,7 @@ class Fixed(Effect):
     kind = "constraint"
 
     def __init__(self, side, component=None):
+        _check_component(component, 2)  # the grid's dimension is checked in the scene
         self.side = side
         self.component = component
 
@@ -298,8 +308,12 @@ class Prescribed(Effect):
     kind = "constraint"
 
     def __init__(self, side, component, velocity):
+        if component is not None:
+            _check_component(component, 2)
         if not callable(velocity):
             value = float(velocity)
+            if not np.isfinite(value):
+                raise ValueError(f"velocity must be finite or a callable velocity(t), got {value}")
             velocity = (lambda t, _v=value: _v)
         self.side = side
         self.component = component
