@@ -204,7 +204,10 @@ def _cmd_study(args):
     records = convergence(bench.name, methods, cells, ppc=ppc, variant=bench.variant,
                           params=params, executor=executor, progress=True, scheme=scheme, cfl=cfl)
     setup = (f"{bench.title}, variant {bench.variant}: ppc {ppc} per axis, scheme {scheme}, "
-             f"cfl {cfl}. Errors: RMS displacement at t_end relative to the amplitude.")
+             f"cfl {cfl}. Errors: " + ("max over the saves of the RMS displacement error"
+                                       if bench.primary_error == "error_max" else
+                                       "RMS displacement error at t_end")
+             + " relative to the amplitude.")
     paths = write_report(records, args.out, title=f"{bench.name} ({bench.variant})",
                          timing_note=setup + "\n\n" + note)
     print(setup)
