@@ -101,7 +101,8 @@ class State:
     def _choose_time_step(self):
         m = self.method
         self.wave_speed_now = self.wave_speed()
-        self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, m.mass)
+        self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, m.mass,
+                                          m.reconstruction)
         t_end = self.scene.t_end
         if m.dt is not None:
             if m.dt > self.dt_crit and not m.allow_unstable:
@@ -125,7 +126,8 @@ class State:
         if not self.adaptive:
             return self.dt
         self.wave_speed_now = self.wave_speed()
-        self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, self.method.mass)
+        self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, self.method.mass,
+                                          self.method.reconstruction)
         remaining = self.scene.t_end - self.t
         dt = self.method.cfl * self.dt_crit
         self.dt = remaining if dt >= remaining * (1 - 1e-12) else dt
