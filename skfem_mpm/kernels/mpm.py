@@ -92,6 +92,21 @@ def _axis(x, breaks, uniform, inv_h, C, p, w, dw):
     return e
 
 
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _quadratic_interior(x, breaks, inv_h):
+    """Uniform quadratic axis, scalar form of :func:`_axis` for interior
+    cells (2 <= e < cells - 2): (e, w0, w1, w2, dw0, dw1, dw2); e = -1 for
+    the boundary cells, which take the general path. Keeping the weights in
+    registers instead of small arrays roughly halves the 1D kernels' time."""
+    e = locate_axis_point(x, breaks, True, inv_h)
+    if e < 2 or e >= breaks.shape[0] - 3:
+        return -1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    xi = (x - breaks[e]) * inv_h
+    r = 1.0 - xi
+    return (e, 0.5 * r * r, 0.5 + xi * r, 0.5 * xi * xi,
+            -r * inv_h, (1.0 - 2.0 * xi) * inv_h, xi * inv_h)
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def _reduce_fields(copies, mass, momentum, force):
     """Sum the per-thread copies of (m, P, f) into three contiguous arrays."""
@@ -136,12 +151,26 @@ def p2g_1d(x, v, m, V, stress, fext, has_fext, bx, ux, ihx, Cx, p, copies):
         dw = np.empty(4)
         lo = t * n // nt
         hi = (t + 1) * n // nt
+        quadratic = p == 2 and ux
         for i in range(lo, hi):
-            e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
             mi = m[i]
             pv = mi * v[i, 0]
             s = V[i] * stress[i, 0, 0]
             f = fext[i, 0] if has_fext else 0.0
+            if quadratic:
+                e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
+                if e >= 0:
+                    g[e, 0] += w0 * mi
+                    g[e, 1] += w0 * pv
+                    g[e, 2] += w0 * f - s * d0
+                    g[e + 1, 0] += w1 * mi
+                    g[e + 1, 1] += w1 * pv
+                    g[e + 1, 2] += w1 * f - s * d1
+                    g[e + 2, 0] += w2 * mi
+                    g[e + 2, 1] += w2 * pv
+                    g[e + 2, 2] += w2 * f - s * d2
+                    continue
+            e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
             for a in range(p + 1):
                 k = e + a
                 g[k, 0] += w[a] * mi
@@ -160,7 +189,19 @@ def g2p2g_1d(x, v, m, grid_a, dt, bx, ux, ihx, Cx, p, v_new, copies):
         dw = np.empty(4)
         lo = t * n // nt
         hi = (t + 1) * n // nt
+        quadratic = p == 2 and ux
         for i in range(lo, hi):
+            if quadratic:
+                e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
+                if e >= 0:
+                    vn = v[i, 0] + dt * (w0 * grid_a[e, 0] + w1 * grid_a[e + 1, 0]
+                                         + w2 * grid_a[e + 2, 0])
+                    v_new[i, 0] = vn
+                    pv = m[i] * vn
+                    g[e, 0] += w0 * pv
+                    g[e + 1, 0] += w1 * pv
+                    g[e + 2, 0] += w2 * pv
+                    continue
             e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
             acc = 0.0
             for a in range(p + 1):
@@ -187,16 +228,27 @@ def g2p_1d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, ux, 
         bad = -1
         out = -1
         neg = -1
+        quadratic = p == 2 and ux
         for i in range(lo, hi):
-            e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
-            acc = 0.0
-            vg = 0.0
-            L = 0.0
-            for a in range(p + 1):
-                k = e + a
-                acc += w[a] * grid_a[k, 0]
-                vg += w[a] * grid_v[k, 0]
-                L += dw[a] * grid_v[k, 0]
+            e = -1
+            if quadratic:
+                e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
+                if e >= 0:
+                    a0, a1, a2 = grid_a[e, 0], grid_a[e + 1, 0], grid_a[e + 2, 0]
+                    v0, v1, v2 = grid_v[e, 0], grid_v[e + 1, 0], grid_v[e + 2, 0]
+                    acc = w0 * a0 + w1 * a1 + w2 * a2
+                    vg = w0 * v0 + w1 * v1 + w2 * v2
+                    L = d0 * v0 + d1 * v1 + d2 * v2
+            if e < 0:
+                e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
+                acc = 0.0
+                vg = 0.0
+                L = 0.0
+                for a in range(p + 1):
+                    k = e + a
+                    acc += w[a] * grid_a[k, 0]
+                    vg += w[a] * grid_v[k, 0]
+                    L += dw[a] * grid_v[k, 0]
             if store_acc:
                 acc_out[i, 0] = acc
             if do_flip:
