@@ -107,6 +107,73 @@ def _quadratic_interior(x, breaks, inv_h):
             -r * inv_h, (1.0 - 2.0 * xi) * inv_h, xi * inv_h)
 
 
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _p2g_node(g, k, N, gx, gy, mi, px, py, fx, fy, sxx, sxy, syy):
+    """Scatter one node's share of a particle (2D p2g)."""
+    g[k, 0] += N * mi
+    g[k, 1] += N * px
+    g[k, 2] += N * py
+    g[k, 3] += N * fx - (sxx * gx + sxy * gy)
+    g[k, 4] += N * fy - (sxy * gx + syy * gy)
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _p2g_row(g, row, wy, dy, wx0, wx1, wx2, dx0, dx1, dx2, mi, px, py, fx, fy, sxx, sxy, syy):
+    """The three nodes of one row of a quadratic interior stencil."""
+    _p2g_node(g, row, wx0 * wy, dx0 * wy, wx0 * dy, mi, px, py, fx, fy, sxx, sxy, syy)
+    _p2g_node(g, row + 1, wx1 * wy, dx1 * wy, wx1 * dy, mi, px, py, fx, fy, sxx, sxy, syy)
+    _p2g_node(g, row + 2, wx2 * wy, dx2 * wy, wx2 * dy, mi, px, py, fx, fy, sxx, sxy, syy)
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _g2p_row(grid_a, grid_v, row, wy, dy, wx0, wx1, wx2, dx0, dx1, dx2):
+    """Sums over one row of a quadratic interior stencil: (a_x, a_y, v_x,
+    v_y, L_xx, L_xy, L_yx, L_yy) contributions."""
+    ax = ay = vx = vy = lxx = lxy = lyx = lyy = 0.0
+    for a in range(3):
+        if a == 0:
+            wa, da = wx0, dx0
+        elif a == 1:
+            wa, da = wx1, dx1
+        else:
+            wa, da = wx2, dx2
+        k = row + a
+        N = wa * wy
+        gx = da * wy
+        gy = wa * dy
+        ax += N * grid_a[k, 0]
+        ay += N * grid_a[k, 1]
+        gvx = grid_v[k, 0]
+        gvy = grid_v[k, 1]
+        vx += N * gvx
+        vy += N * gvy
+        lxx += gvx * gx
+        lxy += gvx * gy
+        lyx += gvy * gx
+        lyy += gvy * gy
+    return ax, ay, vx, vy, lxx, lxy, lyx, lyy
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _gather_row(grid, row, wy, wx0, wx1, wx2):
+    """sum_a N_a grid[row + a] over one row of a quadratic stencil (2 comps)."""
+    n0, n1, n2 = wx0 * wy, wx1 * wy, wx2 * wy
+    return (n0 * grid[row, 0] + n1 * grid[row + 1, 0] + n2 * grid[row + 2, 0],
+            n0 * grid[row, 1] + n1 * grid[row + 1, 1] + n2 * grid[row + 2, 1])
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _scatter_row(g, row, wy, wx0, wx1, wx2, px, py):
+    """g[row + a] += N_a (px, py) over one row of a quadratic stencil."""
+    n0, n1, n2 = wx0 * wy, wx1 * wy, wx2 * wy
+    g[row, 0] += n0 * px
+    g[row, 1] += n0 * py
+    g[row + 1, 0] += n1 * px
+    g[row + 1, 1] += n1 * py
+    g[row + 2, 0] += n2 * px
+    g[row + 2, 1] += n2 * py
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def _reduce_fields(copies, mass, momentum, force):
     """Sum the per-thread copies of (m, P, f) into three contiguous arrays."""
@@ -291,9 +358,8 @@ def p2g_2d(x, v, m, V, stress, fext, has_fext, bx, by, ux, uy, ihx, ihy, Cx, Cy,
         dy = np.empty(4)
         lo = t * n // nt
         hi = (t + 1) * n // nt
+        quadratic = p == 2 and ux and uy
         for i in range(lo, hi):
-            ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
-            ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
             mi = m[i]
             px = mi * v[i, 0]
             py = mi * v[i, 1]
@@ -303,6 +369,20 @@ def p2g_2d(x, v, m, V, stress, fext, has_fext, bx, by, ux, uy, ihx, ihy, Cx, Cy,
             syy = Vi * stress[i, 1, 1]
             fx = fext[i, 0] if has_fext else 0.0
             fy = fext[i, 1] if has_fext else 0.0
+            if quadratic:
+                ex, wx0, wx1, wx2, dx0, dx1, dx2 = _quadratic_interior(x[i, 0], bx, ihx)
+                ey, wy0, wy1, wy2, dy0, dy1, dy2 = _quadratic_interior(x[i, 1], by, ihy)
+                if ex >= 0 and ey >= 0:
+                    row = ey * nbx + ex
+                    _p2g_row(g, row, wy0, dy0, wx0, wx1, wx2, dx0, dx1, dx2,
+                             mi, px, py, fx, fy, sxx, sxy, syy)
+                    _p2g_row(g, row + nbx, wy1, dy1, wx0, wx1, wx2, dx0, dx1, dx2,
+                             mi, px, py, fx, fy, sxx, sxy, syy)
+                    _p2g_row(g, row + 2 * nbx, wy2, dy2, wx0, wx1, wx2, dx0, dx1, dx2,
+                             mi, px, py, fx, fy, sxx, sxy, syy)
+                    continue
+            ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
+            ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
             for b in range(p + 1):
                 row = (ey + b) * nbx + ex
                 for a in range(p + 1):
@@ -330,7 +410,28 @@ def g2p2g_2d(x, v, m, grid_a, dt, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, v_ne
         dy = np.empty(4)
         lo = t * n // nt
         hi = (t + 1) * n // nt
+        quadratic = p == 2 and ux and uy
         for i in range(lo, hi):
+            if quadratic:
+                ex, wx0, wx1, wx2, _, _, _ = _quadratic_interior(x[i, 0], bx, ihx)
+                ey, wy0, wy1, wy2, _, _, _ = _quadratic_interior(x[i, 1], by, ihy)
+                if ex >= 0 and ey >= 0:
+                    r0 = ey * nbx + ex
+                    r1 = r0 + nbx
+                    r2 = r1 + nbx
+                    a0x, a0y = _gather_row(grid_a, r0, wy0, wx0, wx1, wx2)
+                    a1x, a1y = _gather_row(grid_a, r1, wy1, wx0, wx1, wx2)
+                    a2x, a2y = _gather_row(grid_a, r2, wy2, wx0, wx1, wx2)
+                    vx = v[i, 0] + dt * (a0x + a1x + a2x)
+                    vy = v[i, 1] + dt * (a0y + a1y + a2y)
+                    v_new[i, 0] = vx
+                    v_new[i, 1] = vy
+                    px = m[i] * vx
+                    py = m[i] * vy
+                    _scatter_row(g, r0, wy0, wx0, wx1, wx2, px, py)
+                    _scatter_row(g, r1, wy1, wx0, wx1, wx2, px, py)
+                    _scatter_row(g, r2, wy2, wx0, wx1, wx2, px, py)
+                    continue
             ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
             ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
             ax = 0.0
@@ -373,9 +474,8 @@ def g2p_2d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, 
         neg = -1
         smx = 0.0
         smy = 0.0
+        quadratic = p == 2 and ux and uy
         for i in range(lo, hi):
-            ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
-            ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
             ax = 0.0
             ay = 0.0
             vx = 0.0
@@ -384,7 +484,34 @@ def g2p_2d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, 
             Lxy = 0.0
             Lyx = 0.0
             Lyy = 0.0
-            for b in range(p + 1):
+            done = False
+            if quadratic:
+                ex, wx0, wx1, wx2, dx0, dx1, dx2 = _quadratic_interior(x[i, 0], bx, ihx)
+                ey, wy0, wy1, wy2, dy0, dy1, dy2 = _quadratic_interior(x[i, 1], by, ihy)
+                if ex >= 0 and ey >= 0:
+                    done = True
+                    row = ey * nbx + ex
+                    for b in range(3):
+                        if b == 0:
+                            wb, db = wy0, dy0
+                        elif b == 1:
+                            wb, db = wy1, dy1
+                        else:
+                            wb, db = wy2, dy2
+                        r = _g2p_row(grid_a, grid_v, row + b * nbx, wb, db,
+                                     wx0, wx1, wx2, dx0, dx1, dx2)
+                        ax += r[0]
+                        ay += r[1]
+                        vx += r[2]
+                        vy += r[3]
+                        Lxx += r[4]
+                        Lxy += r[5]
+                        Lyx += r[6]
+                        Lyy += r[7]
+            if not done:
+                ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
+                ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
+            for b in range(0 if done else p + 1):
                 row = (ey + b) * nbx + ex
                 for a in range(p + 1):
                     N = wx[a] * wy[b]
