@@ -50,5 +50,6 @@ def test_mass_and_momentum_reach_the_grid(scene):
         checked.append(step)
         return step < 3
 
-    simulate(scene, Method(scheme="usl", dt=None, cfl=0.2), callback=callback)
+    # a random particle may sit within one step of the edge: exits are removed
+    simulate(scene, Method(scheme="usl", cfl=0.2, on_exit="remove"), callback=callback)
     assert checked == [1, 2, 3]
