@@ -155,3 +155,19 @@ def test_restart_rejects_a_foreign_checkpoint(tmp_path):
 def test_callback_can_stop_the_run():
     r = simulate(s1_scene(), Method(), callback=lambda step, state: step < 5)
     assert r.counts["steps"] == 5
+
+
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_removal_with_two_bodies_rebinds_to_the_survivors(backend):
+    """Body 1 flies out of the grid; body 0 keeps being updated with its own
+    material (the bodies' index arrays refer to the surviving particles)."""
+    grid = SplineGrid.rectangle((0, 1), (0, 1), 4, 2)
+    stay = Particles.seed(grid, 2, 1.0, region=((0.1, 0.4), (0.1, 0.4)))
+    leave = Particles.seed(grid, 2, 1.0, region=((0.7, 0.95), (0.6, 0.9)),
+                           velocity=np.array([5.0, 0.0]))
+    scene = Scene(grid, [Body(stay, LinearElastic(1e2, 0.3)), Body(leave, NeoHookean(1e2, 0.3))],
+                  0.05)
+    r = simulate(scene, Method(on_exit="remove", backend=backend), save_every=1)
+    assert r.counts["removed"] > 0
+    assert r.particles.n == stay.n + leave.n - r.counts["removed"]
+    assert np.all(np.isfinite(r.particles.stress)) and np.all(r.particles.V > 0)

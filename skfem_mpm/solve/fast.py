@@ -402,19 +402,5 @@ class FastStepper:
         state.t = state.t_next()
 
     def _finish_with_exits(self, state, new):
-        outside = ~state.grid.inside(new.x)
-        first = int(np.flatnonzero(outside)[0])
-        if state.method.on_exit == "raise":
-            raise InvalidState(
-                f"particle {first} left the grid at {new.x[first].tolist()} "
-                f"({int(outside.sum())} outside); use Method(on_exit='remove') to drop them",
-                particle=first)
-        keep = ~outside
-        if not keep.any():
-            raise InvalidState("every particle has left the grid", particle=first)
-        state.particles = new.subset(keep)
-        state.removed += int(outside.sum())
-        state.index = state.index[keep]
-        state.particle_acceleration = None
-        state.rebind(keep)
+        state.particles = state.without_exits(new)
         self._spare = None

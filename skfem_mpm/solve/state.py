@@ -4,6 +4,7 @@ import math
 import numpy as np
 
 from ..effects import Traction
+from ..errors import InvalidState
 from ..kernels import resolve_backend
 from .grid_system import Constraints, dof_adjacency
 from .timestep import critical_time_step
@@ -69,6 +70,30 @@ class State:
         self.bodies = [(m, np.flatnonzero(body == b)) for b, m in enumerate(self.materials)]
         self.bodies = [(m, idx) for m, idx in self.bodies if idx.size] or \
             [(self.materials[0], np.arange(0))]
+
+    def without_exits(self, particles):
+        """``particles`` (the step's new state) minus those outside the grid:
+        raises :class:`InvalidState` for ``on_exit="raise"`` (or when none
+        would be left), else removes them, counts them, makes the survivors
+        the current particles and rebinds the forces and bodies to them."""
+        outside = ~self.grid.inside(particles.x)
+        if not outside.any():
+            return particles
+        k = int(np.flatnonzero(outside)[0])
+        if self.method.on_exit == "raise":
+            raise InvalidState(
+                f"particle {k} left the grid at {particles.x[k].tolist()} "
+                f"({int(outside.sum())} outside); use Method(on_exit='remove') to drop them",
+                particle=k)
+        keep = ~outside
+        if not keep.any():
+            raise InvalidState("every particle has left the grid", particle=k)
+        self.removed += int(outside.sum())
+        self.index = self.index[keep]
+        self.particle_acceleration = None
+        self.particles = particles.subset(keep)
+        self.rebind(keep)
+        return self.particles
 
     def rebind(self, keep):
         """After particles were removed (``keep`` is the mask of survivors)."""

@@ -352,23 +352,7 @@ def commit(state, data):
         if bad is not None:
             raise InvalidState(
                 f"non-finite state (NaN or Inf) at particle {bad}", particle=bad)
-        nxt = p.replaced(**new)
-        outside = ~state.grid.inside(nxt.x)
-        if outside.any():
-            k = int(np.flatnonzero(outside)[0])
-            if state.method.on_exit == "raise":
-                raise InvalidState(
-                    f"particle {k} left the grid at {nxt.x[k].tolist()} "
-                    f"({int(outside.sum())} outside); use Method(on_exit='remove') to drop them",
-                    particle=k)
-            keep = ~outside
-            if not keep.any():
-                raise InvalidState("every particle has left the grid", particle=k)
-            nxt = nxt.subset(keep)
-            state.removed += int(outside.sum())
-            state.index = state.index[keep]
-            state.particle_acceleration = None
-            state.rebind(keep)
+        nxt = state.without_exits(p.replaced(**new))
     state.particles = nxt
     state.step += 1
     state.t = state.t_next()
