@@ -26,7 +26,7 @@ outside the grid, or with det(I + dt L) <= 0 (or -1 for none).
 import numpy as np
 from numba import get_num_threads, njit, prange
 
-from .weights import bernstein4, locate_axis_point
+from .weights import extracted_functions, locate_axis_point
 
 # fast-math without the no-NaN and no-Inf assumptions: the guards test isfinite
 FAST = {"contract", "arcp", "nsz", "reassoc", "afn"}
@@ -70,25 +70,7 @@ def _axis(x, breaks, uniform, inv_h, C, p, w, dw):
             dw[0] = -inv_h
             dw[1] = inv_h
         return e
-    h = breaks[e + 1] - breaks[e]
-    xi = (x - breaks[e]) / h
-    b0, b1, b2, b3, c0, c1, c2, c3 = bernstein4(p, xi)
-    d0 = -p * c0
-    d1 = p * (c0 - c1)
-    d2 = p * (c1 - c2)
-    d3 = p * (c2 - c3)
-    inv = 1.0 / h
-    for a in range(p + 1):
-        vv = C[e, a, 0] * b0 + C[e, a, 1] * b1
-        dd = C[e, a, 0] * d0 + C[e, a, 1] * d1
-        if p >= 2:
-            vv += C[e, a, 2] * b2
-            dd += C[e, a, 2] * d2
-        if p >= 3:
-            vv += C[e, a, 3] * b3
-            dd += C[e, a, 3] * d3
-        w[a] = vv
-        dw[a] = dd * inv
+    extracted_functions(x, e, breaks, C, p, w, dw)
     return e
 
 

@@ -45,31 +45,38 @@ def bernstein4(p, xi):
     return b0, b1, b2, b3, c0, c1, c2, c3
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def extracted_functions(x, e, breaks, C, p, w, dw):
+    """Values w[a] and d/dx dw[a] of the p + 1 B-splines of cell e at x:
+    the cell's extraction matrix applied to the Bernstein polynomials."""
+    h = breaks[e + 1] - breaks[e]
+    xi = (x - breaks[e]) / h
+    b0, b1, b2, b3, c0, c1, c2, c3 = bernstein4(p, xi)
+    d0 = -p * c0
+    d1 = p * (c0 - c1)
+    d2 = p * (c1 - c2)
+    d3 = p * (c2 - c3)
+    inv = 1.0 / h
+    for a in range(p + 1):
+        v = C[e, a, 0] * b0 + C[e, a, 1] * b1
+        d = C[e, a, 0] * d0 + C[e, a, 1] * d1
+        if p >= 2:
+            v += C[e, a, 2] * b2
+            d += C[e, a, 2] * d2
+        if p >= 3:
+            v += C[e, a, 3] * b3
+            d += C[e, a, 3] * d3
+        w[a] = v
+        dw[a] = d * inv
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
 def axis_functions_kernel(x, breaks, uniform, inv_h, C, p, first, values, derivs):
     n = x.shape[0]
     for i in prange(n):
         e = locate_axis_point(x[i], breaks, uniform, inv_h)
-        h = breaks[e + 1] - breaks[e]
-        xi = (x[i] - breaks[e]) / h
-        b0, b1, b2, b3, c0, c1, c2, c3 = bernstein4(p, xi)
-        d0 = -p * c0
-        d1 = p * (c0 - c1)
-        d2 = p * (c1 - c2)
-        d3 = p * (c2 - c3)
-        inv = 1.0 / h
         first[i] = e
-        for a in range(p + 1):
-            v = C[e, a, 0] * b0 + C[e, a, 1] * b1
-            d = C[e, a, 0] * d0 + C[e, a, 1] * d1
-            if p >= 2:
-                v += C[e, a, 2] * b2
-                d += C[e, a, 2] * d2
-            if p >= 3:
-                v += C[e, a, 3] * b3
-                d += C[e, a, 3] * d3
-            values[i, a] = v
-            derivs[i, a] = d * inv
+        extracted_functions(x[i], e, breaks, C, p, values[i], derivs[i])
 
 
 def axis_functions(x, breaks, uniform, C, p):
