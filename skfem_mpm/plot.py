@@ -22,6 +22,13 @@ def _pyplot():
 
     return plt
 
+def _save(plt, fig, path):
+    """Lay out, write the PNG and release the figure."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 
 def _series(records, x_key):
     groups = {}
@@ -69,9 +76,7 @@ def plot_convergence(records, path, title=""):
     ax.set_title(f"Convergence: {title}")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(plt, fig, path)
     return path
 
 
@@ -87,9 +92,7 @@ def plot_work_precision(records, path, title=""):
     ax.set_title(f"Work-precision: {title}")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(plt, fig, path)
     return path
 
 
@@ -136,9 +139,7 @@ def plot_particles(result, path, field="stress", save=-1, exact=None, title=""):
         ax.set_xlabel("x")
         ax.set_ylabel("y")
     ax.set_title(title or f"{field} at t = {result.times[save]:.4g}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(plt, fig, path)
     return path
 
 
@@ -154,9 +155,7 @@ def plot_energy(result, path, title=""):
     ax.set_title(title or "Energy history")
     ax.grid(True, alpha=0.3)
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(plt, fig, path)
     return path
 
 
@@ -182,7 +181,5 @@ def plot_displacement_history(result, path, exact=None, particles=None, componen
     ax.set_title(title or "Displacement of particles (dashed: exact)")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(plt, fig, path)
     return path
