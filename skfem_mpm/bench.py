@@ -17,7 +17,7 @@ memory just before, with the scene (the user's particles) already built
 The scaling series keeps 4 x 4 particles per cell and grows the grid with
 the particles.
 
-    python -m skfem_mpm.bench [--quick] [--repeat 5] [--json]
+    python -m skfem_mpm.bench [--quick] [--repeat 5] [--json] [--reference] [--consistent]
 """
 import argparse
 import json
@@ -106,6 +106,52 @@ print(json.dumps({{"bytes_per_particle": (peak - base) * 1024 / r.counts["partic
     return json.loads(out.stdout.strip().splitlines()[-1])["bytes_per_particle"]
 
 
+def consistent_comparison(cells=(64, 128), steps=20, repeat=3):
+    """Step time of consistent against lumped mass on the 2D problem (USL),
+    all at the consistent mass's default time step (cfl 0.5 of its critical
+    step): lumped; consistent with the stencil CG and its Kronecker
+    preconditioner; the same CG with the lumped-mass (Jacobi)
+    preconditioner; a fresh sparse LU factorisation each step. Returns rows
+    with ms per step, the phase split and CG iterations per step."""
+    from .solve import Method, simulate
+    from .solve import fast as fast_module
+    from .solve.timestep import critical_time_step
+
+    variants = (("lumped", dict(mass="lumped"), None),
+                ("consistent, CG + Kronecker", dict(mass="consistent", mass_solver="cg"),
+                 "kronecker"),
+                ("consistent, CG + lumped", dict(mass="consistent", mass_solver="cg"), "lumped"),
+                ("consistent, sparse LU", dict(mass="consistent", mass_solver="direct"), None))
+    rows = []
+    for n in cells:
+        scene, _ = scene_2d(cells=n, steps=steps)
+        material = scene.bodies[0].material
+        dt = 0.5 * critical_time_step(scene.grid, np.sqrt(material.modulus(2)), "consistent")
+        scene = type(scene)(scene.grid, scene.bodies, steps * dt, effects=scene.effects)
+        for label, options, preconditioner in variants:
+            saved = fast_module.StencilSystem.preconditioner
+            if preconditioner:
+                fast_module.StencilSystem.preconditioner = preconditioner
+            counted = fast_module.StencilSystem.iteration_log = []
+            try:
+                results = [simulate(scene, Method(scheme="usl", dt=dt, **options))
+                           for _ in range(repeat)]
+            finally:
+                fast_module.StencilSystem.iteration_log = None
+                fast_module.StencilSystem.preconditioner = saved
+            per_step = sorted(r.wall_time / r.counts["steps"] for r in results)
+            r = results[0]
+            rows.append({"cells": n, "variant": label, "ms_per_step": per_step[repeat // 2] * 1e3,
+                         "phases_ms_per_step": {k: v / r.counts["steps"] * 1e3
+                                                for k, v in r.timings.items() if v > 0},
+                         "cg_iterations_per_solve": (float(np.median(counted))
+                                                     if preconditioner else None)})
+        base = rows[-len(variants)]["ms_per_step"]
+        for row in rows[-len(variants):]:
+            row["ratio_to_lumped"] = row["ms_per_step"] / base
+    return rows
+
+
 TARGETS = {"2d_usl": 25e6, "1d_usl": 100e6}
 REFERENCE = {"2d": {"C -O3 OpenMP 2 threads": 28e6, "C single thread": 15e6,
                     "numba parallel 2 threads": 23e6, "NVIDIA Warp CPU": 12e6,
@@ -122,6 +168,8 @@ def main(argv=None):
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--reference", action="store_true",
                         help="also time the NumPy reference path")
+    parser.add_argument("--consistent", action="store_true",
+                        help="also compare consistent with lumped mass (2D, 64^2 to 256^2)")
     args = parser.parse_args(argv)
     repeat = args.repeat or (1 if args.quick else 5)
     steps = 20 if args.quick else 200
@@ -146,6 +194,10 @@ def main(argv=None):
         for a, b in zip(series, series[1:]):
             b["time_ratio_for_4x_particles"] = b["wall_time_s"] / a["wall_time_s"]
         report["scaling_2d"] = series
+    if args.consistent:
+        report["consistent_2d"] = consistent_comparison(
+            cells=(32, 64) if args.quick else (64, 128, 256), steps=10 if args.quick else 20,
+            repeat=1 if args.quick else 3)
     if args.json:
         print(json.dumps(report, indent=2))
         return 0
@@ -168,6 +220,13 @@ def main(argv=None):
     if "memory_2d_bytes_per_particle" in report:
         print(f"2D peak memory: {report['memory_2d_bytes_per_particle']:.0f} bytes per particle "
               f"(target <= 300)")
+    for row in report.get("consistent_2d", []):
+        split = ", ".join(f"{k} {v:.2f}" for k, v in row["phases_ms_per_step"].items())
+        its = row["cg_iterations_per_solve"]
+        extra = f", CG iterations per solve {its:.0f}" if its else ""
+        print(f"consistent {row['cells']:>4d}^2 {row['variant']:28s} "
+              f"{row['ms_per_step']:8.2f} ms/step (x{row['ratio_to_lumped']:.1f} lumped){extra}; "
+              f"ms/step: {split}")
     for row in report.get("scaling_2d", []):
         ratio = row.get("time_ratio_for_4x_particles")
         extra = f", time x{ratio:.2f} for 4x particles" if ratio else ""

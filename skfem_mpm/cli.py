@@ -85,6 +85,9 @@ def build_parser():
     b.add_argument("--quick", action="store_true")
     b.add_argument("--json", action="store_true")
     b.add_argument("--repeat", type=int, default=None)
+    b.add_argument("--reference", action="store_true", help="also time the NumPy reference path")
+    b.add_argument("--consistent", action="store_true",
+                   help="also compare consistent with lumped mass per step")
     return parser
 
 
@@ -225,7 +228,8 @@ def _cmd_study(args):
 def _cmd_bench(args):
     from .bench import main as bench_main
 
-    argv = (["--quick"] if args.quick else []) + (["--json"] if args.json else [])
+    argv = [f"--{flag}" for flag in ("quick", "json", "reference", "consistent")
+            if getattr(args, flag)]
     if args.repeat is not None:
         argv += ["--repeat", str(args.repeat)]
     return bench_main(argv)

@@ -26,10 +26,8 @@ outside the grid, or with det(I + dt L) <= 0 (or -1 for none).
 import numpy as np
 from numba import get_num_threads, njit, prange
 
-from .weights import extracted_functions, locate_axis_point
-
-# fast-math without the no-NaN and no-Inf assumptions: the guards test isfinite
-FAST = {"contract", "arcp", "nsz", "reassoc", "afn"}
+from .kronecker import apply_kronecker
+from .weights import FAST, extracted_functions, locate_axis_point
 
 __all__ = ["Kernels"]
 
@@ -558,11 +556,11 @@ def g2p_2d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies):
-    """M_(k, k+d) = sum m_p N_k N_(k+d) into a stencil (dofs, 2p+1), and
-    sum m_p (dN_k/dx)^2 per dof (the fast-dof guard's stiffness weights)."""
+    """Upper half of the consistent mass, M_(k, k+d) = sum m_p N_k N_(k+d)
+    for d = 0..p (column d), and sum m_p (dN_k/dx)^2 per dof (the fast-dof
+    guard's stiffness weights). :func:`reduce_stencil` mirrors the rest."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
-    width = 2 * p + 1
     for t in prange(nt):
         M = mass_copies[t]
         K = stiff_copies[t]
@@ -578,18 +576,38 @@ def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies):
             for a in range(p + 1):
                 K[e + a] += mi * dw[a] * dw[a]
                 wa = mi * w[a]
-                for a2 in range(p + 1):
-                    M[e + a, a2 - a + p] += wa * w[a2]
-    return width
+                for a2 in range(a, p + 1):
+                    M[e + a, a2 - a] += wa * w[a2]
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _mass_pairs(M, K, k, a, b, wx, dx, wy, dy, mi, p, width, nbx):
+    """Node (a, b) of a particle's tensor stencil (weights wx, wy): its
+    stiffness weight and its products with the nodes after it (upper half,
+    slot (b2 - b + p) width + a2 - a + p - centre)."""
+    gx = dx[a] * wy[b]
+    gy = wx[a] * dy[b]
+    K[k] += mi * (gx * gx + gy * gy)
+    wab = mi * wx[a] * wy[b]
+    for a2 in range(a, p + 1):
+        M[k, a2 - a] += wab * wx[a2] * wy[b]
+    for b2 in range(b + 1, p + 1):
+        wb2 = wab * wy[b2]
+        base = (b2 - b) * width - a
+        for a2 in range(p + 1):
+            M[k, base + a2] += wb2 * wx[a2]
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, stiff_copies):
-    """The 2D stencil of the consistent mass (offsets -p..p per axis, column
-    (db + p)(2p + 1) + da + p) and the per-dof sum m_p |grad N_k|^2."""
+    """Upper half of the 2D stencil of the consistent mass (the slots from
+    the centre on, offsets (da, db) with db > 0 or db = 0 <= da; slot
+    (db + p)(2p + 1) + da + p - centre) and the per-dof sum m_p |grad N_k|^2.
+    :func:`reduce_stencil` mirrors the lower half (M is symmetric)."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
     width = 2 * p + 1
+    quadratic = p == 2 and ux and uy
     for t in prange(nt):
         M = mass_copies[t]
         K = stiff_copies[t]
@@ -602,36 +620,53 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
         lo = t * n // nt
         hi = (t + 1) * n // nt
         for i in range(lo, hi):
+            mi = m[i]
+            if quadratic:
+                ex, wx0, wx1, wx2, dx0, dx1, dx2 = _quadratic_interior(x[i, 0], bx, ihx)
+                ey, wy0, wy1, wy2, dy0, dy1, dy2 = _quadratic_interior(x[i, 1], by, ihy)
+                if ex >= 0 and ey >= 0:  # weights as tuples: kept in registers
+                    ws = (wx0, wx1, wx2)
+                    ds = (dx0, dx1, dx2)
+                    vs = (wy0, wy1, wy2)
+                    es = (dy0, dy1, dy2)
+                    for b in range(3):
+                        for a in range(3):
+                            _mass_pairs(M, K, (ey + b) * nbx + ex + a, a, b, ws, ds, vs, es,
+                                        mi, 2, 5, nbx)
+                    continue
             ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
             ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
-            mi = m[i]
             for b in range(p + 1):
                 for a in range(p + 1):
-                    k = (ey + b) * nbx + ex + a
-                    gx = dx[a] * wy[b]
-                    gy = wx[a] * dy[b]
-                    K[k] += mi * (gx * gx + gy * gy)
-                    wab = mi * wx[a] * wy[b]
-                    for b2 in range(p + 1):
-                        for a2 in range(p + 1):
-                            s = (b2 - b + p) * width + (a2 - a + p)
-                            M[k, s] += wab * wx[a2] * wy[b2]
-    return width
+                    _mass_pairs(M, K, (ey + b) * nbx + ex + a, a, b, wx, dx, wy, dy, mi, p,
+                                width, nbx)
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _reduce_stencil(mass_copies, stiff_copies, M, K):
-    nt, nk, ns = mass_copies.shape
+def reduce_stencil(mass_copies, stiff_copies, p, nbx, nby, dim, M, K):
+    """Sum the per-thread upper halves into M[:, centre:] and K, then mirror
+    the lower half, M[k, s] = M[j, ns - 1 - s] (j the dof at slot s of k)."""
+    nt, nk, nh = mass_copies.shape
+    ns = 2 * nh - 1
+    centre = nh - 1
     for k in prange(nk):
         sk = 0.0
         for t in range(nt):
             sk += stiff_copies[t, k]
         K[k] = sk
-        for s in range(ns):
+        for s in range(nh):
             sm = 0.0
             for t in range(nt):
                 sm += mass_copies[t, k, s]
-            M[k, s] = sm
+            M[k, centre + s] = sm
+    width = 2 * p + 1
+    pb = p if dim == 2 else 0
+    for b in prange(nby):
+        for a in range(nbx):
+            k = b * nbx + a
+            for s in range(centre):
+                j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
+                M[k, s] = M[j, ns - 1 - s] if j >= 0 else 0.0
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
@@ -740,6 +775,7 @@ class Kernels:
         self.ndofs = grid.ndofs
         self.nbx = grid.basis_per_axis[0]
         self._copies = {}
+        self._scratch = {}
         self._mass = np.empty(grid.ndofs)
         self._p2g_momentum = np.empty((grid.ndofs, grid.dim))
         self._force = np.empty((grid.ndofs, grid.dim))
@@ -840,8 +876,8 @@ class Kernels:
             self._pattern = (slots, cols.ravel()[slots].astype(np.int32),
                              indptr.astype(np.int32), sp)
             width_total = valid.shape[1]
-            self._stencil = np.empty((nd, width_total))
-            self._stencil_copies = np.empty((self.nthreads, nd, width_total))
+            self._stencil_shape = (nd, width_total)
+            self._stencil_copies = np.empty((self.nthreads, nd, (width_total + 1) // 2))
             self._stiff_copies = np.empty((self.nthreads, nd))
         return self._pattern
 
@@ -857,7 +893,8 @@ class Kernels:
                              shape=(self.ndofs, self.ndofs))
 
     def consistent_stencil(self, particles):
-        """(M as a stencil array (dofs, (2p+1)^dim), sum m_p |grad N_k|^2)."""
+        """(M as a stencil array (dofs, (2p+1)^dim), sum m_p |grad N_k|^2);
+        both arrays are reused by the next call."""
         self._stencil_pattern()
         p = particles
         if self.dim == 1:
@@ -868,10 +905,35 @@ class Kernels:
             (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
             consistent_2d(p.x, p.m, bx, by, ux, uy, ihx, ihy, Cx, Cy, self.p, self.nbx,
                           self._stencil_copies, self._stiff_copies)
-        K = np.empty(self.ndofs)
-        stencil = np.empty_like(self._stencil)
-        _reduce_stencil(self._stencil_copies, self._stiff_copies, stencil, K)
+        K = self.scratch("stiffness", self.ndofs)
+        stencil = self.scratch("stencil", self._stencil_shape)
+        reduce_stencil(self._stencil_copies, self._stiff_copies, *self.stencil_geometry, stencil, K)
         return stencil, K
+
+    @property
+    def stencil_geometry(self):
+        """(p, nbx, nby, dim) of the stencil helpers (1D: nbx = dofs)."""
+        if self.dim == 1:
+            return self.p, self.ndofs, 1, 1
+        return (self.p, *self.grid.basis_per_axis, 2)
+
+    def axis_mass(self):
+        """([bands per axis], [row sums per axis]) of the unit-density Gauss
+        mass of each axis (the Kronecker preconditioner's factors)."""
+        if getattr(self, "_axis_mass", None) is None:
+            from .kronecker import axis_mass_bands
+
+            pairs = [axis_mass_bands(self.grid, axis) for axis in range(self.dim)]
+            self._axis_mass = ([b for b, _ in pairs], [s for _, s in pairs])
+        return self._axis_mass
+
+    def scratch(self, name, shape, dtype=np.float64):
+        """A work array kept between steps (allocating it anew each step
+        costs page faults); valid until the next request of the same name."""
+        a = self._scratch.get(name)
+        if a is None or a.size < int(np.prod(shape)) or a.dtype != dtype:
+            a = self._scratch[name] = np.empty(int(np.prod(shape)) + 64, dtype=dtype)
+        return a[:int(np.prod(shape))].reshape(shape)
 
     def mass_times_displacement(self):
         """sum_p m_p du_p of the last g2p call, shape (dim,)."""
@@ -902,133 +964,288 @@ class Kernels:
 
 
 # ------------------------------------------------------- consistent mass solve
+# The consistent system is solved on its free dofs only (free: has mass and
+# is not constrained in the component group), stored row by row in ELL form:
+# A[r, s] is the entry of stencil slot s of free row r and cols[r, s] its
+# free column (fixed and outside columns point at r itself with a zero
+# entry, so the product needs no branches).
+
+
 @njit(cache=True, inline="always")
-def _neighbour(k, s, p, nbx, nby, dim):
-    """Dof index of stencil slot s of row k, or -1 outside the grid."""
-    width = 2 * p + 1
-    if dim == 1:
-        j = k + s - p
-        return j if 0 <= j < nbx else -1
-    a = k % nbx + s % width - p
-    b = k // nbx + s // width - p
-    if a < 0 or a >= nbx or b < 0 or b >= nby:
+def _slot_dof(a, b, s, p, pb, width, nbx, nby):
+    """Dof at stencil slot s of the dof (a, b) (slot (db + pb) width + da + p;
+    pb = p in 2D, 0 in 1D), or -1 outside the grid."""
+    aa = a + s % width - p
+    bb = b + s // width - pb
+    if aa < 0 or aa >= nbx or bb < 0 or bb >= nby:
         return -1
-    return b * nbx + a
+    return bb * nbx + aa
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def stencil_prepare(M, p, nbx, nby, dim, fixed, fast, out):
-    """out = M with (1) the fraction max(fast_i, fast_j) of every
-    off-diagonal entry moved onto the diagonal of its row (``fast`` in [0, 1]
-    per dof) and (2) the rows and columns of ``fixed`` dofs (constrained or
-    massless) replaced by the identity."""
-    nk, ns = M.shape
+def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols):
+    """The free-dof rows of the consistent mass, ELL form.
+
+    Row k = rows[r] of M with (1) the fraction theta = max(fast_k, fast_j) of
+    every off-diagonal entry moved onto the diagonal (fast-row lumping,
+    ``fast`` in [0, 1] per dof) and (2) its columns split into free ones
+    (index[j] >= 0: A[r, s], cols[r, s] = index[j]) and fixed ones
+    (F[r, s] = (1 - theta) M_kj, fcols[r, s] = j), which
+    :func:`compact_rhs` moves to the right-hand side."""
+    nr = rows.shape[0]
+    ns = M.shape[1]
     centre = (ns - 1) // 2
-    for k in prange(nk):
-        for s in range(ns):
-            out[k, s] = 0.0
-        if fixed[k]:
-            out[k, centre] = 1.0
-            continue
+    width = 2 * p + 1
+    pb = p if dim == 2 else 0
+    for r in prange(nr):
+        k = rows[r]
         diag = M[k, centre]
+        a = k % nbx
+        b = k // nbx
+        for s in range(ns):
+            A[r, s] = 0.0
+            cols[r, s] = r
+            F[r, s] = 0.0
+            fcols[r, s] = k
+            if s == centre:
+                continue
+            j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
+            if j < 0:
+                continue
+            mks = M[k, s]
+            theta = fast[k] if fast[k] > fast[j] else fast[j]
+            diag += theta * mks
+            if index[j] >= 0:
+                A[r, s] = (1.0 - theta) * mks
+                cols[r, s] = index[j]
+            else:
+                F[r, s] = (1.0 - theta) * mks
+                fcols[r, s] = j
+        A[r, centre] = diag
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def compact_rhs(rows, rhs, values, has_values, F, fcols, b):
+    """b[r] = rhs[rows[r]] - sum_s F[r, s] values[fcols[r, s]]."""
+    nr, ns = F.shape
+    nc = rhs.shape[1]
+    for r in prange(nr):
+        k = rows[r]
+        for c in range(nc):
+            acc = rhs[k, c]
+            if has_values:
+                for s in range(ns):
+                    acc -= F[r, s] * values[fcols[r, s], c]
+            b[r, c] = acc
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def stencil_rows_product(M, p, nbx, nby, dim, rows, inactive, fast, x, y):
+    """y[r] = (M' x)[rows[r]], M' the stencil with fast-row lumping and the
+    columns of massless dofs removed (for reactions on constrained rows)."""
+    ns = M.shape[1]
+    nc = x.shape[1]
+    centre = (ns - 1) // 2
+    width = 2 * p + 1
+    pb = p if dim == 2 else 0
+    for r in prange(rows.shape[0]):
+        k = rows[r]
+        diag = M[k, centre]
+        a = k % nbx
+        b = k // nbx
+        for c in range(nc):
+            y[r, c] = 0.0
         for s in range(ns):
             if s == centre:
                 continue
-            j = _neighbour(k, s, p, nbx, nby, dim)
+            j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
             if j < 0:
                 continue
             theta = fast[k] if fast[k] > fast[j] else fast[j]
             diag += theta * M[k, s]
-            if not fixed[j]:
-                out[k, s] = (1.0 - theta) * M[k, s]
-        out[k, centre] = diag
+            if not inactive[j]:
+                off = (1.0 - theta) * M[k, s]
+                for c in range(nc):
+                    y[r, c] += off * x[j, c]
+        for c in range(nc):
+            y[r, c] += diag * x[k, c]
+
+
+@njit(cache=True, inline="always")
+def _chunk(t, nt, n):
+    return t * n // nt, (t + 1) * n // nt
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def stencil_matvec(M, p, nbx, nby, dim, x, y):
-    """y = M x for a stencil matrix and x of shape (dofs, components)."""
-    nc = x.shape[1]
-    width = 2 * p + 1
-    for b in prange(nby):
-        for a in range(nbx):
-            k = b * nbx + a
+def _ell_product_dot(A, cols, d, q, partial):
+    """q = A d and partial[t, c] = sum over thread t's rows of d_c q_c."""
+    nr, ns = A.shape
+    nc = d.shape[1]
+    nt = partial.shape[0]
+    for t in prange(nt):
+        lo, hi = _chunk(t, nt, nr)
+        for c in range(nc):
+            partial[t, c] = 0.0
+        for r in range(lo, hi):
+            if nc == 4:  # two 2D problems at once (USL): four running sums
+                s0 = s1 = s2 = s3 = 0.0
+                for s in range(ns):
+                    a = A[r, s]
+                    j = cols[r, s]
+                    s0 += a * d[j, 0]
+                    s1 += a * d[j, 1]
+                    s2 += a * d[j, 2]
+                    s3 += a * d[j, 3]
+                q[r, 0] = s0
+                q[r, 1] = s1
+                q[r, 2] = s2
+                q[r, 3] = s3
+            elif nc == 2:
+                s0 = s1 = 0.0
+                for s in range(ns):
+                    a = A[r, s]
+                    j = cols[r, s]
+                    s0 += a * d[j, 0]
+                    s1 += a * d[j, 1]
+                q[r, 0] = s0
+                q[r, 1] = s1
+            else:
+                for c in range(nc):
+                    acc = 0.0
+                    for s in range(ns):
+                        acc += A[r, s] * d[cols[r, s], c]
+                    q[r, c] = acc
             for c in range(nc):
-                acc = 0.0
-                if dim == 1:
-                    for s in range(width):
-                        j = k + s - p
-                        if j >= 0 and j < nbx:
-                            acc += M[k, s] * x[j, c]
-                else:
-                    for db in range(-p, p + 1):
-                        bb = b + db
-                        if bb < 0 or bb >= nby:
-                            continue
-                        row = (db + p) * width + p
-                        for da in range(-p, p + 1):
-                            aa = a + da
-                            if aa >= 0 and aa < nbx:
-                                acc += M[k, row + da] * x[bb * nbx + aa, c]
-                y[k, c] = acc
+                partial[t, c] += d[r, c] * q[r, c]
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def _cg_update(x, r, z, d, q, inv_diag, alpha, active, partial):
+    """x += alpha d, r -= alpha q, z = D^-1 r on the active components;
+    partial[t] = (r.z, r.r) per component over thread t's rows."""
+    nr, nc = x.shape
+    nt = partial.shape[0]
+    for t in prange(nt):
+        lo, hi = _chunk(t, nt, nr)
+        for c in range(nc):
+            partial[t, 0, c] = 0.0
+            partial[t, 1, c] = 0.0
+        for i in range(lo, hi):
+            for c in range(nc):
+                if not active[c]:
+                    continue
+                x[i, c] += alpha[c] * d[i, c]
+                ri = r[i, c] - alpha[c] * q[i, c]
+                r[i, c] = ri
+                zi = inv_diag[i] * ri
+                z[i, c] = zi
+                partial[t, 0, c] += ri * zi
+                partial[t, 1, c] += ri * ri
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def _cg_direction(d, z, beta, active):
+    """d = z + beta d on the active components."""
+    nr, nc = d.shape
+    for i in prange(nr):
+        for c in range(nc):
+            if active[c]:
+                d[i, c] = z[i, c] + beta[c] * d[i, c]
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def _dots(r, z, partial):
+    """partial[t, c] = sum over thread t's rows of r_c z_c."""
+    nr, nc = r.shape
+    nt = partial.shape[0]
+    for t in prange(nt):
+        lo, hi = _chunk(t, nt, nr)
+        for c in range(nc):
+            s = 0.0
+            for i in range(lo, hi):
+                s += r[i, c] * z[i, c]
+            partial[t, c] = s
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def stencil_pcg(M, p, nbx, nby, dim, inv_diag, b, x, rtol, maxiter):
-    """Conjugate gradients for M x = b (all components at once, each with its
-    own scalars), Jacobi-preconditioned with ``inv_diag`` (the inverse lumped
-    mass), started from x. Returns the iterations of the slowest component."""
-    nk, nc = b.shape
-    r = np.empty_like(b)
-    z = np.empty_like(b)
-    d = np.empty_like(b)
-    q = np.empty_like(b)
-    stencil_matvec(M, p, nbx, nby, dim, x, q)
-    rz = np.zeros(nc)
+def _precondition(r, z, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks):
+    if kron:
+        apply_kronecker(Lx, Ly, local, inv_scale, box, nblocks, r, z)
+    else:
+        for i in range(r.shape[0]):
+            for c in range(r.shape[1]):
+                z[i, c] = inv_diag[i] * r[i, c]
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def ell_pcg(A, cols, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks, b, x, rtol,
+            maxiter, nt, work):
+    """Preconditioned conjugate gradients for A x = b (all columns at once,
+    each with its own scalars), started from x; column c stops when
+    |r_c| <= rtol |b_c|. The preconditioner is the inverse lumped mass
+    ``inv_diag`` or, with ``kron``, the Kronecker preconditioner of
+    :mod:`skfem_mpm.kernels.kronecker` (its arguments Lx ... nblocks).
+    ``work`` holds four arrays shaped like b. Returns the iterations of the
+    slowest column."""
+    nr, nc = b.shape
+    r = work[0]
+    z = work[1]
+    d = work[2]
+    q = work[3]
+    partial = np.zeros((nt, nc))
+    _ell_product_dot(A, cols, x, q, partial)
     bnorm = np.zeros(nc)
-    for k in range(nk):
+    for i in range(nr):
         for c in range(nc):
-            r[k, c] = b[k, c] - q[k, c]
-            z[k, c] = inv_diag[k] * r[k, c]
-            d[k, c] = z[k, c]
-            rz[c] += r[k, c] * z[k, c]
-            bnorm[c] += b[k, c] * b[k, c]
-    done = np.zeros(nc, dtype=np.bool_)
+            r[i, c] = b[i, c] - q[i, c]
+            bnorm[c] += b[i, c] * b[i, c]
+    _precondition(r, z, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks)
+    rz = np.zeros(nc)
+    for i in range(nr):
+        for c in range(nc):
+            d[i, c] = z[i, c]
+            rz[c] += r[i, c] * z[i, c]
+    active = np.empty(nc, dtype=np.bool_)
     for c in range(nc):
-        done[c] = rz[c] <= 0.0 or bnorm[c] == 0.0
+        active[c] = not (rz[c] <= 0.0 or bnorm[c] == 0.0)
+    alpha = np.zeros(nc)
+    beta = np.zeros(nc)
+    sums = np.zeros((nt, 2, nc))
     it = 0
     while it < maxiter:
-        all_done = True
-        for c in range(nc):
-            if not done[c]:
-                all_done = False
-        if all_done:
+        if not np.any(active):
             break
         it += 1
-        stencil_matvec(M, p, nbx, nby, dim, d, q)
-        dq = np.zeros(nc)
-        for k in range(nk):
+        _ell_product_dot(A, cols, d, q, partial)
+        for c in range(nc):
+            dq = 0.0
+            for t in range(nt):
+                dq += partial[t, c]
+            if dq == 0.0:
+                active[c] = False
+            alpha[c] = rz[c] / dq if active[c] else 0.0
+        _cg_update(x, r, z, d, q, inv_diag, alpha, active, sums)
+        if kron:  # z = P^-1 r replaces the diagonal z of the update
+            _precondition(r, z, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks)
+            _dots(r, z, partial)
             for c in range(nc):
-                dq[c] += d[k, c] * q[k, c]
-        rz_new = np.zeros(nc)
-        rr = np.zeros(nc)
+                s = 0.0
+                for t in range(nt):
+                    s += partial[t, c]
+                for t in range(nt):
+                    sums[t, 0, c] = s if t == 0 else 0.0
         for c in range(nc):
-            if done[c] or dq[c] == 0.0:
+            if not active[c]:
                 continue
-            alpha = rz[c] / dq[c]
-            for k in range(nk):
-                x[k, c] += alpha * d[k, c]
-                r[k, c] -= alpha * q[k, c]
-                z[k, c] = inv_diag[k] * r[k, c]
-                rz_new[c] += r[k, c] * z[k, c]
-                rr[c] += r[k, c] * r[k, c]
-        for c in range(nc):
-            if done[c]:
+            rz_new = 0.0
+            rr = 0.0
+            for t in range(nt):
+                rz_new += sums[t, 0, c]
+                rr += sums[t, 1, c]
+            if rr <= rtol * rtol * bnorm[c]:
+                active[c] = False
                 continue
-            if rr[c] <= rtol * rtol * bnorm[c]:
-                done[c] = True
-                continue
-            beta = rz_new[c] / rz[c]
-            rz[c] = rz_new[c]
-            for k in range(nk):
-                d[k, c] = z[k, c] + beta * d[k, c]
+            beta[c] = rz_new / rz[c]
+            rz[c] = rz_new
+        _cg_direction(d, z, beta, active)
     return it

@@ -10,6 +10,9 @@ N_(e+a) = sum_j C_e[a, j] B_j (Borden et al. 2011, eq. 8).
 import numpy as np
 from numba import njit, prange
 
+# fast-math without the no-NaN and no-Inf assumptions: the guards test isfinite
+FAST = {"contract", "arcp", "nsz", "reassoc", "afn"}
+
 
 @njit(cache=True, inline="always", error_model="numpy")
 def locate_axis_point(x, breaks, uniform, inv_h):

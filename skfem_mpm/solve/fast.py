@@ -37,75 +37,128 @@ class StencilSystem:
 
     Same equations as :class:`~skfem_mpm.solve.grid_system.GridSystem`
     without tiny-mass merging (a step with tiny masses uses that class):
-    the fast-dof rows are lumped, constrained and massless dofs become
-    identity rows and columns (their values moved to the right-hand side),
-    and conjugate gradients preconditioned with the lumped mass, warm
-    started from the previous step, solve all components at once.
+    the fast-dof rows are lumped, constrained and massless dofs keep their
+    known values (moved to the right-hand side), and conjugate gradients
+    preconditioned with the lumped mass, warm started from the previous
+    step, solve all components (and several right-hand sides, see
+    :meth:`solve_many`) at once. Only the free dofs enter the iteration:
+    for each constraint pattern a kernel copies their rows of the stencil
+    into a compact row-by-row (ELL) matrix. The preconditioner is the
+    Kronecker one of :mod:`skfem_mpm.kernels.kronecker` (``"kronecker"``,
+    default) or the inverse lumped mass (``"lumped"``).
     """
 
-    def __init__(self, kernels, stencil, lumped, constraints, fast, warm, rtol=1e-13):
-        from ..kernels.mpm import stencil_prepare
+    preconditioner = "kronecker"
+    iteration_log = None  # a list: each CG run appends its iterations (benchmarks)
+    LUMPED_ROW = 0.2
+    _no_kronecker = (np.ones((1, 1)), np.ones((1, 1)), np.zeros(1, dtype=np.int64), np.ones(1),
+                     np.zeros((1, 1, 1)), 1)
 
+    def __init__(self, kernels, stencil, lumped, constraints, fast, warm, rtol=1e-13):
         self.k = kernels
-        g = kernels.grid
-        self.geometry = (kernels.p, g.basis_per_axis[0],
-                         g.basis_per_axis[1] if g.dim == 2 else 1, g.dim)
-        if g.dim == 1:  # the matvec loops over rows b < nby, columns a < nbx
-            self.geometry = (kernels.p, g.ndofs, 1, 1)
+        self.geometry = kernels.stencil_geometry
+        self.stencil = stencil
         self.constraints = constraints
         self.warm = warm
         self.rtol = rtol
         self.small_dofs = 0
         self.lumped = lumped
-        inactive = lumped <= 0
-        fast = np.asarray(fast, dtype=np.float64)
-        self.full = np.empty_like(stencil)  # fast rows lumped, nothing fixed
-        stencil_prepare(stencil, *self.geometry, inactive, fast, self.full)
-        self.inv_diag = np.where(inactive, 1.0, 1.0 / np.where(inactive, 1.0, lumped))
-        self.groups = {}
+        self.inactive = lumped <= 0
+        self.fast = np.ascontiguousarray(fast, dtype=np.float64)
         mask = constraints.mask
+        self.groups = {}  # constraint pattern -> [components, free rows, dof -> row]
         for c in range(mask.shape[1]):
             key = mask[:, c].tobytes()
             if key not in self.groups:
-                fixed = mask[:, c] | inactive
-                prepared = np.empty_like(stencil)
-                stencil_prepare(stencil, *self.geometry, fixed, fast, prepared)
-                self.groups[key] = ([], fixed, prepared)
+                rows = np.flatnonzero(~(mask[:, c] | self.inactive))
+                index = np.full(lumped.size, -1, dtype=np.int64)
+                index[rows] = np.arange(rows.size)
+                self.groups[key] = [[], rows, index, None]
             self.groups[key][0].append(c)
+        self.reaction_rows = np.flatnonzero(mask.any(axis=1))
         self.iterations = 0
 
-    def _matvec(self, M, x):
-        from ..kernels.mpm import stencil_matvec
+    def _compact(self, group):
+        """The group's free-dof matrix (built once per step and pattern)."""
+        from ..kernels.mpm import compact_system
 
-        y = np.empty_like(x)
-        stencil_matvec(M, *self.geometry, np.ascontiguousarray(x), y)
-        return y
+        comps, rows, index, built = group
+        if built is None:
+            ns = self.stencil.shape[1]
+            g = list(self.groups.values()).index(group)  # scratch arrays per group
+            A, F = self.k.scratch(f"A{g}", (rows.size, ns)), self.k.scratch(f"F{g}", (rows.size, ns))
+            cols = self.k.scratch(f"cols{g}", (rows.size, ns), np.int32)
+            fcols = self.k.scratch(f"fcols{g}", (rows.size, ns), np.int32)
+            compact_system(self.stencil, *self.geometry, rows, index, self.fast, A, cols, F,
+                           fcols)
+            inv_diag = 1.0 / self.lumped[rows]
+            kron = None
+            if self.preconditioner == "kronecker" and rows.size:
+                from ..kernels.kronecker import KroneckerData
+
+                centre = (ns - 1) // 2
+                kron = KroneckerData(*self.k.axis_mass(), self.geometry, rows, self.lumped,
+                                     self.fast[rows] >= self.LUMPED_ROW, A[:, centre].copy())
+            built = group[3] = (A, cols, F, fcols, inv_diag, kron)
+        return built
 
     def solve(self, rhs, values, kind):
-        from ..kernels.mpm import stencil_pcg
+        """x with M x = rhs on the free dofs and x = values on the fixed ones."""
+        return self.solve_many([(rhs, values, kind)])[0]
 
-        out = np.zeros_like(rhs)
-        prev = self.warm.get(kind)
-        for comps, fixed, prepared in self.groups.values():
-            b = np.ascontiguousarray(rhs[:, comps])
-            xc = np.where(fixed[:, None], values[:, comps], 0.0)
-            if np.any(xc):
-                b -= self._matvec(self.full, xc)  # columns of the known values
-            b[fixed] = xc[fixed]
-            x = np.ascontiguousarray(prev[:, comps]) if prev is not None and \
-                prev.shape == rhs.shape else np.zeros_like(b)
-            x[fixed] = xc[fixed]
-            self.iterations += stencil_pcg(prepared, *self.geometry, self.inv_diag, b, x,
-                                           self.rtol, 10 * b.shape[0] + 100)
-            out[:, comps] = x
-        return out
+    def solve_many(self, problems):
+        """Several solves with this matrix in one CG run: ``problems`` is a
+        list of (rhs, values, kind) (kind names the warm start); returns the
+        solutions in order."""
+        from numba import get_num_threads
+
+        from ..kernels.mpm import compact_rhs, ell_pcg
+
+        outs = []
+        for rhs, values, kind in problems:
+            out = np.array(values, dtype=np.float64, copy=True)  # fixed dofs keep theirs
+            outs.append(out)
+        for group in self.groups.values():
+            comps, rows, index, _ = group
+            A, cols, F, fcols, inv_diag, kron = self._compact(group)
+            columns = [(i, c) for i in range(len(problems)) for c in comps]
+            rhs = np.stack([problems[i][0][:, c] for i, c in columns], axis=1)
+            values = np.stack([problems[i][1][:, c] for i, c in columns], axis=1)
+            b = np.empty((rows.size, len(columns)))
+            compact_rhs(rows, rhs, values, bool(np.any(values)), F, fcols, b)
+            x = np.zeros_like(b)
+            for j, (i, c) in enumerate(columns):
+                prev = self.warm.get(problems[i][2])
+                if prev is not None and prev.shape == problems[i][0].shape:
+                    x[:, j] = prev[rows, c]
+            if rows.size:
+                before = self.iterations
+                nt = get_num_threads()
+                pre = kron.args(b.shape[1], nt) if kron is not None else self._no_kronecker
+                self.iterations += ell_pcg(A, cols, inv_diag, kron is not None, *pre, b, x,
+                                           self.rtol, 10 * rows.size + 100, nt,
+                                           self.k.scratch("cg", (4,) + b.shape))
+                if self.iteration_log is not None:
+                    self.iteration_log.append(self.iterations - before)
+            for j, (i, c) in enumerate(columns):
+                outs[i][rows, c] = x[:, j]
+        return outs
 
     def remember(self, kind, x):
         self.warm[kind] = x.copy()
 
     def residual(self, x, rhs):
-        """M x - rhs with the fast rows lumped (reactions on constrained dofs)."""
-        return self._matvec(self.full, x) - rhs
+        """M x - rhs with the fast rows lumped, on the constrained dofs (the
+        rows the reactions read; zero elsewhere)."""
+        from ..kernels.mpm import stencil_rows_product
+
+        rows = self.reaction_rows
+        y = np.empty((rows.size, x.shape[1]))
+        stencil_rows_product(self.stencil, *self.geometry, rows, self.inactive, self.fast,
+                             np.ascontiguousarray(x), y)
+        out = np.zeros_like(rhs)
+        out[rows] = y - rhs[rows]
+        return out
 
 
 def fast_path_applies(state):
@@ -236,8 +289,8 @@ class FastStepper:
         choice = state.warm.get("auto_solver")
         return choice is None or int(choice[0]) == 0
 
-    def _choose_solver(self, state, system, mass, rhs, values, stencil, K):
-        """'auto', first step: time the CG solve just made against an LU solve."""
+    def _choose_solver(self, state, mass, problems, stencil, K):
+        """'auto', first step: time the CG solves just made against LU."""
         import time
 
         from .grid_system import GridSystem
@@ -246,7 +299,8 @@ class FastStepper:
         t0 = time.perf_counter()
         lu = GridSystem(mass, state.constraints, M, state.adjacency, state.method.small_mass,
                         "direct", {}, fast_rows=self._fast_rows_fn)
-        lu.solve(rhs, values, "acceleration")
+        for rhs, values, kind in problems:
+            lu.solve(rhs, values, kind)
         state.warm["auto_solver"] = np.array([1 if time.perf_counter() - t0 < self._cg_time
                                               else 0])
 
@@ -254,23 +308,34 @@ class FastStepper:
         """M x = rhs: the consistent system when there is one, else lumped."""
         if system is None:
             return self.solve(state, mass, rhs, values, kind, out, small, gravity)
+        return self._consistent_solves(state, system, mass, [(rhs, values, kind)], [out])[0]
+
+    def _consistent_solves(self, state, system, mass, problems, outs):
+        """Consistent M x = rhs for each (rhs, values or None, kind) into
+        ``outs``; a stencil system solves them in one CG run."""
         import time
 
-        values = np.zeros_like(rhs) if values is None else values
-        t0 = time.perf_counter()
-        before = getattr(system, "iterations", 0)
-        x = system.solve(rhs, values, kind)
+        problems = [(rhs, np.zeros_like(rhs) if values is None else values, kind)
+                    for rhs, values, kind in problems]
         if isinstance(system, StencilSystem):
-            system.remember(kind, x)
+            t0 = time.perf_counter()
+            before = system.iterations
+            xs = system.solve_many(problems)
+            for (_, _, kind), x in zip(problems, xs):
+                system.remember(kind, x)
             representative = system.iterations - before >= 20  # not a trivial early solve
-            if state.method.mass_solver == "auto" and kind == "acceleration" and \
-                    representative and "auto_solver" not in state.warm:
+            if state.method.mass_solver == "auto" and "auto_solver" not in state.warm and \
+                    representative and any(kind == "acceleration" for _, _, kind in problems):
                 self._cg_time = time.perf_counter() - t0
-                self._choose_solver(state, system, mass, rhs, values, *self._stencil_K)
-        elif state.method.mass_solver == "cg":
-            system.remember(kind, x)
-        out[:] = x
-        return out
+                self._choose_solver(state, mass, problems, *self._stencil_K)
+        else:
+            xs = [system.solve(rhs, values, kind) for rhs, values, kind in problems]
+            if state.method.mass_solver == "cg":
+                for (_, _, kind), x in zip(problems, xs):
+                    system.remember(kind, x)
+        for out, x in zip(outs, xs):
+            out[:] = x
+        return outs
 
     def _buffers(self, p):
         if self._acc is None or self._acc.shape[0] != p.n:
@@ -312,7 +377,8 @@ class FastStepper:
         fext, grid_force, work_forces = self.external(state)
         with state.timer("p2g"):
             mass, momentum, force = k.p2g(p, fext)
-            if consistent:
+        if consistent:
+            with state.timer("mass_matrix"):
                 M, K = k.consistent_stencil(p)
         scheme = state.method.scheme
         gravity = self.gravity if self.gravity_work else None
@@ -347,6 +413,14 @@ class FastStepper:
                            else gravity, c.mask, t_values, a_values, factor * dt,
                            self._v_old, self._a, self._v_new)
                 a, v_grid = self._a, self._v_new
+            elif scheme != "musl" and system is not None and v_old is None:
+                a, v_old = self._consistent_solves(
+                    state, system, mass, [(force, a_values, "acceleration"),
+                                          (momentum, t_values, "velocity")],
+                    [self._a, self._v_old])
+                v_grid = self._v_new
+                np.multiply(a, factor * dt, out=v_grid)
+                v_grid += v_old
             else:
                 a = self._grid_solve(state, system, mass, force, a_values, "acceleration",
                                      self._a, small, gravity)

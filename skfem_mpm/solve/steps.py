@@ -173,9 +173,6 @@ def reconstructed_grid_data(state, transfer):
         NgT = Ng.T.tocsr()
         rho_g = g[:, 0]
         lumped = NgT @ (w * rho_g)
-        consistent = None
-        if method.mass == "consistent":
-            consistent = (NgT @ Ng.multiply((w * rho_g)[:, None]).tocsr()).tocsr()
         momentum = NgT @ (w[:, None] * g[:, 1:1 + dim])
         sigma = g[:, 1 + dim:1 + dim + dim * dim].reshape(-1, dim, dim)
         ws = w[:, None, None] * sigma
@@ -184,6 +181,10 @@ def reconstructed_grid_data(state, transfer):
             force += NgT @ (w[:, None] * g[:, 1 + dim + dim * dim:])
         if surface_grid is not None:
             force += surface_grid
+    consistent = None
+    if method.mass == "consistent":
+        with state.timer("mass_matrix"):
+            consistent = (NgT @ Ng.multiply((w * rho_g)[:, None]).tocsr()).tocsr()
 
     def project_momentum(v):
         with state.timer("reconstruct"):
@@ -217,7 +218,6 @@ def particles_to_grid(state):
     surface_grid = surface_forces(state, transfer) if surface is not None else None
     with state.timer("p2g"):
         lumped = transfer.to_grid(p.m)
-        consistent = transfer.consistent_mass(p.m) if state.method.mass == "consistent" else None
         momentum = transfer.to_grid(p.m[:, None] * p.v)
         force = internal_force(state, transfer)
         external_grid = None
@@ -227,6 +227,10 @@ def particles_to_grid(state):
             external_grid = surface_grid if external_grid is None else external_grid + surface_grid
         if external_grid is not None:
             force += external_grid
+    consistent = None
+    if state.method.mass == "consistent":
+        with state.timer("mass_matrix"):
+            consistent = transfer.consistent_mass(p.m)
     external = volume if surface is None else (surface if volume is None else volume + surface)
     data = GridData(transfer, lumped, consistent, momentum, force, external, point_mass=p.m)
     data.external_grid = external_grid

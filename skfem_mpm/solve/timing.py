@@ -1,7 +1,8 @@
 """Wall time split by phase.
 
-Phase names (the same in every table): locate, basis, p2g, solve, g2p,
-constitutive, reconstruct, effects. A fused compiled kernel reports its time
+Phase names (the same in every table): locate, basis, p2g, mass_matrix
+(assembly of the consistent mass), solve, g2p, constitutive, reconstruct,
+effects. A fused compiled kernel reports its time
 under the first phase it covers and records which phases it fused.
 """
 import time
@@ -9,7 +10,8 @@ from contextlib import contextmanager
 
 __all__ = ["PHASES", "PhaseTimer"]
 
-PHASES = ("locate", "basis", "p2g", "solve", "g2p", "constitutive", "reconstruct", "effects")
+PHASES = ("locate", "basis", "p2g", "mass_matrix", "solve", "g2p", "constitutive", "reconstruct",
+          "effects")
 
 
 class PhaseTimer:

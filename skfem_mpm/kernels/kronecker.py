@@ -1,0 +1,156 @@
+"""A Kronecker-product preconditioner for the consistent particle mass.
+
+Where a body fills its cells with particles of one density, its consistent
+mass matrix is close to rho times the Gauss-quadrature mass matrix of the
+spline space, which on a tensor grid is the Kronecker product of 1D banded
+matrices, M_G = M_y (x) M_x. The preconditioner (for the free dofs F of one
+constraint pattern, inside their index box B) is
+
+    P^-1 = S^-1 R (M_y,B (x) M_x,B)^-1 R^T S^-1,
+    S = diag(sqrt(m_k / l_k)),  m_k the particle lumped mass,
+                                l_k = l_x,a l_y,b the row sum of M_G,
+
+with R the zero extension from F into the box. It is symmetric positive
+definite for any particle layout (so conjugate gradients converge), exact
+for a uniformly filled box, and each application costs two banded
+triangular solves per axis. Measured on the 2D block of the performance
+benchmark (4356 free dofs, cold start to 1e-13): 142 CG iterations with the
+lumped (Jacobi) preconditioner, 17 with this one; on a disk 747 vs 228.
+"""
+import numpy as np
+from numba import njit, prange
+
+from .weights import FAST
+
+__all__ = ["axis_mass_bands", "banded_cholesky", "KroneckerData", "apply_kronecker"]
+
+
+def axis_mass_bands(grid, axis):
+    """The unit-density Gauss mass matrix of one axis' B-splines as bands
+    (n, p + 1), bands[i, d] = M_(i, i - d), and its row sums (n,)."""
+    p = grid.degree
+    u = grid.breakpoints[axis]
+    xg, wg = np.polynomial.legendre.leggauss(p + 1)
+    h = np.diff(u)
+    x = (u[:-1, None] + 0.5 * h[:, None] * (xg[None, :] + 1.0)).ravel()
+    w = (0.5 * h[:, None] * wg[None, :]).ravel()
+    first, values, _ = grid.axis_functions(axis, x, backend="numpy")
+    n = grid.basis_per_axis[axis]
+    bands = np.zeros((n, p + 1))
+    for a in range(p + 1):
+        for a2 in range(a + 1):  # row first + a, column first + a2 (lower part)
+            np.add.at(bands, (first + a, a - a2), w * values[:, a] * values[:, a2])
+    rows = np.zeros(n)
+    np.add.at(rows, (first[:, None] + np.arange(p + 1)[None, :]).ravel(),
+              (w[:, None] * values).ravel())
+    return bands, rows
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def banded_cholesky(bands, lo, hi):
+    """Lower Cholesky factor L of the principal block [lo, hi) of a banded
+    SPD matrix, L[i, d] = L_(i, i - d) (rows relative to lo)."""
+    n = hi - lo
+    p = bands.shape[1] - 1
+    L = np.zeros((n, p + 1))
+    for i in range(n):
+        for d in range(min(p, i), 0, -1):
+            j = i - d
+            s = bands[lo + i, d]
+            for e in range(d + 1, min(p, i) + 1):
+                s -= L[i, e] * L[j, e - d]
+            L[i, d] = s / L[j, 0]
+        s = bands[lo + i, 0]
+        for d in range(1, min(p, i) + 1):
+            s -= L[i, d] * L[i, d]
+        L[i, 0] = np.sqrt(s)
+    return L
+
+
+class KroneckerData:
+    """The factors and scaling of the preconditioner for one free-dof set
+    (``rows`` in the grid's dof numbering, row-major: k = b nbx + a)."""
+
+    def __init__(self, bands, row_sums, geometry, rows, lumped, lumped_rows=None,
+                 diagonal=None):
+        p, nbx, nby, dim = geometry
+        a, b = rows % nbx, rows // nbx
+        self.a0, self.b0 = int(a.min()), int(b.min())
+        a1, b1 = int(a.max()) + 1, int(b.max()) + 1
+        self.Lx = banded_cholesky(bands[0], self.a0, a1)
+        if dim == 2:
+            self.Ly = banded_cholesky(bands[1], self.b0, b1)
+            gauss = row_sums[0][a] * row_sums[1][b]
+        else:
+            self.Ly = np.ones((1, p + 1))
+            gauss = row_sums[0][a]
+        self.local = ((b - self.b0) * (a1 - self.a0) + (a - self.a0)).astype(np.int64)
+        self.inv_scale = 1.0 / np.sqrt(lumped[rows] / gauss)
+        if lumped_rows is not None and lumped_rows.any():
+            self.local[lumped_rows] = -1
+            self.inv_scale[lumped_rows] = 1.0 / diagonal[lumped_rows]
+        self.shape = (b1 - self.b0, a1 - self.a0)
+
+    def args(self, nc, nt):
+        """The arguments of :func:`apply_kronecker` before r and z."""
+        box = np.empty(self.shape + (nc,))
+        return self.Lx, self.Ly, self.local, self.inv_scale, box, max(1, min(nt, self.shape[1]))
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def apply_kronecker(Lx, Ly, local, inv_scale, box, nt, r, z):
+    """z = S^-1 R (M_y (x) M_x)^-1 R^T S^-1 r (see the module docstring);
+    ``box`` (ny, nx, nc) is work space, nt the number of column blocks."""
+    ny, nx, nc = box.shape
+    p = Lx.shape[1] - 1
+    nr = r.shape[0]
+    for j in prange(ny):
+        for i in range(nx):
+            for c in range(nc):
+                box[j, i, c] = 0.0
+    for q in prange(nr):
+        li = local[q]
+        if li >= 0:
+            for c in range(nc):
+                box[li // nx, li % nx, c] = r[q, c] * inv_scale[q]
+    # x direction: each box row is one banded system (parallel over rows)
+    for j in prange(ny):
+        for i in range(nx):
+            for c in range(nc):
+                s = box[j, i, c]
+                for d in range(1, min(p, i) + 1):
+                    s -= Lx[i, d] * box[j, i - d, c]
+                box[j, i, c] = s / Lx[i, 0]
+        for i in range(nx - 1, -1, -1):
+            for c in range(nc):
+                s = box[j, i, c]
+                for d in range(1, min(p, nx - 1 - i) + 1):
+                    s -= Lx[i + d, d] * box[j, i + d, c]
+                box[j, i, c] = s / Lx[i, 0]
+    # y direction: each thread takes a block of box columns and runs the
+    # banded solves for all of them row by row (contiguous inner loops)
+    if ny > 1:
+        for t in prange(nt):
+            lo = t * nx // nt
+            hi = (t + 1) * nx // nt
+            for j in range(ny):
+                for i in range(lo, hi):
+                    for c in range(nc):
+                        s = box[j, i, c]
+                        for d in range(1, min(p, j) + 1):
+                            s -= Ly[j, d] * box[j - d, i, c]
+                        box[j, i, c] = s / Ly[j, 0]
+            for j in range(ny - 1, -1, -1):
+                for i in range(lo, hi):
+                    for c in range(nc):
+                        s = box[j, i, c]
+                        for d in range(1, min(p, ny - 1 - j) + 1):
+                            s -= Ly[j + d, d] * box[j + d, i, c]
+                        box[j, i, c] = s / Ly[j, 0]
+    for q in prange(nr):
+        li = local[q]
+        for c in range(nc):
+            if li >= 0:
+                z[q, c] = box[li // nx, li % nx, c] * inv_scale[q]
+            else:  # a lumped row: its own diagonal
+                z[q, c] = r[q, c] * inv_scale[q]
