@@ -1120,9 +1120,10 @@ def _ell_product_dot(A, cols, d, q, partial):
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _cg_update(x, r, z, d, q, inv_diag, alpha, active, partial):
-    """x += alpha d, r -= alpha q, z = D^-1 r on the active components;
-    partial[t] = (r.z, r.r) per component over thread t's rows."""
+def _cg_update(x, r, z, d, q, inv_diag, jacobi, alpha, active, partial):
+    """x += alpha d, r -= alpha q on the active components; partial[t] =
+    (r.z, r.r) per component over thread t's rows, with z = D^-1 r computed
+    here when ``jacobi`` (else r.z is left to the caller)."""
     nr, nc = x.shape
     nt = partial.shape[0]
     for t in prange(nt):
@@ -1137,9 +1138,10 @@ def _cg_update(x, r, z, d, q, inv_diag, alpha, active, partial):
                 x[i, c] += alpha[c] * d[i, c]
                 ri = r[i, c] - alpha[c] * q[i, c]
                 r[i, c] = ri
-                zi = inv_diag[i] * ri
-                z[i, c] = zi
-                partial[t, 0, c] += ri * zi
+                if jacobi:
+                    zi = inv_diag[i] * ri
+                    z[i, c] = zi
+                    partial[t, 0, c] += ri * zi
                 partial[t, 1, c] += ri * ri
 
 
@@ -1224,16 +1226,11 @@ def ell_pcg(A, cols, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks, b, 
             if dq == 0.0:
                 active[c] = False
             alpha[c] = rz[c] / dq if active[c] else 0.0
-        _cg_update(x, r, z, d, q, inv_diag, alpha, active, sums)
-        if kron:  # z = P^-1 r replaces the diagonal z of the update
+        _cg_update(x, r, z, d, q, inv_diag, not kron, alpha, active, sums)
+        if kron:  # z = P^-1 r and its r.z
             _precondition(r, z, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks)
             _dots(r, z, partial)
-            for c in range(nc):
-                s = 0.0
-                for t in range(nt):
-                    s += partial[t, c]
-                for t in range(nt):
-                    sums[t, 0, c] = s if t == 0 else 0.0
+            sums[:, 0, :] = partial
         for c in range(nc):
             if not active[c]:
                 continue
