@@ -5,8 +5,9 @@ The NumPy reference of every kernel is the transfer-matrix code of
 kernels recompute the B-spline weights of each particle in each pass instead
 of storing N (cheaper than the memory traffic of a stored N), and scatter
 race-free: the particles are split into one contiguous block per thread, each
-thread adds into its own copy of the grid, and the copies are summed
-(deterministic for a fixed thread count).
+thread adds into its own copy of the grid over the node range its block
+touches, and the copies are summed over those ranges (deterministic for a
+fixed thread count).
 
 Grid arrays are node-major, all fields of a node adjacent:
 
@@ -77,11 +78,14 @@ def _quadratic_interior(x, breaks, inv_h):
     """Uniform quadratic axis, scalar form of :func:`_axis` for interior
     cells (2 <= e < cells - 2): (e, w0, w1, w2, dw0, dw1, dw2); e = -1 for
     the boundary cells, which take the general path. Keeping the weights in
-    registers instead of small arrays roughly halves the 1D kernels' time."""
-    e = locate_axis_point(x, breaks, True, inv_h)
-    if e < 2 or e >= breaks.shape[0] - 3:
+    registers instead of small arrays roughly halves the 1D kernels' time.
+    The local coordinate is xi = t - e with t = (x - u_0) / h (no load of
+    the cell's breakpoint)."""
+    t = (x - breaks[0]) * inv_h
+    e = int(np.floor(t))
+    if e < 2 or e >= breaks.shape[0] - 3:  # also catches NaN (e is then negative)
         return -1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    xi = (x - breaks[e]) * inv_h
+    xi = t - e
     r = 1.0 - xi
     return (e, 0.5 * r * r, 0.5 + xi * r, 0.5 * xi * xi,
             -r * inv_h, (1.0 - 2.0 * xi) * inv_h, xi * inv_h)
@@ -154,51 +158,121 @@ def _scatter_row(g, row, wy, wx0, wx1, wx2, px, py):
     g[row + 2, 1] += n2 * py
 
 
+# A scatter kernel adds into its thread's copy of the grid and records the
+# node range it touched (touched[t] = first, last + 1); the copy is zero
+# outside that range. The next call zeros only that range before adding,
+# and the reduction sums each node over the copies whose range holds it.
+# Threads own contiguous particle blocks, so on sorted particles each range
+# is a fraction of the grid (half of it in 1D on two threads).
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _clear_touched(g, touched, t):
+    """Zero thread t's copy g on the range the previous call touched."""
+    g[touched[t, 0]:touched[t, 1], :] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _segments(touched, lo, hi):
+    """Split nodes lo..hi-1 where the set of threads whose touched range
+    holds them changes: (cuts, members, counts); segment j is
+    cuts[j]..cuts[j + 1] - 1 and its threads are members[j, :counts[j]]."""
+    nt = touched.shape[0]
+    cuts = np.empty(2 * nt + 2, dtype=np.int64)
+    cuts[0] = lo
+    cuts[1] = hi
+    for t in range(nt):
+        cuts[2 + 2 * t] = min(max(touched[t, 0], lo), hi)
+        cuts[3 + 2 * t] = min(max(touched[t, 1], lo), hi)
+    cuts = np.unique(cuts)
+    members = np.empty((cuts.shape[0], nt), dtype=np.int64)
+    counts = np.zeros(cuts.shape[0], dtype=np.int64)
+    for j in range(cuts.shape[0] - 1):
+        for t in range(nt):
+            if touched[t, 0] <= cuts[j] and cuts[j + 1] <= touched[t, 1]:
+                members[j, counts[j]] = t
+                counts[j] += 1
+    return cuts, members, counts
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _take(copies, threads, count, k, c):
+    """sum of copies[t, k, c] over the given threads."""
+    s = 0.0
+    for j in range(count):
+        s += copies[threads[j], k, c]
+    return s
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _reduce_fields(copies, mass, momentum, force):
-    """Sum the per-thread copies of (m, P, f) into three contiguous arrays."""
+def _reduce_fields(copies, touched, mass, momentum, force, mass_range):
+    """Sum the per-thread copies of (m, P, f) into three contiguous arrays;
+    mass_range[r] = (smallest positive, largest) mass of chunk r's nodes."""
     nt, nk, nc = copies.shape
     dim = momentum.shape[1]
-    for k in prange(nk):
-        s = 0.0
-        for t in range(nt):
-            s += copies[t, k, 0]
-        mass[k] = s
-        for c in range(dim):
-            sp = 0.0
-            sf = 0.0
-            for t in range(nt):
-                sp += copies[t, k, 1 + c]
-                sf += copies[t, k, 1 + dim + c]
-            momentum[k, c] = sp
-            force[k, c] = sf
+    nr = mass_range.shape[0]
+    for r in prange(nr):
+        smallest = np.inf
+        largest = 0.0
+        cuts, members, counts = _segments(touched, r * nk // nr, (r + 1) * nk // nr)
+        for j in range(cuts.shape[0] - 1):
+            threads = members[j]
+            count = counts[j]
+            for k in range(cuts[j], cuts[j + 1]):
+                s = _take(copies, threads, count, k, 0)
+                mass[k] = s
+                if s > 0.0:
+                    smallest = min(smallest, s)
+                    largest = max(largest, s)
+                for c in range(dim):
+                    momentum[k, c] = _take(copies, threads, count, k, 1 + c)
+                    force[k, c] = _take(copies, threads, count, k, 1 + dim + c)
+        mass_range[r, 0] = smallest
+        mass_range[r, 1] = largest
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _reduce(copies, out):
+def _reduce(copies, touched, out):
     """out = sum over threads of the per-thread grid copies."""
     nt, nk, nc = copies.shape
-    for k in prange(nk):
-        for c in range(nc):
-            s = 0.0
-            for t in range(nt):
-                s += copies[t, k, c]
-            out[k, c] = s
+    for r in prange(nt):
+        cuts, members, counts = _segments(touched, r * nk // nt, (r + 1) * nk // nt)
+        for j in range(cuts.shape[0] - 1):
+            for k in range(cuts[j], cuts[j + 1]):
+                for c in range(nc):
+                    out[k, c] = _take(copies, members[j], counts[j], k, c)
 
 
 # ----------------------------------------------------------------------- 1D
+# Sorted particles come in runs sharing a cell. The quadratic 1D kernels add
+# a run's contributions to its three nodes in registers (a "window") and
+# write them to the grid once per run: adding into memory particle after
+# particle makes every particle wait for the previous one's store to the
+# same nodes (measured: p2g 5.1 ms -> 3.1 ms per 1e6 particles). Any order
+# gives the same sums; unsorted particles only flush more often.
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _flush_window(g, e, c, s0, s1, s2):
+    """g[e + a, c] += s_a for the three nodes of a quadratic window."""
+    if e >= 0:
+        g[e, c] += s0
+        g[e + 1, c] += s1
+        g[e + 2, c] += s2
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def p2g_1d(x, v, m, V, stress, fext, has_fext, bx, ux, ihx, Cx, p, copies):
+def p2g_1d(x, v, m, V, stress, fext, has_fext, bx, ux, ihx, Cx, p, copies, touched):
     n = x.shape[0]
     nt = copies.shape[0]
     for t in prange(nt):
         g = copies[t]
-        g[:, :] = 0.0
+        _clear_touched(g, touched, t)
+        first = g.shape[0]
+        last = 0
         w = np.empty(4)
         dw = np.empty(4)
         lo = t * n // nt
         hi = (t + 1) * n // nt
         quadratic = p == 2 and ux
+        run = -1  # the window's cell; its sums of (m, m v, f) per node:
+        m0 = m1 = m2 = p0 = p1 = p2 = f0 = f1 = f2 = 0.0
         for i in range(lo, hi):
             mi = m[i]
             pv = mi * v[i, 0]
@@ -207,36 +281,55 @@ def p2g_1d(x, v, m, V, stress, fext, has_fext, bx, ux, ihx, Cx, p, copies):
             if quadratic:
                 e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
                 if e >= 0:
-                    g[e, 0] += w0 * mi
-                    g[e, 1] += w0 * pv
-                    g[e, 2] += w0 * f - s * d0
-                    g[e + 1, 0] += w1 * mi
-                    g[e + 1, 1] += w1 * pv
-                    g[e + 1, 2] += w1 * f - s * d1
-                    g[e + 2, 0] += w2 * mi
-                    g[e + 2, 1] += w2 * pv
-                    g[e + 2, 2] += w2 * f - s * d2
+                    if e != run:
+                        _flush_window(g, run, 0, m0, m1, m2)
+                        _flush_window(g, run, 1, p0, p1, p2)
+                        _flush_window(g, run, 2, f0, f1, f2)
+                        run = e
+                        first = min(first, e)
+                        last = max(last, e + 3)
+                        m0 = m1 = m2 = p0 = p1 = p2 = f0 = f1 = f2 = 0.0
+                    m0 += w0 * mi
+                    m1 += w1 * mi
+                    m2 += w2 * mi
+                    p0 += w0 * pv
+                    p1 += w1 * pv
+                    p2 += w2 * pv
+                    f0 += w0 * f - s * d0
+                    f1 += w1 * f - s * d1
+                    f2 += w2 * f - s * d2
                     continue
             e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
+            first = min(first, e)
+            last = max(last, e + p + 1)
             for a in range(p + 1):
                 k = e + a
                 g[k, 0] += w[a] * mi
                 g[k, 1] += w[a] * pv
                 g[k, 2] += w[a] * f - s * dw[a]
+        _flush_window(g, run, 0, m0, m1, m2)
+        _flush_window(g, run, 1, p0, p1, p2)
+        _flush_window(g, run, 2, f0, f1, f2)
+        touched[t, 0] = first
+        touched[t, 1] = last
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def g2p2g_1d(x, v, m, grid_a, dt, bx, ux, ihx, Cx, p, v_new, copies):
+def g2p2g_1d(x, v, m, grid_a, dt, bx, ux, ihx, Cx, p, v_new, copies, touched):
     n = x.shape[0]
     nt = copies.shape[0]
     for t in prange(nt):
         g = copies[t]
-        g[:, :] = 0.0
+        _clear_touched(g, touched, t)
+        first = g.shape[0]
+        last = 0
         w = np.empty(4)
         dw = np.empty(4)
         lo = t * n // nt
         hi = (t + 1) * n // nt
         quadratic = p == 2 and ux
+        run = -1
+        p0 = p1 = p2 = 0.0
         for i in range(lo, hi):
             if quadratic:
                 e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
@@ -245,11 +338,19 @@ def g2p2g_1d(x, v, m, grid_a, dt, bx, ux, ihx, Cx, p, v_new, copies):
                                          + w2 * grid_a[e + 2, 0])
                     v_new[i, 0] = vn
                     pv = m[i] * vn
-                    g[e, 0] += w0 * pv
-                    g[e + 1, 0] += w1 * pv
-                    g[e + 2, 0] += w2 * pv
+                    if e != run:
+                        _flush_window(g, run, 0, p0, p1, p2)
+                        run = e
+                        first = min(first, e)
+                        last = max(last, e + 3)
+                        p0 = p1 = p2 = 0.0
+                    p0 += w0 * pv
+                    p1 += w1 * pv
+                    p2 += w2 * pv
                     continue
             e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
+            first = min(first, e)
+            last = max(last, e + p + 1)
             acc = 0.0
             for a in range(p + 1):
                 acc += w[a] * grid_a[e + a, 0]
@@ -258,20 +359,38 @@ def g2p2g_1d(x, v, m, grid_a, dt, bx, ux, ihx, Cx, p, v_new, copies):
             pv = m[i] * vn
             for a in range(p + 1):
                 g[e + a, 0] += w[a] * pv
+        _flush_window(g, run, 0, p0, p1, p2)
+        touched[t, 0] = first
+        touched[t, 1] = last
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def _axis_sums_1d(x, bx, ux, ihx, Cx, p, grid_a, grid_v, w, dw):
+    """(sum N a, sum N v, sum dN/dx v) at x by the general basis path (not
+    inlined: it serves only the particles the quadratic form does not)."""
+    e = _axis(x, bx, ux, ihx, Cx, p, w, dw)
+    acc = 0.0
+    vg = 0.0
+    L = 0.0
+    for a in range(p + 1):
+        k = e + a
+        acc += w[a] * grid_a[k, 0]
+        vg += w[a] * grid_v[k, 0]
+        L += dw[a] * grid_v[k, 0]
+    return acc, vg, L
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def g2p_1d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, ux, ihx, Cx, p,
+def g2p_1d(x, v, u, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, ux, ihx, Cx, p,
            lo_x, hi_x, fused, E, x_new, v_new, u_new, stress_new, V_new, L_out, acc_out,
-           store_acc, sums, flags):
+           store_acc, flags):
     n = x.shape[0]
-    nt = sums.shape[0]
+    nt = flags.shape[0]
     for t in prange(nt):
         w = np.empty(4)
         dw = np.empty(4)
         lo = t * n // nt
         hi = (t + 1) * n // nt
-        s_mdu = 0.0
         bad = -1
         out = -1
         neg = -1
@@ -281,27 +400,17 @@ def g2p_1d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, ux, 
             if quadratic:
                 e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
                 if e >= 0:
-                    a0, a1, a2 = grid_a[e, 0], grid_a[e + 1, 0], grid_a[e + 2, 0]
                     v0, v1, v2 = grid_v[e, 0], grid_v[e + 1, 0], grid_v[e + 2, 0]
-                    acc = w0 * a0 + w1 * a1 + w2 * a2
+                    acc = w0 * grid_a[e, 0] + w1 * grid_a[e + 1, 0] + w2 * grid_a[e + 2, 0]
                     vg = w0 * v0 + w1 * v1 + w2 * v2
                     L = d0 * v0 + d1 * v1 + d2 * v2
             if e < 0:
-                e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
-                acc = 0.0
-                vg = 0.0
-                L = 0.0
-                for a in range(p + 1):
-                    k = e + a
-                    acc += w[a] * grid_a[k, 0]
-                    vg += w[a] * grid_v[k, 0]
-                    L += dw[a] * grid_v[k, 0]
+                acc, vg, L = _axis_sums_1d(x[i, 0], bx, ux, ihx, Cx, p, grid_a, grid_v, w, dw)
             if store_acc:
                 acc_out[i, 0] = acc
             if do_flip:
                 v_new[i, 0] = v[i, 0] + vfactor * dt * acc
             dx = dt * vg
-            s_mdu += m[i] * dx
             xn = x[i, 0] + dx
             x_new[i, 0] = xn
             u_new[i, 0] = u[i, 0] + dx
@@ -317,7 +426,6 @@ def g2p_1d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, ux, 
                 bad = i
             if (xn < lo_x or xn > hi_x) and out < 0:
                 out = i
-        sums[t, 0] = s_mdu
         flags[t, 0] = bad
         flags[t, 1] = out
         flags[t, 2] = neg
@@ -326,12 +434,14 @@ def g2p_1d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, ux, 
 # ----------------------------------------------------------------------- 2D
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def p2g_2d(x, v, m, V, stress, fext, has_fext, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx,
-           copies):
+           copies, touched):
     n = x.shape[0]
     nt = copies.shape[0]
     for t in prange(nt):
         g = copies[t]
-        g[:, :] = 0.0
+        _clear_touched(g, touched, t)
+        first = g.shape[0]
+        last = 0
         wx = np.empty(4)
         dx = np.empty(4)
         wy = np.empty(4)
@@ -354,6 +464,8 @@ def p2g_2d(x, v, m, V, stress, fext, has_fext, bx, by, ux, uy, ihx, ihy, Cx, Cy,
                 ey, wy0, wy1, wy2, dy0, dy1, dy2 = _quadratic_interior(x[i, 1], by, ihy)
                 if ex >= 0 and ey >= 0:
                     row = ey * nbx + ex
+                    first = min(first, row)
+                    last = max(last, row + 2 * nbx + 3)
                     _p2g_row(g, row, wy0, dy0, wx0, wx1, wx2, dx0, dx1, dx2,
                              mi, px, py, fx, fy, sxx, sxy, syy)
                     _p2g_row(g, row + nbx, wy1, dy1, wx0, wx1, wx2, dx0, dx1, dx2,
@@ -363,6 +475,8 @@ def p2g_2d(x, v, m, V, stress, fext, has_fext, bx, by, ux, uy, ihx, ihy, Cx, Cy,
                     continue
             ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
             ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
+            first = min(first, ey * nbx + ex)
+            last = max(last, (ey + p) * nbx + ex + p + 1)
             for b in range(p + 1):
                 row = (ey + b) * nbx + ex
                 for a in range(p + 1):
@@ -375,15 +489,20 @@ def p2g_2d(x, v, m, V, stress, fext, has_fext, bx, by, ux, uy, ihx, ihy, Cx, Cy,
                     g[k, 2] += N * py
                     g[k, 3] += N * fx - (sxx * gx + sxy * gy)
                     g[k, 4] += N * fy - (sxy * gx + syy * gy)
+        touched[t, 0] = first
+        touched[t, 1] = last
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def g2p2g_2d(x, v, m, grid_a, dt, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, v_new, copies):
+def g2p2g_2d(x, v, m, grid_a, dt, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, v_new, copies,
+             touched):
     n = x.shape[0]
     nt = copies.shape[0]
     for t in prange(nt):
         g = copies[t]
-        g[:, :] = 0.0
+        _clear_touched(g, touched, t)
+        first = g.shape[0]
+        last = 0
         wx = np.empty(4)
         dx = np.empty(4)
         wy = np.empty(4)
@@ -397,6 +516,8 @@ def g2p2g_2d(x, v, m, grid_a, dt, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, v_ne
                 ey, wy0, wy1, wy2, _, _, _ = _quadratic_interior(x[i, 1], by, ihy)
                 if ex >= 0 and ey >= 0:
                     r0 = ey * nbx + ex
+                    first = min(first, r0)
+                    last = max(last, r0 + 2 * nbx + 3)
                     r1 = r0 + nbx
                     r2 = r1 + nbx
                     a0x, a0y = _gather_row(grid_a, r0, wy0, wx0, wx1, wx2)
@@ -414,6 +535,8 @@ def g2p2g_2d(x, v, m, grid_a, dt, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, v_ne
                     continue
             ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
             ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
+            first = min(first, ey * nbx + ex)
+            last = max(last, (ey + p) * nbx + ex + p + 1)
             ax = 0.0
             ay = 0.0
             for b in range(p + 1):
@@ -434,14 +557,16 @@ def g2p2g_2d(x, v, m, grid_a, dt, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, v_ne
                     N = wx[a] * wy[b]
                     g[row + a, 0] += N * px
                     g[row + a, 1] += N * py
+        touched[t, 0] = first
+        touched[t, 1] = last
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def g2p_2d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, ux, uy, ihx,
+def g2p_2d(x, v, u, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, ux, uy, ihx,
            ihy, Cx, Cy, p, nbx, lo_x, hi_x, lo_y, hi_y, fused, lam, mu, x_new, v_new, u_new,
-           stress_new, V_new, L_out, acc_out, store_acc, sums, flags):
+           stress_new, V_new, L_out, acc_out, store_acc, flags):
     n = x.shape[0]
-    nt = sums.shape[0]
+    nt = flags.shape[0]
     for t in prange(nt):
         wx = np.empty(4)
         dx = np.empty(4)
@@ -452,8 +577,6 @@ def g2p_2d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, 
         bad = -1
         out = -1
         neg = -1
-        smx = 0.0
-        smy = 0.0
         quadratic = p == 2 and ux and uy
         for i in range(lo, hi):
             ax = 0.0
@@ -520,8 +643,6 @@ def g2p_2d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, 
             x_new[i, 1] = yn
             u_new[i, 0] = u[i, 0] + dt * vx
             u_new[i, 1] = u[i, 1] + dt * vy
-            smx += m[i] * (dt * vx)
-            smy += m[i] * (dt * vy)
             J = (1.0 + dt * Lxx) * (1.0 + dt * Lyy) - dt * dt * Lxy * Lyx
             if fused:
                 Dxx = dt * Lxx
@@ -547,8 +668,6 @@ def g2p_2d(x, v, u, m, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, 
                 bad = i
             if (xn < lo_x or xn > hi_x or yn < lo_y or yn > hi_y) and out < 0:
                 out = i
-        sums[t, 0] = smx
-        sums[t, 1] = smy
         flags[t, 0] = bad
         flags[t, 1] = out
         flags[t, 2] = neg
@@ -710,6 +829,18 @@ def usl_grid(mass, momentum, force, gravity, constrained, v_values, a_values, ha
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def mass_weighted_sum(mass, v, out):
+    """out[c] = sum_k m_k v_k,c (compiled: NumPy's BLAS product would leave
+    its threads spinning against the kernels' on a small machine)."""
+    nk, dim = v.shape
+    for c in range(dim):
+        s = 0.0
+        for k in prange(nk):
+            s += mass[k] * v[k, c]
+        out[c] = s
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def small_mass_1d(mass, p, tol, small):
     count = 0
     nk = mass.shape[0]
@@ -781,44 +912,49 @@ class Kernels:
         self._force = np.empty((grid.ndofs, grid.dim))
         self._momentum = np.empty((grid.ndofs, grid.dim))
         self._small = np.empty(grid.ndofs, dtype=np.bool_)
-        self.sums = np.zeros((self.nthreads, grid.dim))
+        self._mass_range = np.zeros((self.nthreads, 2))
+        self._no_acc = np.zeros((1, grid.dim))
         self.flags = np.full((self.nthreads, 3), -1, dtype=np.int64)
 
     def _buffer(self, ncomp):
-        key = ncomp
-        if key not in self._copies:
-            self._copies[key] = np.empty((self.nthreads, self.ndofs, ncomp))
-        return self._copies[key]
+        """Per-thread grid copies with ncomp fields (zero between calls) and
+        their touched node ranges."""
+        if ncomp not in self._copies:
+            self._copies[ncomp] = (np.zeros((self.nthreads, self.ndofs, ncomp)),
+                                   np.zeros((self.nthreads, 2), dtype=np.int64))
+        return self._copies[ncomp]
 
     def p2g(self, particles, fext):
         """(mass (dofs,), momentum (dofs, dim), force (dofs, dim))."""
         p, dim = particles, self.dim
         has = fext is not None
         fx = fext if has else np.zeros((1, dim))
-        copies = self._buffer(1 + 2 * dim)
+        copies, touched = self._buffer(1 + 2 * dim)
         if dim == 1:
             (bx, ux, ihx, Cx), = self.args
-            p2g_1d(p.x, p.v, p.m, p.V, p.stress, fx, has, bx, ux, ihx, Cx, self.p, copies)
+            p2g_1d(p.x, p.v, p.m, p.V, p.stress, fx, has, bx, ux, ihx, Cx, self.p, copies,
+                   touched)
         else:
             (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
             p2g_2d(p.x, p.v, p.m, p.V, p.stress, fx, has, bx, by, ux, uy, ihx, ihy, Cx, Cy,
-                   self.p, self.nbx, copies)
-        _reduce_fields(copies, self._mass, self._p2g_momentum, self._force)
+                   self.p, self.nbx, copies, touched)
+        _reduce_fields(copies, touched, self._mass, self._p2g_momentum, self._force,
+                       self._mass_range)
         return self._mass, self._p2g_momentum, self._force
 
     def g2p2g(self, particles, grid_a, dt, v_new):
         """MUSL: v_new = v + dt N a and the grid momentum of m v_new."""
         p, dim = particles, self.dim
-        copies = self._buffer(dim)
+        copies, touched = self._buffer(dim)
         if dim == 1:
             (bx, ux, ihx, Cx), = self.args
-            g2p2g_1d(p.x, p.v, p.m, grid_a, dt, bx, ux, ihx, Cx, self.p, v_new, copies)
+            g2p2g_1d(p.x, p.v, p.m, grid_a, dt, bx, ux, ihx, Cx, self.p, v_new, copies, touched)
         else:
             (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
             g2p2g_2d(p.x, p.v, p.m, grid_a, dt, bx, by, ux, uy, ihx, ihy, Cx, Cy, self.p,
-                     self.nbx, v_new, copies)
+                     self.nbx, v_new, copies, touched)
         out = self._momentum
-        _reduce(copies, out)
+        _reduce(copies, touched, out)
         return out
 
     def g2p(self, particles, grid_a, grid_v, dt, vfactor, flip, fused, material, new, L_out,
@@ -826,25 +962,25 @@ class Kernels:
         """Particle update into the arrays of ``new`` (a Particles object);
         returns the flags (first non-finite, outside, J <= 0 particle or -1)."""
         p, dim = particles, self.dim
-        sums, flags = self.sums, self.flags
+        flags = self.flags
         bounds = self.grid.bounds
         store_acc = acc_out is not None
         if not store_acc:
-            acc_out = self.sums  # never written
+            acc_out = self._no_acc  # never written
         if dim == 1:
             (bx, ux, ihx, Cx), = self.args
             E = material.E if fused else 0.0
-            g2p_1d(p.x, p.v, p.u, p.m, p.stress, p.V, grid_a, grid_v, dt, vfactor, flip, bx, ux, ihx,
+            g2p_1d(p.x, p.v, p.u, p.stress, p.V, grid_a, grid_v, dt, vfactor, flip, bx, ux, ihx,
                    Cx, self.p, bounds[0][0], bounds[0][1], fused, E, new.x, new.v, new.u,
-                   new.stress, new.V, L_out, acc_out, store_acc, sums, flags)
+                   new.stress, new.V, L_out, acc_out, store_acc, flags)
         else:
             (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
             lam = material.lam if fused else 0.0
             mu = material.mu if fused else 0.0
-            g2p_2d(p.x, p.v, p.u, p.m, p.stress, p.V, grid_a, grid_v, dt, vfactor, flip, bx, by,
+            g2p_2d(p.x, p.v, p.u, p.stress, p.V, grid_a, grid_v, dt, vfactor, flip, bx, by,
                    ux, uy, ihx, ihy, Cx, Cy, self.p, self.nbx, bounds[0][0], bounds[0][1],
                    bounds[1][0], bounds[1][1], fused, lam, mu, new.x, new.v, new.u, new.stress,
-                   new.V, L_out, acc_out, store_acc, sums, flags)
+                   new.V, L_out, acc_out, store_acc, flags)
         found = []
         for j in range(3):
             column = flags[:, j]
@@ -935,13 +1071,24 @@ class Kernels:
             a = self._scratch[name] = np.empty(int(np.prod(shape)) + 64, dtype=dtype)
         return a[:int(np.prod(shape))].reshape(shape)
 
-    def mass_times_displacement(self):
-        """sum_p m_p du_p of the last g2p call, shape (dim,)."""
-        return self.sums.sum(axis=0)
+    def mass_times_displacement(self, mass, v_grid, dt):
+        """sum_p m_p du_p of a g2p call with grid velocity v_grid: equal to
+        dt sum_k m_k v_k with m_k the lumped mass of that step's p2g, since
+        du_p = dt sum_k N_kp v_k and m_k = sum_p m_p N_kp."""
+        out = np.empty(self.dim)
+        mass_weighted_sum(mass, v_grid, out)
+        return dt * out
 
     def small_mass(self, lumped, tol):
-        """Boolean mask of tiny-mass dofs (see grid_system) and its count."""
+        """Boolean mask of tiny-mass dofs (see grid_system) and its count.
+
+        On the lumped mass of the last p2g call, a node can only be tiny
+        (m_k < tol max of its neighbours) if the smallest positive mass is
+        below tol times the largest; otherwise the scan is skipped."""
         small = self._small
+        if lumped is self._mass and self._mass_range[:, 0].min() >= tol * self._mass_range[:, 1].max():
+            small[:] = False
+            return small, 0
         if self.dim == 2:
             count = small_mass_2d(lumped, self.nbx, self.grid.basis_per_axis[1], self.p, tol,
                                   small)

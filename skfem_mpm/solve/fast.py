@@ -461,7 +461,7 @@ class FastStepper:
 
             new.stress, new.V, new.F = update_stress(state, L_out, particles=p)
         if self.gravity_work:
-            state.external_work += float(k.mass_times_displacement() @ self.gravity)
+            state.external_work += float(k.mass_times_displacement(mass, v_grid, dt) @ self.gravity)
         if work_forces is not None:
             state.external_work += float(np.sum(work_forces * (new.u - p.u)))
         if scheme == "cd":
