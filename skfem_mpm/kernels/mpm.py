@@ -409,7 +409,10 @@ def g2p_1d(x, v, u, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, ux, ihx
             if store_acc:
                 acc_out[i, 0] = acc
             if do_flip:
-                v_new[i, 0] = v[i, 0] + vfactor * dt * acc
+                vn = v[i, 0] + vfactor * dt * acc
+                v_new[i, 0] = vn
+            else:
+                vn = v_new[i, 0]
             dx = dt * vg
             xn = x[i, 0] + dx
             x_new[i, 0] = xn
@@ -420,12 +423,15 @@ def g2p_1d(x, v, u, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, ux, ihx
                 V_new[i] = V[i] * J
             else:
                 L_out[i, 0, 0] = L
-            if J <= 0.0 and neg < 0:
-                neg = i
-            if not (np.isfinite(xn) and np.isfinite(v_new[i, 0])) and bad < 0:
-                bad = i
-            if (xn < lo_x or xn > hi_x) and out < 0:
-                out = i
+            finite = np.isfinite(xn) and np.isfinite(vn)
+            inside = not (xn < lo_x or xn > hi_x)  # NaN counts as non-finite only
+            if J <= 0.0 or not finite or not inside:  # one test on the common path
+                if J <= 0.0 and neg < 0:
+                    neg = i
+                if not finite and bad < 0:
+                    bad = i
+                if not inside and out < 0:
+                    out = i
         flags[t, 0] = bad
         flags[t, 1] = out
         flags[t, 2] = neg
@@ -635,8 +641,13 @@ def g2p_2d(x, v, u, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, ux,
                 acc_out[i, 0] = ax
                 acc_out[i, 1] = ay
             if do_flip:
-                v_new[i, 0] = v[i, 0] + vfactor * dt * ax
-                v_new[i, 1] = v[i, 1] + vfactor * dt * ay
+                vnx = v[i, 0] + vfactor * dt * ax
+                vny = v[i, 1] + vfactor * dt * ay
+                v_new[i, 0] = vnx
+                v_new[i, 1] = vny
+            else:
+                vnx = v_new[i, 0]
+                vny = v_new[i, 1]
             xn = x[i, 0] + dt * vx
             yn = x[i, 1] + dt * vy
             x_new[i, 0] = xn
@@ -660,14 +671,16 @@ def g2p_2d(x, v, u, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, ux,
                 L_out[i, 0, 1] = Lxy
                 L_out[i, 1, 0] = Lyx
                 L_out[i, 1, 1] = Lyy
-            if J <= 0.0 and neg < 0:
-                neg = i
-            ok = np.isfinite(xn) and np.isfinite(yn) and np.isfinite(v_new[i, 0]) \
-                and np.isfinite(v_new[i, 1])
-            if not ok and bad < 0:
-                bad = i
-            if (xn < lo_x or xn > hi_x or yn < lo_y or yn > hi_y) and out < 0:
-                out = i
+            finite = np.isfinite(xn) and np.isfinite(yn) and np.isfinite(vnx) \
+                and np.isfinite(vny)
+            inside = not (xn < lo_x or xn > hi_x or yn < lo_y or yn > hi_y)
+            if J <= 0.0 or not finite or not inside:  # one test on the common path
+                if J <= 0.0 and neg < 0:
+                    neg = i
+                if not finite and bad < 0:
+                    bad = i
+                if not inside and out < 0:
+                    out = i
         flags[t, 0] = bad
         flags[t, 1] = out
         flags[t, 2] = neg
@@ -806,10 +819,10 @@ def lumped_solve(mass, rhs, gravity, constrained, values, has_values, out):
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def usl_grid(mass, momentum, force, gravity, constrained, v_values, a_values, has_values,
-             vdt, v_old, a, v_new):
-    """The USL/CD grid step in one pass: v_old = P / m, a = f / m + g,
-    v_new = v_old + vdt a on free dofs with mass; constraint values (or 0)
-    on constrained dofs; 0 on empty dofs."""
+             vdt, a, v_new):
+    """The USL/CD grid step in one pass: a = f / m + g, v_new = P / m + vdt a
+    on free dofs with mass; constraint values (or 0) on constrained dofs; 0
+    on empty dofs."""
     nk, dim = force.shape
     for k in prange(nk):
         mk = mass[k]
@@ -823,7 +836,6 @@ def usl_grid(mass, momentum, force, gravity, constrained, v_values, a_values, ha
             else:
                 vo = 0.0
                 ak = 0.0
-            v_old[k, c] = vo
             a[k, c] = ak
             v_new[k, c] = vo + vdt * ak
 
@@ -1097,11 +1109,11 @@ class Kernels:
         return small, int(count)
 
     def usl_grid(self, mass, momentum, force, gravity, constrained, v_values, a_values, vdt,
-                 v_old, a, v_new):
+                 a, v_new):
         """One pass of the USL/CD grid step (see usl_grid)."""
         has = v_values is not None
         usl_grid(mass, momentum, force, gravity, constrained, v_values if has else force,
-                 a_values if has else force, has, vdt, v_old, a, v_new)
+                 a_values if has else force, has, vdt, a, v_new)
 
     def solve(self, mass, rhs, gravity, constrained, values, out):
         """Lumped solve into ``out`` (see lumped_solve)."""

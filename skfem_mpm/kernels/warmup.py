@@ -56,4 +56,4 @@ def warm_up_kernels(grid, fast=False):
     for values in (None, zeros):
         k.solve(np.ones(grid.ndofs), zeros, np.zeros(dim), mask, values, out)
         k.usl_grid(np.ones(grid.ndofs), zeros, zeros, np.zeros(dim), mask, values, values, 0.0,
-                   out, zeros.copy(), zeros.copy())
+                   out, zeros.copy())

@@ -411,7 +411,7 @@ class FastStepper:
             if scheme != "musl" and not small and not state.damping:
                 k.usl_grid(mass, momentum, force, self._no_gravity if gravity is None
                            else gravity, c.mask, t_values, a_values, factor * dt,
-                           self._v_old, self._a, self._v_new)
+                           self._a, self._v_new)
                 a, v_grid = self._a, self._v_new
             elif scheme != "musl" and system is not None and v_old is None:
                 a, v_old = self._consistent_solves(
