@@ -67,6 +67,12 @@ def banded_cholesky(bands, lo, hi):
     return L
 
 
+def _inverse_diagonal(L):
+    out = L.copy()
+    out[:, 0] = 1.0 / L[:, 0]
+    return out
+
+
 class KroneckerData:
     """The factors and scaling of the preconditioner for one free-dof set
     (``rows`` in the grid's dof numbering, row-major: k = b nbx + a)."""
@@ -77,9 +83,11 @@ class KroneckerData:
         a, b = rows % nbx, rows // nbx
         self.a0, self.b0 = int(a.min()), int(b.min())
         a1, b1 = int(a.max()) + 1, int(b.max()) + 1
-        self.Lx = banded_cholesky(bands[0], self.a0, a1)
+        # the kernel multiplies by the inverse diagonal (a division costs
+        # several multiplications): column 0 of the factors holds 1 / L_ii
+        self.Lx = _inverse_diagonal(banded_cholesky(bands[0], self.a0, a1))
         if dim == 2:
-            self.Ly = banded_cholesky(bands[1], self.b0, b1)
+            self.Ly = _inverse_diagonal(banded_cholesky(bands[1], self.b0, b1))
             gauss = row_sums[0][a] * row_sums[1][b]
         else:
             self.Ly = np.ones((1, p + 1))
@@ -100,6 +108,7 @@ class KroneckerData:
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def apply_kronecker(Lx, Ly, local, inv_scale, box, nt, r, z):
     """z = S^-1 R (M_y (x) M_x)^-1 R^T S^-1 r (see the module docstring);
+    Lx, Ly are the banded Cholesky factors with 1 / L_ii in column 0,
     ``box`` (ny, nx, nc) is work space, nt the number of column blocks."""
     ny, nx, nc = box.shape
     p = Lx.shape[1] - 1
@@ -120,13 +129,13 @@ def apply_kronecker(Lx, Ly, local, inv_scale, box, nt, r, z):
                 s = box[j, i, c]
                 for d in range(1, min(p, i) + 1):
                     s -= Lx[i, d] * box[j, i - d, c]
-                box[j, i, c] = s / Lx[i, 0]
+                box[j, i, c] = s * Lx[i, 0]
         for i in range(nx - 1, -1, -1):
             for c in range(nc):
                 s = box[j, i, c]
                 for d in range(1, min(p, nx - 1 - i) + 1):
                     s -= Lx[i + d, d] * box[j, i + d, c]
-                box[j, i, c] = s / Lx[i, 0]
+                box[j, i, c] = s * Lx[i, 0]
     # y direction: each thread takes a block of box columns and runs the
     # banded solves for all of them row by row (contiguous inner loops)
     if ny > 1:
@@ -139,14 +148,14 @@ def apply_kronecker(Lx, Ly, local, inv_scale, box, nt, r, z):
                         s = box[j, i, c]
                         for d in range(1, min(p, j) + 1):
                             s -= Ly[j, d] * box[j - d, i, c]
-                        box[j, i, c] = s / Ly[j, 0]
+                        box[j, i, c] = s * Ly[j, 0]
             for j in range(ny - 1, -1, -1):
                 for i in range(lo, hi):
                     for c in range(nc):
                         s = box[j, i, c]
                         for d in range(1, min(p, ny - 1 - j) + 1):
                             s -= Ly[j + d, d] * box[j + d, i, c]
-                        box[j, i, c] = s / Ly[j, 0]
+                        box[j, i, c] = s * Ly[j, 0]
     for q in prange(nr):
         li = local[q]
         for c in range(nc):
