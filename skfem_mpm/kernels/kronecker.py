@@ -122,20 +122,33 @@ def apply_kronecker(Lx, Ly, local, inv_scale, box, nt, r, z):
         if li >= 0:
             for c in range(nc):
                 box[li // nx, li % nx, c] = r[q, c] * inv_scale[q]
-    # x direction: each box row is one banded system (parallel over rows)
-    for j in prange(ny):
+    # x direction: each box row is one banded system. Each thread takes a
+    # block of rows and advances all of them together, one column i (and
+    # one band d) at a time: the recurrence along a row is a latency chain,
+    # the rows of a block are independent.
+    for t in prange(nt):
+        lo = t * ny // nt
+        hi = (t + 1) * ny // nt
         for i in range(nx):
-            for c in range(nc):
-                s = box[j, i, c]
-                for d in range(1, min(p, i) + 1):
-                    s -= Lx[i, d] * box[j, i - d, c]
-                box[j, i, c] = s * Lx[i, 0]
+            for d in range(1, min(p, i) + 1):
+                coef = Lx[i, d]
+                for j in range(lo, hi):
+                    for c in range(nc):
+                        box[j, i, c] -= coef * box[j, i - d, c]
+            scale = Lx[i, 0]
+            for j in range(lo, hi):
+                for c in range(nc):
+                    box[j, i, c] *= scale
         for i in range(nx - 1, -1, -1):
-            for c in range(nc):
-                s = box[j, i, c]
-                for d in range(1, min(p, nx - 1 - i) + 1):
-                    s -= Lx[i + d, d] * box[j, i + d, c]
-                box[j, i, c] = s * Lx[i, 0]
+            for d in range(1, min(p, nx - 1 - i) + 1):
+                coef = Lx[i + d, d]
+                for j in range(lo, hi):
+                    for c in range(nc):
+                        box[j, i, c] -= coef * box[j, i + d, c]
+            scale = Lx[i, 0]
+            for j in range(lo, hi):
+                for c in range(nc):
+                    box[j, i, c] *= scale
     # y direction: each thread takes a block of box columns and runs the
     # banded solves for all of them row by row (contiguous inner loops)
     if ny > 1:
@@ -143,19 +156,25 @@ def apply_kronecker(Lx, Ly, local, inv_scale, box, nt, r, z):
             lo = t * nx // nt
             hi = (t + 1) * nx // nt
             for j in range(ny):
+                for d in range(1, min(p, j) + 1):
+                    coef = Ly[j, d]
+                    for i in range(lo, hi):
+                        for c in range(nc):
+                            box[j, i, c] -= coef * box[j - d, i, c]
+                scale = Ly[j, 0]
                 for i in range(lo, hi):
                     for c in range(nc):
-                        s = box[j, i, c]
-                        for d in range(1, min(p, j) + 1):
-                            s -= Ly[j, d] * box[j - d, i, c]
-                        box[j, i, c] = s * Ly[j, 0]
+                        box[j, i, c] *= scale
             for j in range(ny - 1, -1, -1):
+                for d in range(1, min(p, ny - 1 - j) + 1):
+                    coef = Ly[j + d, d]
+                    for i in range(lo, hi):
+                        for c in range(nc):
+                            box[j, i, c] -= coef * box[j + d, i, c]
+                scale = Ly[j, 0]
                 for i in range(lo, hi):
                     for c in range(nc):
-                        s = box[j, i, c]
-                        for d in range(1, min(p, ny - 1 - j) + 1):
-                            s -= Ly[j + d, d] * box[j + d, i, c]
-                        box[j, i, c] = s * Ly[j, 0]
+                        box[j, i, c] *= scale
     for q in prange(nr):
         li = local[q]
         for c in range(nc):

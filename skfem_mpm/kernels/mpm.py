@@ -27,6 +27,7 @@ outside the grid, or with det(I + dt L) <= 0 (or -1 for none).
 import numpy as np
 from numba import get_num_threads, njit, prange
 
+from .fringe import apply_corrected
 from .kronecker import apply_kronecker
 from .weights import FAST, extracted_functions, locate_axis_point
 
@@ -1329,9 +1330,13 @@ def _dots(r, z, partial):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def _precondition(r, z, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks):
-    if kron:
-        apply_kronecker(Lx, Ly, local, inv_scale, box, nblocks, r, z)
+def _precondition(A, cols, r, z, t, inv_diag, mode, kron, fringe):
+    """z = P^-1 r: mode 0 the inverse lumped mass, 1 Kronecker, 2 Kronecker
+    with the fringe correction (``t`` work space)."""
+    if mode == 2:
+        apply_corrected(A, cols, *kron, *fringe, r, z, t)
+    elif mode == 1:
+        apply_kronecker(*kron, r, z)
     else:
         for i in range(r.shape[0]):
             for c in range(r.shape[1]):
@@ -1339,20 +1344,22 @@ def _precondition(r, z, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def ell_pcg(A, cols, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks, b, x, rtol,
-            maxiter, nt, work):
+def ell_pcg(A, cols, inv_diag, mode, kron, fringe, b, x, rtol, maxiter, nt, work):
     """Preconditioned conjugate gradients for A x = b (all columns at once,
     each with its own scalars), started from x; column c stops when
-    |r_c| <= rtol |b_c|. The preconditioner is the inverse lumped mass
-    ``inv_diag`` or, with ``kron``, the Kronecker preconditioner of
-    :mod:`skfem_mpm.kernels.kronecker` (its arguments Lx ... nblocks).
-    ``work`` holds four arrays shaped like b. Returns the iterations of the
+    |r_c| <= rtol |b_c|. The preconditioner (``mode``) is 0 the inverse
+    lumped mass ``inv_diag``, 1 the Kronecker one of
+    :mod:`skfem_mpm.kernels.kronecker` (``kron``: the arguments of
+    ``apply_kronecker`` before r, z), 2 that with the fringe correction of
+    :mod:`skfem_mpm.kernels.fringe` (``fringe``: ``FringeFactor.args``).
+    ``work`` holds five arrays shaped like b. Returns the iterations of the
     slowest column."""
     nr, nc = b.shape
     r = work[0]
     z = work[1]
     d = work[2]
     q = work[3]
+    spare = work[4]
     partial = np.zeros((nt, nc))
     _ell_product_dot(A, cols, x, q, partial)
     bnorm = np.zeros(nc)
@@ -1360,7 +1367,7 @@ def ell_pcg(A, cols, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks, b, 
         for c in range(nc):
             r[i, c] = b[i, c] - q[i, c]
             bnorm[c] += b[i, c] * b[i, c]
-    _precondition(r, z, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks)
+    _precondition(A, cols, r, z, spare, inv_diag, mode, kron, fringe)
     rz = np.zeros(nc)
     for i in range(nr):
         for c in range(nc):
@@ -1385,9 +1392,9 @@ def ell_pcg(A, cols, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks, b, 
             if dq == 0.0:
                 active[c] = False
             alpha[c] = rz[c] / dq if active[c] else 0.0
-        _cg_update(x, r, z, d, q, inv_diag, not kron, alpha, active, sums)
-        if kron:  # z = P^-1 r and its r.z
-            _precondition(r, z, inv_diag, kron, Lx, Ly, local, inv_scale, box, nblocks)
+        _cg_update(x, r, z, d, q, inv_diag, mode == 0, alpha, active, sums)
+        if mode > 0:  # z = P^-1 r and its r.z
+            _precondition(A, cols, r, z, spare, inv_diag, mode, kron, fringe)
             _dots(r, z, partial)
             sums[:, 0, :] = partial
         for c in range(nc):

@@ -44,15 +44,21 @@ class StencilSystem:
     :meth:`solve_many`) at once. Only the free dofs enter the iteration:
     for each constraint pattern a kernel copies their rows of the stencil
     into a compact row-by-row (ELL) matrix. The preconditioner is the
-    Kronecker one of :mod:`skfem_mpm.kernels.kronecker` (``"kronecker"``,
-    default) or the inverse lumped mass (``"lumped"``).
+    Kronecker one of :mod:`skfem_mpm.kernels.kronecker` with the fringe
+    correction of :mod:`skfem_mpm.kernels.fringe` on ``FRINGE_LAYERS``
+    layers of the free-dof set's edge (``"kronecker"``, default; 0 layers:
+    none), or the inverse lumped mass (``"lumped"``).
     """
 
     preconditioner = "kronecker"
+    FRINGE_LAYERS = 3
     iteration_log = None  # a list: each CG run appends its iterations (benchmarks)
     LUMPED_ROW = 0.2
     _no_kronecker = (np.ones((1, 1)), np.ones((1, 1)), np.zeros(1, dtype=np.int64), np.ones(1),
                      np.zeros((1, 1, 1)), 1)
+    _no_fringe = ((np.zeros(0, dtype=np.int64),) * 2 + (np.zeros(1, dtype=np.int64),
+                  np.zeros(0, dtype=np.int64), np.zeros(0)) * 2
+                  + (np.zeros(0),) + (np.zeros(0, dtype=np.int64),) * 2 + (np.zeros((0, 1)),) * 3)
 
     def __init__(self, kernels, stencil, lumped, constraints, fast, warm, rtol=1e-13):
         self.k = kernels
@@ -92,15 +98,60 @@ class StencilSystem:
             compact_system(self.stencil, *self.geometry, rows, index, self.fast, A, cols, F,
                            fcols)
             inv_diag = 1.0 / self.lumped[rows]
-            kron = None
+            kron = fringe = None
             if self.preconditioner == "kronecker" and rows.size:
                 from ..kernels.kronecker import KroneckerData
 
                 centre = (ns - 1) // 2
                 kron = KroneckerData(*self.k.axis_mass(), self.geometry, rows, self.lumped,
                                      self.fast[rows] >= self.LUMPED_ROW, A[:, centre].copy())
-            built = group[3] = (A, cols, F, fcols, inv_diag, kron)
+                if self.FRINGE_LAYERS > 0:
+                    fringe = self._fringe(g, rows, A, cols)
+            built = group[3] = (A, cols, F, fcols, inv_diag, kron, fringe)
         return built
+
+    # The particles move little in a step, so the fringe factors of an
+    # earlier step's M_FF stay a close symmetric positive definite
+    # approximation of M_FF^-1: they are kept while CG needs at most
+    # FRINGE_SLACK iterations more than in the first solve with them (the
+    # factorisation with its set-up costs about as much as three CG
+    # iterations at 128 x 128 cells). The block they came from is kept in
+    # the warm data, so a restart from a checkpoint factorises the same
+    # block and continues bit for bit.
+    FRINGE_SLACK = 1
+
+    def _fringe(self, g, rows, A, cols):
+        """The fringe correction's factors for group g, or None (the
+        pattern is kept on the kernels while the free-dof set stays)."""
+        from ..kernels.fringe import FringeFactor, FringePattern
+
+        cache = self.k.__dict__.setdefault("fringe_patterns", {})
+        pattern = cache.get(g)
+        if pattern is None or pattern.key != rows.tobytes() or \
+                pattern.layers != self.FRINGE_LAYERS:
+            pattern = cache[g] = FringePattern(rows, cols, self.geometry, self.FRINGE_LAYERS)
+        if not pattern.fringe.size:
+            return None
+        key = f"fringe{g}"
+        stored_rows, data = self.warm.get(key + "_rows"), self.warm.get(key + "_block")
+        if stored_rows is None or not np.array_equal(stored_rows, rows) or \
+                data.size != pattern.indices.size:
+            data = pattern.block_values(A)
+            self.warm.update({key + "_rows": rows.copy(), key + "_block": data,
+                              key + "_fresh": np.array([-1])})
+        if pattern.factor is None or pattern.factor.data is not data:
+            pattern.factor = FringeFactor(data, pattern)
+        return pattern.factor
+
+    def _keep_fringe(self, g, iterations):
+        """After a CG run with group g's fringe factors: drop them (the next
+        step factorises anew) when it took more than FRINGE_SLACK
+        iterations beyond the first run with them."""
+        fresh = self.warm[f"fringe{g}_fresh"]
+        if fresh[0] < 0:
+            fresh[0] = iterations
+        elif iterations > fresh[0] + self.FRINGE_SLACK:
+            del self.warm[f"fringe{g}_rows"]
 
     def solve(self, rhs, values, kind):
         """x with M x = rhs on the free dofs and x = values on the fixed ones."""
@@ -118,9 +169,9 @@ class StencilSystem:
         for rhs, values, kind in problems:
             out = np.array(values, dtype=np.float64, copy=True)  # fixed dofs keep theirs
             outs.append(out)
-        for group in self.groups.values():
+        for g, group in enumerate(self.groups.values()):
             comps, rows, index, _ = group
-            A, cols, F, fcols, inv_diag, kron = self._compact(group)
+            A, cols, F, fcols, inv_diag, kron, fringe = self._compact(group)
             columns = [(i, c) for i in range(len(problems)) for c in comps]
             rhs = np.stack([problems[i][0][:, c] for i, c in columns], axis=1)
             values = np.stack([problems[i][1][:, c] for i, c in columns], axis=1)
@@ -134,10 +185,14 @@ class StencilSystem:
             if rows.size:
                 before = self.iterations
                 nt = get_num_threads()
+                mode = 0 if kron is None else 1 if fringe is None else 2
                 pre = kron.args(b.shape[1], nt) if kron is not None else self._no_kronecker
-                self.iterations += ell_pcg(A, cols, inv_diag, kron is not None, *pre, b, x,
+                extra = fringe.args(b.shape[1]) if fringe is not None else self._no_fringe
+                self.iterations += ell_pcg(A, cols, inv_diag, mode, pre, extra, b, x,
                                            self.rtol, 10 * rows.size + 100, nt,
-                                           self.k.scratch("cg", (4,) + b.shape))
+                                           self.k.scratch("cg", (5,) + b.shape))
+                if fringe is not None:
+                    self._keep_fringe(g, self.iterations - before)
                 if self.iteration_log is not None:
                     self.iteration_log.append(self.iterations - before)
             for j, (i, c) in enumerate(columns):
