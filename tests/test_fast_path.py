@@ -298,7 +298,7 @@ def test_fringe_correction_matches_its_formula():
     rf = rng.standard_normal((F.size, nc))
     fr = factor.args(nc)
     zf = np.empty_like(rf)
-    fringe_solve(*fr[2:11], np.empty_like(rf), rf, zf)
+    fringe_solve(*fr[2:11], fr[-1], rf, zf)
     MFF = M[np.ix_(F, F)]
     assert np.abs(MFF @ zf - rf).max() < 1e-12 * np.abs(rf).max()
 
@@ -333,3 +333,33 @@ def test_fringe_correction_matches_its_formula():
           % (plain.min(), plain.max(), corrected.min(), corrected.max()))
     assert corrected.min() > 0
     assert corrected.max() / corrected.min() < 0.5 * plain.max() / plain.min()
+
+
+def test_stale_fringe_factors_are_replaced_when_cg_fails():
+    """Factors kept from an earlier step that no longer fit (here: of -M_FF,
+    which makes the preconditioner indefinite) do not end the solve above
+    its tolerance: CG retries with the current block's factors, which are
+    then kept. A CG that cannot reach its tolerance raises."""
+    from skfem_mpm.errors import InvalidState
+    from skfem_mpm.solve.fast import StencilSystem
+
+    k, stencil, mass, constraints = _block_system(cells=16)
+    rhs = np.random.default_rng(2).standard_normal((mass.size, 2)) * mass[:, None]
+    zeros = np.zeros_like(rhs)
+    reference = StencilSystem(k, stencil.copy(), mass, constraints, np.zeros(mass.size), {})
+    expected = reference.solve(rhs, zeros, "velocity")
+    warm = {}
+    StencilSystem(k, stencil.copy(), mass, constraints, np.zeros(mass.size), warm).solve(
+        rhs, zeros, "velocity")
+    good = warm["fringe0_block"].copy()
+    warm["fringe0_block"] = -good
+    system = StencilSystem(k, stencil.copy(), mass, constraints, np.zeros(mass.size), warm)
+    warm.pop("velocity", None)
+    got = system.solve(rhs, zeros, "velocity")
+    assert np.abs(got - expected).max() < 1e-9 * np.abs(expected).max()
+    assert np.array_equal(warm["fringe0_block"], good)
+    failing = StencilSystem(k, stencil.copy(), mass, constraints, np.zeros(mass.size), {})
+    failing.preconditioner = "lumped"
+    failing.max_iterations = 3
+    with pytest.raises(InvalidState, match="stopped above its tolerance"):
+        failing.solve(rhs, zeros, "velocity")

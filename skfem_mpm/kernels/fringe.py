@@ -121,38 +121,27 @@ class FringeFactor:
         nf = self.pattern.fringe.size
         return (self.pattern.fringe, self.pattern.near, *self.L, *self.U, self.inv_udiag,
                 self.perm_r, self.perm_c, np.empty((nf, nc)), np.empty((nf, nc)),
-                np.empty((nf, nc)))
+                np.empty((2, nf, (nc + 1) // 2)))
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _column_update(y, j, lo, hi, rows, values, c0, c1):
-    """y[rows[q], c] -= values[q] y[j, c] for q in lo..hi-1, c in c0..c1-1
-    (two columns at a time: the common case of two 2D problems per thread)."""
-    if c1 - c0 == 4:
-        y0 = y[j, c0]
-        y1 = y[j, c0 + 1]
-        y2 = y[j, c0 + 2]
-        y3 = y[j, c0 + 3]
+def _column_update(y, j, lo, hi, rows, values):
+    """y[rows[q], :] -= values[q] y[j, :] for q in lo..hi-1 (y's columns: one
+    thread's right-hand sides; two in the common case of two 2D problems)."""
+    nc = y.shape[1]
+    if nc == 2:
+        y0 = y[j, 0]
+        y1 = y[j, 1]
         for q in range(lo, hi):
             v = values[q]
             i = rows[q]
-            y[i, c0] -= v * y0
-            y[i, c0 + 1] -= v * y1
-            y[i, c0 + 2] -= v * y2
-            y[i, c0 + 3] -= v * y3
-    elif c1 - c0 == 2:
-        y0 = y[j, c0]
-        y1 = y[j, c0 + 1]
-        for q in range(lo, hi):
-            v = values[q]
-            i = rows[q]
-            y[i, c0] -= v * y0
-            y[i, c0 + 1] -= v * y1
+            y[i, 0] -= v * y0
+            y[i, 1] -= v * y1
     else:
         for q in range(lo, hi):
             v = values[q]
             i = rows[q]
-            for c in range(c0, c1):
+            for c in range(nc):
                 y[i, c] -= v * y[j, c]
 
 
@@ -162,24 +151,28 @@ def fringe_solve(Lp, Li, Lx, Up, Ui, Ux, inv_udiag, perm_r, perm_c, y, b, x):
     unit diagonal stored first in each column, U's diagonal last, its
     inverse in ``inv_udiag``): y = Pr b, y = L^-1 y, y = U^-1 y, x = Pc y.
     Column-oriented (each column of L (U) updates the rows below (above)
-    it); the right-hand sides are split between two threads."""
+    it). Two threads split the right-hand sides, each in its own work
+    array y[t] (n, ceil(nc / 2)) (sharing one would put both threads'
+    values in the same cache lines)."""
     n, nc = b.shape
-    nt = 1 if nc == 4 else min(2, nc)
+    nt = min(2, nc)
     for t in prange(nt):
         c0 = t * nc // nt
         c1 = (t + 1) * nc // nt
+        yt = y[t, :, :c1 - c0]
         for i in range(n):
             for c in range(c0, c1):
-                y[perm_r[i], c] = b[i, c]
+                yt[perm_r[i], c - c0] = b[i, c]
         for j in range(n):
-            _column_update(y, j, Lp[j] + 1, Lp[j + 1], Li, Lx, c0, c1)
+            _column_update(yt, j, Lp[j] + 1, Lp[j + 1], Li, Lx)
         for j in range(n - 1, -1, -1):
-            for c in range(c0, c1):
-                y[j, c] *= inv_udiag[j]
-            _column_update(y, j, Up[j], Up[j + 1] - 1, Ui, Ux, c0, c1)
+            d = inv_udiag[j]
+            for c in range(c1 - c0):
+                yt[j, c] *= d
+            _column_update(yt, j, Up[j], Up[j + 1] - 1, Ui, Ux)
         for i in range(n):
             for c in range(c0, c1):
-                x[i, c] = y[perm_c[i], c]
+                x[i, c] = yt[perm_c[i], c - c0]
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)

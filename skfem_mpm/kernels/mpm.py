@@ -1353,7 +1353,9 @@ def ell_pcg(A, cols, inv_diag, mode, kron, fringe, b, x, rtol, maxiter, nt, work
     ``apply_kronecker`` before r, z), 2 that with the fringe correction of
     :mod:`skfem_mpm.kernels.fringe` (``fringe``: ``FringeFactor.args``).
     ``work`` holds five arrays shaped like b. Returns the iterations of the
-    slowest column."""
+    slowest column, negated when a column ended above the tolerance (the
+    iteration limit, or a breakdown: a preconditioner that is not positive
+    definite)."""
     nr, nc = b.shape
     r = work[0]
     z = work[1]
@@ -1411,4 +1413,10 @@ def ell_pcg(A, cols, inv_diag, mode, kron, fringe, b, x, rtol, maxiter, nt, work
             beta[c] = rz_new / rz[c]
             rz[c] = rz_new
         _cg_direction(d, z, beta, active)
+    for c in range(nc):  # a column may have stopped on a breakdown (r.z <= 0)
+        rr = 0.0
+        for i in range(nr):
+            rr += r[i, c] * r[i, c]
+        if rr > rtol * rtol * bnorm[c]:
+            return -max(it, 1)
     return it

@@ -52,13 +52,15 @@ class StencilSystem:
 
     preconditioner = "kronecker"
     FRINGE_LAYERS = 3
+    max_iterations = None  # per CG run; None: 10 x the free dofs + 100
     iteration_log = None  # a list: each CG run appends its iterations (benchmarks)
     LUMPED_ROW = 0.2
     _no_kronecker = (np.ones((1, 1)), np.ones((1, 1)), np.zeros(1, dtype=np.int64), np.ones(1),
                      np.zeros((1, 1, 1)), 1)
     _no_fringe = ((np.zeros(0, dtype=np.int64),) * 2 + (np.zeros(1, dtype=np.int64),
                   np.zeros(0, dtype=np.int64), np.zeros(0)) * 2
-                  + (np.zeros(0),) + (np.zeros(0, dtype=np.int64),) * 2 + (np.zeros((0, 1)),) * 3)
+                  + (np.zeros(0),) + (np.zeros(0, dtype=np.int64),) * 2 + (np.zeros((0, 1)),) * 2
+                  + (np.zeros((2, 0, 1)),))
 
     def __init__(self, kernels, stencil, lumped, constraints, fast, warm, rtol=1e-13):
         self.k = kernels
@@ -81,7 +83,8 @@ class StencilSystem:
                 index[rows] = np.arange(rows.size)
                 self.groups[key] = [[], rows, index, None]
             self.groups[key][0].append(c)
-        self.reaction_rows = np.flatnonzero(mask.any(axis=1))
+        self._stale_fringe = {}
+        self.reaction_rows = np.flatnonzero(np.logical_or.reduce(list(mask.T)))  # 20x any(axis=1)
         self.iterations = 0
 
     def _compact(self, group):
@@ -134,22 +137,27 @@ class StencilSystem:
             return None
         key = f"fringe{g}"
         stored_rows, data = self.warm.get(key + "_rows"), self.warm.get(key + "_block")
+        self._stale_fringe[g] = True  # factors of an earlier step's block
         if stored_rows is None or not np.array_equal(stored_rows, rows) or \
                 data.size != pattern.indices.size:
+            self._stale_fringe[g] = False
             data = pattern.block_values(A)
-            self.warm.update({key + "_rows": rows.copy(), key + "_block": data,
-                              key + "_fresh": np.array([-1])})
+            for name in [k for k in self.warm if k.startswith(key + "_fresh")]:
+                del self.warm[name]
+            self.warm.update({key + "_rows": rows.copy(), key + "_block": data})
         if pattern.factor is None or pattern.factor.data is not data:
             pattern.factor = FringeFactor(data, pattern)
         return pattern.factor
 
-    def _keep_fringe(self, g, iterations):
-        """After a CG run with group g's fringe factors: drop them (the next
-        step factorises anew) when it took more than FRINGE_SLACK
-        iterations beyond the first run with them."""
-        fresh = self.warm[f"fringe{g}_fresh"]
-        if fresh[0] < 0:
-            fresh[0] = iterations
+    def _keep_fringe(self, g, kinds, iterations):
+        """After a CG run with group g's fringe factors (on the right-hand
+        sides ``kinds``): drop them (the next step factorises anew) when it
+        took more than FRINGE_SLACK iterations beyond the first run with
+        them on the same kinds."""
+        name = f"fringe{g}_fresh_" + "+".join(kinds)
+        fresh = self.warm.get(name)
+        if fresh is None:
+            self.warm[name] = np.array([iterations])
         elif iterations > fresh[0] + self.FRINGE_SLACK:
             del self.warm[f"fringe{g}_rows"]
 
@@ -188,11 +196,25 @@ class StencilSystem:
                 mode = 0 if kron is None else 1 if fringe is None else 2
                 pre = kron.args(b.shape[1], nt) if kron is not None else self._no_kronecker
                 extra = fringe.args(b.shape[1]) if fringe is not None else self._no_fringe
-                self.iterations += ell_pcg(A, cols, inv_diag, mode, pre, extra, b, x,
-                                           self.rtol, 10 * rows.size + 100, nt,
-                                           self.k.scratch("cg", (5,) + b.shape))
+                work = self.k.scratch("cg", (5,) + b.shape)
+                limit = self.max_iterations or 10 * rows.size + 100
+                its = ell_pcg(A, cols, inv_diag, mode, pre, extra, b, x, self.rtol,
+                              limit, nt, work)
+                if its < 0 and fringe is not None and self._stale_fringe[g]:
+                    # factors of an earlier step: retry with the current block's
+                    del self.warm[f"fringe{g}_rows"]
+                    fringe = self._fringe(g, rows, A, cols)
+                    group[3] = group[3][:6] + (fringe,)
+                    more = ell_pcg(A, cols, inv_diag, mode, pre, fringe.args(b.shape[1]), b, x,
+                                   self.rtol, limit, nt, work)
+                    its = -its + more if more > 0 else its - abs(more)
+                if its < 0:
+                    raise InvalidState(f"consistent-mass CG stopped above its tolerance "
+                                       f"{self.rtol:g} after {-its} iterations")
+                self.iterations += its
                 if fringe is not None:
-                    self._keep_fringe(g, self.iterations - before)
+                    self._keep_fringe(g, [kind for _, _, kind in problems],
+                                      self.iterations - before)
                 if self.iteration_log is not None:
                     self.iteration_log.append(self.iterations - before)
             for j, (i, c) in enumerate(columns):
