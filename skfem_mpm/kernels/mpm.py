@@ -1151,7 +1151,7 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols):
     ``fast`` in [0, 1] per dof) and (2) its columns split into free ones
     (index[j] >= 0: A[r, s], cols[r, s] = index[j]) and fixed ones
     (F[r, s] = (1 - theta) M_kj, fcols[r, s] = j), which
-    :func:`compact_rhs` moves to the right-hand side."""
+    :func:`compact_problem` moves to the right-hand side."""
     nr = rows.shape[0]
     ns = M.shape[1]
     centre = (ns - 1) // 2
@@ -1185,18 +1185,30 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols):
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def compact_rhs(rows, rhs, values, has_values, F, fcols, b):
-    """b[r] = rhs[rows[r]] - sum_s F[r, s] values[fcols[r, s]]."""
+def compact_problem(rows, rhs, values, has_values, prev, has_prev, comps, j0, F, fcols, b, x):
+    """One problem's columns j = j0 + l (component c = comps[l]) of the
+    compact CG system: b[r, j] = rhs[k, c] - sum_s F[r, s] values[fcols[r, s], c]
+    (k = rows[r]; the fixed dofs' known values moved to the right-hand side)
+    and the warm start x[r, j] = prev[k, c] (0 without one)."""
     nr, ns = F.shape
-    nc = rhs.shape[1]
     for r in prange(nr):
         k = rows[r]
-        for c in range(nc):
+        for l in range(comps.shape[0]):
+            c = comps[l]
             acc = rhs[k, c]
             if has_values:
                 for s in range(ns):
                     acc -= F[r, s] * values[fcols[r, s], c]
-            b[r, c] = acc
+            b[r, j0 + l] = acc
+            x[r, j0 + l] = prev[k, c] if has_prev else 0.0
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def expand_problem(rows, x, comps, j0, out):
+    """out[rows[r], comps[l]] = x[r, j0 + l] (one problem's solution)."""
+    for r in prange(rows.shape[0]):
+        for l in range(comps.shape[0]):
+            out[rows[r], comps[l]] = x[r, j0 + l]
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)

@@ -159,7 +159,7 @@ class StencilSystem:
         if fresh is None:
             self.warm[name] = np.array([iterations])
         elif iterations > fresh[0] + self.FRINGE_SLACK:
-            del self.warm[f"fringe{g}_rows"]
+            self.warm.pop(f"fringe{g}_rows", None)
 
     def solve(self, rhs, values, kind):
         """x with M x = rhs on the free dofs and x = values on the fixed ones."""
@@ -171,7 +171,7 @@ class StencilSystem:
         solutions in order."""
         from numba import get_num_threads
 
-        from ..kernels.mpm import compact_rhs, ell_pcg
+        from ..kernels.mpm import compact_problem, ell_pcg, expand_problem
 
         outs = []
         for rhs, values, kind in problems:
@@ -180,16 +180,16 @@ class StencilSystem:
         for g, group in enumerate(self.groups.values()):
             comps, rows, index, _ = group
             A, cols, F, fcols, inv_diag, kron, fringe = self._compact(group)
-            columns = [(i, c) for i in range(len(problems)) for c in comps]
-            rhs = np.stack([problems[i][0][:, c] for i, c in columns], axis=1)
-            values = np.stack([problems[i][1][:, c] for i, c in columns], axis=1)
-            b = np.empty((rows.size, len(columns)))
-            compact_rhs(rows, rhs, values, bool(np.any(values)), F, fcols, b)
-            x = np.zeros_like(b)
-            for j, (i, c) in enumerate(columns):
-                prev = self.warm.get(problems[i][2])
-                if prev is not None and prev.shape == problems[i][0].shape:
-                    x[:, j] = prev[rows, c]
+            comps = np.asarray(comps, dtype=np.int64)
+            nc = len(problems) * comps.size
+            b = self.k.scratch(f"b{g}", (rows.size, nc))
+            x = self.k.scratch(f"x{g}", (rows.size, nc))
+            for i, (rhs, values, kind) in enumerate(problems):
+                prev = self.warm.get(kind)
+                has_prev = prev is not None and prev.shape == rhs.shape
+                compact_problem(rows, rhs, values, bool(values.any()),
+                                prev if has_prev else rhs, has_prev, comps, i * comps.size,
+                                F, fcols, b, x)
             if rows.size:
                 before = self.iterations
                 nt = get_num_threads()
@@ -202,7 +202,7 @@ class StencilSystem:
                               limit, nt, work)
                 if its < 0 and fringe is not None and self._stale_fringe[g]:
                     # factors of an earlier step: retry with the current block's
-                    del self.warm[f"fringe{g}_rows"]
+                    self.warm.pop(f"fringe{g}_rows", None)
                     fringe = self._fringe(g, rows, A, cols)
                     group[3] = group[3][:6] + (fringe,)
                     more = ell_pcg(A, cols, inv_diag, mode, pre, fringe.args(b.shape[1]), b, x,
@@ -217,8 +217,8 @@ class StencilSystem:
                                       self.iterations - before)
                 if self.iteration_log is not None:
                     self.iteration_log.append(self.iterations - before)
-            for j, (i, c) in enumerate(columns):
-                outs[i][rows, c] = x[:, j]
+            for i, out in enumerate(outs):
+                expand_problem(rows, x, comps, i * comps.size, out)
         return outs
 
     def remember(self, kind, x):
