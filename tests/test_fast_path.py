@@ -126,10 +126,11 @@ def test_consistent_mass_kernel_equals_transfer_matrices():
                                               np.array([0, .3, 1.0])), 3)],
                          ids=["1d-p2", "1d-p3", "2d-p2", "2d-p3-nonuniform"])
 def test_scatter_kernels_in_any_particle_order(grid):
-    """p2g and the MUSL re-scatter equal the transfer-matrix products for
-    sorted, shuffled and then fewer particles, called in turn on the same
-    kernels: the register runs (1D) and the per-thread touched ranges hold
-    for any order, and no call leaves anything behind for the next."""
+    """p2g, the MUSL re-scatter and the consistent mass equal the
+    transfer-matrix products for sorted, shuffled, fewer particles and
+    particles in one half of the grid then the other, called in turn on the
+    same kernels: the register runs (1D) and the per-thread touched ranges
+    hold for any order, and no call leaves anything behind for the next."""
     from skfem_mpm.kernels.mpm import Kernels
     from skfem_mpm.solve.steps import Transfer
     from skfem_mpm.solve.timing import PhaseTimer
@@ -143,8 +144,13 @@ def test_scatter_kernels_in_any_particle_order(grid):
     k = Kernels(grid)
     grid_a = rng.standard_normal((grid.ndofs, dim))
     order = rng.permutation(seeded.n)
-    for p in (seeded, seeded.subset(order), seeded.subset(order[: seeded.n // 3]), seeded):
+    left = seeded.x[:, 0] < 0.5
+    for p in (seeded, seeded.subset(order), seeded.subset(order[: seeded.n // 3]),
+              seeded.subset(np.flatnonzero(left)), seeded.subset(np.flatnonzero(~left)), seeded):
         tr = Transfer(grid, p.x, PhaseTimer())
+        M, K = k.consistent_mass(p)
+        assert close(M.toarray(), tr.consistent_mass(p.m).toarray())
+        assert close(K, sum(G.multiply(G).T @ p.m for G in tr.grad_N))
         fext = rng.standard_normal((p.n, dim))
         mass, momentum, force = k.p2g(p, fext)
         assert close(mass, tr.to_grid(p.m))

@@ -688,29 +688,37 @@ def g2p_2d(x, v, u, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, ux,
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies):
+def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies, touched):
     """Upper half of the consistent mass, M_(k, k+d) = sum m_p N_k N_(k+d)
     for d = 0..p (column d), and sum m_p (dN_k/dx)^2 per dof (the fast-dof
-    guard's stiffness weights). :func:`reduce_stencil` mirrors the rest."""
+    guard's stiffness weights), into per-thread copies over the node range
+    each thread touches (``touched``, as the scatter kernels).
+    :func:`reduce_stencil` sums them and mirrors the rest."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
     for t in prange(nt):
         M = mass_copies[t]
         K = stiff_copies[t]
-        M[:, :] = 0.0
-        K[:] = 0.0
+        _clear_touched(M, touched, t)
+        K[touched[t, 0]:touched[t, 1]] = 0.0
+        first = M.shape[0]
+        last = 0
         w = np.empty(4)
         dw = np.empty(4)
         lo = t * n // nt
         hi = (t + 1) * n // nt
         for i in range(lo, hi):
             e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
+            first = min(first, e)
+            last = max(last, e + p + 1)
             mi = m[i]
             for a in range(p + 1):
                 K[e + a] += mi * dw[a] * dw[a]
                 wa = mi * w[a]
                 for a2 in range(a, p + 1):
                     M[e + a, a2 - a] += wa * w[a2]
+        touched[t, 0] = first
+        touched[t, 1] = last
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
@@ -732,10 +740,12 @@ def _mass_pairs(M, K, k, a, b, wx, dx, wy, dy, mi, p, width, nbx):
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, stiff_copies):
+def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, stiff_copies,
+                  touched):
     """Upper half of the 2D stencil of the consistent mass (the slots from
     the centre on, offsets (da, db) with db > 0 or db = 0 <= da; slot
     (db + p)(2p + 1) + da + p - centre) and the per-dof sum m_p |grad N_k|^2.
+    Per-thread copies over touched node ranges, as :func:`consistent_1d`;
     :func:`reduce_stencil` mirrors the lower half (M is symmetric)."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
@@ -744,8 +754,10 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
     for t in prange(nt):
         M = mass_copies[t]
         K = stiff_copies[t]
-        M[:, :] = 0.0
-        K[:] = 0.0
+        _clear_touched(M, touched, t)
+        K[touched[t, 0]:touched[t, 1]] = 0.0
+        first = M.shape[0]
+        last = 0
         wx = np.empty(4)
         dx = np.empty(4)
         wy = np.empty(4)
@@ -758,6 +770,8 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
                 ex, wx0, wx1, wx2, dx0, dx1, dx2 = _quadratic_interior(x[i, 0], bx, ihx)
                 ey, wy0, wy1, wy2, dy0, dy1, dy2 = _quadratic_interior(x[i, 1], by, ihy)
                 if ex >= 0 and ey >= 0:  # weights as tuples: kept in registers
+                    first = min(first, ey * nbx + ex)
+                    last = max(last, (ey + 2) * nbx + ex + 3)
                     ws = (wx0, wx1, wx2)
                     ds = (dx0, dx1, dx2)
                     vs = (wy0, wy1, wy2)
@@ -769,37 +783,46 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
                     continue
             ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
             ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
+            first = min(first, ey * nbx + ex)
+            last = max(last, (ey + p) * nbx + ex + p + 1)
             for b in range(p + 1):
                 for a in range(p + 1):
                     _mass_pairs(M, K, (ey + b) * nbx + ex + a, a, b, wx, dx, wy, dy, mi, p,
                                 width, nbx)
+        touched[t, 0] = first
+        touched[t, 1] = last
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def reduce_stencil(mass_copies, stiff_copies, p, nbx, nby, dim, M, K):
-    """Sum the per-thread upper halves into M[:, centre:] and K, then mirror
-    the lower half, M[k, s] = M[j, ns - 1 - s] (j the dof at slot s of k)."""
+def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim, M, K):
+    """Rows lo..hi-1 (the union of the touched ranges; the caller keeps the
+    other rows zero): sum the per-thread upper halves into M[:, centre:] and
+    K, then mirror the lower half, M[k, s] = M[j, ns - 1 - s] (j the dof at
+    slot s of k; a row outside lo..hi-1 has no entry pairing it with k)."""
     nt, nk, nh = mass_copies.shape
     ns = 2 * nh - 1
     centre = nh - 1
-    for k in prange(nk):
-        sk = 0.0
-        for t in range(nt):
-            sk += stiff_copies[t, k]
-        K[k] = sk
-        for s in range(nh):
-            sm = 0.0
-            for t in range(nt):
-                sm += mass_copies[t, k, s]
-            M[k, centre + s] = sm
+    for r in prange(nt):
+        cuts, members, counts = _segments(touched, lo + r * (hi - lo) // nt,
+                                          lo + (r + 1) * (hi - lo) // nt)
+        for j in range(cuts.shape[0] - 1):
+            threads = members[j]
+            count = counts[j]
+            for k in range(cuts[j], cuts[j + 1]):
+                sk = 0.0
+                for i in range(count):
+                    sk += stiff_copies[threads[i], k]
+                K[k] = sk
+                for s in range(nh):
+                    M[k, centre + s] = _take(mass_copies, threads, count, k, s)
     width = 2 * p + 1
     pb = p if dim == 2 else 0
-    for b in prange(nby):
-        for a in range(nbx):
-            k = b * nbx + a
-            for s in range(centre):
-                j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
-                M[k, s] = M[j, ns - 1 - s] if j >= 0 else 0.0
+    for k in prange(lo, hi):
+        a = k % nbx
+        b = k // nbx
+        for s in range(centre):
+            j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
+            M[k, s] = M[j, ns - 1 - s] if j >= 0 else 0.0
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
@@ -1026,8 +1049,10 @@ class Kernels:
                              indptr.astype(np.int32), sp)
             width_total = valid.shape[1]
             self._stencil_shape = (nd, width_total)
-            self._stencil_copies = np.empty((self.nthreads, nd, (width_total + 1) // 2))
-            self._stiff_copies = np.empty((self.nthreads, nd))
+            self._stencil_copies = np.zeros((self.nthreads, nd, (width_total + 1) // 2))
+            self._stiff_copies = np.zeros((self.nthreads, nd))
+            self._stencil_touched = np.zeros((self.nthreads, 2), dtype=np.int64)
+            self._stencil_rows = (0, nd)  # rows of the output that may be nonzero
         return self._pattern
 
     def consistent_mass(self, particles):
@@ -1046,17 +1071,29 @@ class Kernels:
         both arrays are reused by the next call."""
         self._stencil_pattern()
         p = particles
+        touched = self._stencil_touched
         if self.dim == 1:
             (bx, ux, ihx, Cx), = self.args
             consistent_1d(p.x, p.m, bx, ux, ihx, Cx, self.p, self._stencil_copies,
-                          self._stiff_copies)
+                          self._stiff_copies, touched)
         else:
             (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
             consistent_2d(p.x, p.m, bx, by, ux, uy, ihx, ihy, Cx, Cy, self.p, self.nbx,
-                          self._stencil_copies, self._stiff_copies)
+                          self._stencil_copies, self._stiff_copies, touched)
         K = self.scratch("stiffness", self.ndofs)
         stencil = self.scratch("stencil", self._stencil_shape)
-        reduce_stencil(self._stencil_copies, self._stiff_copies, *self.stencil_geometry, stencil, K)
+        # rows outside the touched union are zero: clear those that held
+        # entries at the previous call (all rows at the first)
+        lo, hi = int(touched[:, 0].min()), int(touched[:, 1].max())
+        if hi <= lo:  # no particles
+            lo = hi = 0
+        was_lo, was_hi = self._stencil_rows
+        for a, b in ((was_lo, min(lo, was_hi)), (max(hi, was_lo), was_hi)):
+            stencil[a:b] = 0.0
+            K[a:b] = 0.0
+        self._stencil_rows = (lo, hi)
+        reduce_stencil(self._stencil_copies, self._stiff_copies, touched, lo, hi,
+                       *self.stencil_geometry, stencil, K)
         return stencil, K
 
     @property
