@@ -49,11 +49,15 @@ def fringe_rows(rows, geometry, layers):
     ly = layers if dim == 2 else 0
     free = np.zeros((nby + 2 * ly, nbx + 2 * layers), dtype=bool)
     free[b + ly, a + layers] = True
-    inner = free.copy()
-    for db in range(-ly, ly + 1):  # erosion: free with all neighbours free
-        for da in range(-layers, layers + 1):
-            inner[ly:inner.shape[0] - ly, layers:inner.shape[1] - layers] &= \
-                free[ly + db:free.shape[0] - ly + db, layers + da:free.shape[1] - layers + da]
+    # erosion by the (2 layers + 1)^dim box, one axis after the other:
+    # free with all neighbours within reach free
+    across = free.copy()
+    for da in range(-layers, layers + 1):
+        across[:, layers:free.shape[1] - layers] &= \
+            free[:, layers + da:free.shape[1] - layers + da]
+    inner = across.copy()
+    for db in range(-ly, ly + 1):
+        inner[ly:inner.shape[0] - ly, :] &= across[ly + db:across.shape[0] - ly + db, :]
     return np.flatnonzero(~inner[b + ly, a + layers])
 
 
