@@ -246,6 +246,7 @@ def test_kronecker_preconditioner_cuts_cg_iterations():
         system = StencilSystem(k, stencil.copy(), mass, constraints, np.zeros(mass.size), {})
         system.preconditioner = pre
         system.FRINGE_LAYERS = layers
+        system.FRINGE_FROM = 0  # from the first solve
         solutions.append(system.solve(rhs, np.zeros_like(rhs), "velocity"))
         iterations.append(system.iterations)
     print("CG iterations, lumped / Kronecker / Kronecker + fringe:", iterations)
@@ -354,7 +355,7 @@ def test_stale_fringe_factors_are_replaced_when_cg_fails():
     zeros = np.zeros_like(rhs)
     reference = StencilSystem(k, stencil.copy(), mass, constraints, np.zeros(mass.size), {})
     expected = reference.solve(rhs, zeros, "velocity")
-    warm = {}
+    warm = {"fringe0_on": np.array([1])}  # the correction from the first solve on
     StencilSystem(k, stencil.copy(), mass, constraints, np.zeros(mass.size), warm).solve(
         rhs, zeros, "velocity")
     good = warm["fringe0_block"].copy()
@@ -369,3 +370,24 @@ def test_stale_fringe_factors_are_replaced_when_cg_fails():
     failing.max_iterations = 3
     with pytest.raises(InvalidState, match="stopped above its tolerance"):
         failing.solve(rhs, zeros, "velocity")
+
+
+def test_fringe_correction_turns_on_where_kronecker_alone_iterates_long():
+    """A CG run with the Kronecker preconditioner alone that takes at least
+    FRINGE_FROM iterations turns the fringe correction on for the next
+    solves (through the warm data); fewer iterations leave it off."""
+    from skfem_mpm.solve.fast import StencilSystem
+
+    k, stencil, mass, constraints = _block_system()
+    rhs = np.random.default_rng(5).standard_normal((mass.size, 2)) * mass[:, None]
+    zeros = np.zeros_like(rhs)
+    for threshold, switched in ((100, False), (StencilSystem.FRINGE_FROM, True)):
+        warm, counts = {}, []
+        for _ in range(2):
+            system = StencilSystem(k, stencil.copy(), mass, constraints, np.zeros(mass.size), warm)
+            system.FRINGE_FROM = threshold
+            system.solve(rhs, zeros, "acceleration")
+            warm.pop("acceleration")  # the same cold solve twice
+            counts.append(system.iterations)
+        assert ("fringe0_on" in warm) == switched
+        assert (counts[1] <= 0.5 * counts[0]) == switched, counts

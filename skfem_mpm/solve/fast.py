@@ -108,7 +108,8 @@ class StencilSystem:
                 centre = (ns - 1) // 2
                 kron = KroneckerData(*self.k.axis_mass(), self.geometry, rows, self.lumped,
                                      self.fast[rows] >= self.LUMPED_ROW, A[:, centre].copy())
-                if self.FRINGE_LAYERS > 0:
+                if self.FRINGE_LAYERS > 0 and (self.FRINGE_FROM <= 0
+                                               or f"fringe{g}_on" in self.warm):
                     fringe = self._fringe(g, rows, A, cols)
             built = group[3] = (A, cols, F, fcols, inv_diag, kron, fringe)
         return built
@@ -122,6 +123,15 @@ class StencilSystem:
     # the warm data, so a restart from a checkpoint factorises the same
     # block and continues bit for bit.
     FRINGE_SLACK = 1
+    # The fringe correction costs two sparse triangular solves and two
+    # partial products per iteration, worth it where the Kronecker
+    # preconditioner alone needs many iterations (25 on the 2D bench block,
+    # 6 with the correction) but not where it needs few (8 on the small soil
+    # column, 6 with it, and 25% more solve time). A group turns it on, for
+    # the rest of the run, after a CG run with the Kronecker preconditioner
+    # alone took at least FRINGE_FROM iterations (the switch is warm data,
+    # so restarts follow it).
+    FRINGE_FROM = 12
 
     def _fringe(self, g, rows, A, cols):
         """The fringe correction's factors for group g, or None (the
@@ -212,6 +222,8 @@ class StencilSystem:
                     raise InvalidState(f"consistent-mass CG stopped above its tolerance "
                                        f"{self.rtol:g} after {-its} iterations")
                 self.iterations += its
+                if mode == 1 and self.FRINGE_LAYERS > 0 and its >= self.FRINGE_FROM:
+                    self.warm[f"fringe{g}_on"] = np.array([1])
                 if fringe is not None:
                     self._keep_fringe(g, [kind for _, _, kind in problems],
                                       self.iterations - before)
