@@ -44,10 +44,11 @@ class StencilSystem:
     :meth:`solve_many`) at once. Only the free dofs enter the iteration:
     for each constraint pattern a kernel copies their rows of the stencil
     into a compact row-by-row (ELL) matrix. The preconditioner is the
-    Kronecker one of :mod:`skfem_mpm.kernels.kronecker` with the fringe
-    correction of :mod:`skfem_mpm.kernels.fringe` on ``FRINGE_LAYERS``
-    layers of the free-dof set's edge (``"kronecker"``, default; 0 layers:
-    none), or the inverse lumped mass (``"lumped"``).
+    Kronecker one of :mod:`skfem_mpm.kernels.kronecker` (``"kronecker"``,
+    default), with the fringe correction of :mod:`skfem_mpm.kernels.fringe`
+    on ``FRINGE_LAYERS`` layers of the free-dof set's edge once the
+    Kronecker step alone has needed ``FRINGE_FROM`` iterations (0 layers:
+    never), or the inverse lumped mass (``"lumped"``).
     """
 
     preconditioner = "kronecker"
