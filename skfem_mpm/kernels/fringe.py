@@ -113,19 +113,32 @@ class FringeFactor:
         L, U = lu.L, lu.U
         L.sort_indices()
         U.sort_indices()
+        diagonal = np.arange(nf)
+        if not (np.array_equal(L.indices[L.indptr[:-1]], diagonal) and
+                np.array_equal(U.indices[U.indptr[1:] - 1], diagonal)):
+            raise RuntimeError("SuperLU factors without the stored diagonal fringe_solve reads")
         self.L = (L.indptr.astype(np.int64), L.indices.astype(np.int64), L.data)
         self.U = (U.indptr.astype(np.int64), U.indices.astype(np.int64), U.data)
         self.inv_udiag = 1.0 / U.data[U.indptr[1:] - 1]  # the diagonal ends each column
         self.perm_r = lu.perm_r.astype(np.int64)
         self.perm_c = lu.perm_c.astype(np.int64)
-        self.nnz = L.nnz + U.nnz
 
     def args(self, nc):
-        """The arguments of :func:`apply_corrected` after the Kronecker ones."""
+        """The arguments of :func:`apply_corrected` after the Kronecker ones:
+        fringe and near rows, L and U (CSC), 1 / U_jj, the permutations and
+        work space for ``nc`` right-hand sides."""
         nf = self.pattern.fringe.size
         return (self.pattern.fringe, self.pattern.near, *self.L, *self.U, self.inv_udiag,
                 self.perm_r, self.perm_c, np.empty((nf, nc)), np.empty((nf, nc)),
                 np.empty((2, nf, (nc + 1) // 2)))
+
+    @staticmethod
+    def no_args():
+        """Arguments of the same types for a CG run without the correction."""
+        index, values = np.zeros(0, dtype=np.int64), np.zeros(0)
+        csc = (np.zeros(1, dtype=np.int64), index, values)
+        return ((index, index) + csc + csc + (values, index, index)
+                + (np.zeros((0, 1)), np.zeros((0, 1)), np.zeros((2, 0, 1))))
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)

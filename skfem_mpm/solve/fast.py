@@ -58,10 +58,6 @@ class StencilSystem:
     LUMPED_ROW = 0.2
     _no_kronecker = (np.ones((1, 1)), np.ones((1, 1)), np.zeros(1, dtype=np.int64), np.ones(1),
                      np.zeros((1, 1, 1)), 1)
-    _no_fringe = ((np.zeros(0, dtype=np.int64),) * 2 + (np.zeros(1, dtype=np.int64),
-                  np.zeros(0, dtype=np.int64), np.zeros(0)) * 2
-                  + (np.zeros(0),) + (np.zeros(0, dtype=np.int64),) * 2 + (np.zeros((0, 1)),) * 2
-                  + (np.zeros((2, 0, 1)),))
 
     def __init__(self, kernels, stencil, lumped, constraints, fast, warm, rtol=1e-13):
         self.k = kernels
@@ -182,6 +178,7 @@ class StencilSystem:
         solutions in order."""
         from numba import get_num_threads
 
+        from ..kernels.fringe import FringeFactor
         from ..kernels.mpm import compact_problem, ell_pcg, expand_problem
 
         outs = []
@@ -206,7 +203,7 @@ class StencilSystem:
                 nt = get_num_threads()
                 mode = 0 if kron is None else 1 if fringe is None else 2
                 pre = kron.args(b.shape[1], nt) if kron is not None else self._no_kronecker
-                extra = fringe.args(b.shape[1]) if fringe is not None else self._no_fringe
+                extra = fringe.args(b.shape[1]) if fringe is not None else FringeFactor.no_args()
                 work = self.k.scratch("cg", (5,) + b.shape)
                 limit = self.max_iterations or 10 * rows.size + 100
                 its = ell_pcg(A, cols, inv_diag, mode, pre, extra, b, x, self.rtol,
