@@ -276,6 +276,9 @@ def test_fringe_rows_are_the_layers_next_to_non_free_dofs():
         assert np.array_equal(got.reshape(free.shape), expected)
     line = np.arange(3, 20)  # 1D: the ends
     assert np.array_equal(line[fringe_rows(line, (2, 25, 1, 1), 2)], [3, 4, 18, 19])
+    for bad in (-1, 1.5):
+        with pytest.raises(ValueError, match="layers must be a non-negative integer"):
+            fringe_rows(line, (2, 25, 1, 1), bad)
 
 
 def test_fringe_correction_matches_its_formula():

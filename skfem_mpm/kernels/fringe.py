@@ -44,6 +44,8 @@ def fringe_rows(rows, geometry, layers):
     """Positions (into ``rows``) of the free dofs within ``layers`` index
     steps per axis (Chebyshev distance) of a dof that is not free; dofs on
     the grid's edge count the outside as not free."""
+    if int(layers) != layers or layers < 0:
+        raise ValueError(f"layers must be a non-negative integer, got {layers!r}")
     p, nbx, nby, dim = geometry
     a, b = rows % nbx, rows // nbx
     ly = layers if dim == 2 else 0
