@@ -739,6 +739,39 @@ def _mass_pairs(M, K, k, a, b, wx, dx, wy, dy, mi, p, width, nbx):
             M[k, base + a2] += wb2 * wx[a2]
 
 
+# Quadratic interior particles of one cell share its 3 x 3 nodes, so a run
+# of them (sorted particles come in runs) is summed in a small window and
+# written once per run, as in the 1D kernels. By the tensor structure,
+# N_(a,b) N_(a2,b2) = (wx_a wx_a2)(wy_b wy_b2): the window holds the 6 x 6
+# sums S[y-pair, x-pair] = sum m_p (wy_b wy_b2)(wx_a wx_a2) over the
+# symmetric index pairs (0,0) (0,1) (0,2) (1,1) (1,2) (2,2) (_PAIR), and
+# the 9 stiffness weights.
+_PAIR = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _flush_mass_window(M, K, S, Kw, ex, ey, nbx):
+    """Add a quadratic run window (cell (ex, ey); none if ex < 0) into the
+    upper half of the stencil M (width 5, slots as :func:`_mass_pairs`) and
+    into K, and clear it."""
+    if ex < 0:
+        return
+    for b in range(3):
+        for a in range(3):
+            k = (ey + b) * nbx + ex + a
+            K[k] += Kw[3 * b + a]
+            yb = 6 * _PAIR[b, b]
+            for a2 in range(a, 3):
+                M[k, a2 - a] += S[yb + _PAIR[a, a2]]
+            for b2 in range(b + 1, 3):
+                yb2 = 6 * _PAIR[b, b2]
+                base = (b2 - b) * 5 - a
+                for a2 in range(3):
+                    M[k, base + a2] += S[yb2 + _PAIR[a, a2]]
+    S[:] = 0.0
+    Kw[:] = 0.0
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, stiff_copies,
                   touched):
@@ -746,7 +779,9 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
     the centre on, offsets (da, db) with db > 0 or db = 0 <= da; slot
     (db + p)(2p + 1) + da + p - centre) and the per-dof sum m_p |grad N_k|^2.
     Per-thread copies over touched node ranges, as :func:`consistent_1d`;
-    :func:`reduce_stencil` mirrors the lower half (M is symmetric)."""
+    :func:`reduce_stencil` mirrors the lower half (M is symmetric).
+    Quadratic interior particles are summed per run of a cell first (see
+    :func:`_flush_mass_window`)."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
     width = 2 * p + 1
@@ -762,6 +797,11 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
         dx = np.empty(4)
         wy = np.empty(4)
         dy = np.empty(4)
+        S = np.zeros(36)  # the run window
+        Kw = np.zeros(9)
+        X = np.empty(6)
+        run_x = -1
+        run_y = -1
         lo = t * n // nt
         hi = (t + 1) * n // nt
         for i in range(lo, hi):
@@ -769,17 +809,33 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
             if quadratic:
                 ex, wx0, wx1, wx2, dx0, dx1, dx2 = _quadratic_interior(x[i, 0], bx, ihx)
                 ey, wy0, wy1, wy2, dy0, dy1, dy2 = _quadratic_interior(x[i, 1], by, ihy)
-                if ex >= 0 and ey >= 0:  # weights as tuples: kept in registers
-                    first = min(first, ey * nbx + ex)
-                    last = max(last, (ey + 2) * nbx + ex + 3)
-                    ws = (wx0, wx1, wx2)
-                    ds = (dx0, dx1, dx2)
-                    vs = (wy0, wy1, wy2)
-                    es = (dy0, dy1, dy2)
+                if ex >= 0 and ey >= 0:
+                    if ex != run_x or ey != run_y:
+                        _flush_mass_window(M, K, S, Kw, run_x, run_y, nbx)
+                        run_x = ex
+                        run_y = ey
+                        first = min(first, ey * nbx + ex)
+                        last = max(last, (ey + 2) * nbx + ex + 3)
+                    X[0] = wx0 * wx0
+                    X[1] = wx0 * wx1
+                    X[2] = wx0 * wx2
+                    X[3] = wx1 * wx1
+                    X[4] = wx1 * wx2
+                    X[5] = wx2 * wx2
+                    ys = (mi * wy0 * wy0, mi * wy0 * wy1, mi * wy0 * wy2, mi * wy1 * wy1,
+                          mi * wy1 * wy2, mi * wy2 * wy2)
+                    for j in range(6):
+                        yj = ys[j]
+                        for q in range(6):
+                            S[6 * j + q] += yj * X[q]
+                    # m |grad N_(a,b)|^2 = m (dx_a^2 wy_b^2 + wx_a^2 dy_b^2)
+                    gx = (mi * dx0 * dx0, mi * dx1 * dx1, mi * dx2 * dx2)
+                    sx = (mi * X[0], mi * X[3], mi * X[5])
+                    vy = (wy0 * wy0, wy1 * wy1, wy2 * wy2)
+                    hy = (dy0 * dy0, dy1 * dy1, dy2 * dy2)
                     for b in range(3):
                         for a in range(3):
-                            _mass_pairs(M, K, (ey + b) * nbx + ex + a, a, b, ws, ds, vs, es,
-                                        mi, 2, 5, nbx)
+                            Kw[3 * b + a] += gx[a] * vy[b] + sx[a] * hy[b]
                     continue
             ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
             ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
@@ -789,6 +845,7 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
                 for a in range(p + 1):
                     _mass_pairs(M, K, (ey + b) * nbx + ex + a, a, b, wx, dx, wy, dy, mi, p,
                                 width, nbx)
+        _flush_mass_window(M, K, S, Kw, run_x, run_y, nbx)
         touched[t, 0] = first
         touched[t, 1] = last
 
