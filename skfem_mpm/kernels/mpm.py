@@ -1449,80 +1449,170 @@ def _precondition(A, cols, r, z, t, inv_diag, mode, kron, fringe):
                 z[i, c] = inv_diag[i] * r[i, c]
 
 
+@njit(cache=True, error_model="numpy")
+def _pack(a, keep, n):
+    """The columns keep[:n] (ascending) of the C-ordered (rows, m) array a,
+    moved to the front of its buffer: returns them as an (rows, n) array.
+    In place, front to back: no entry is overwritten before it is read."""
+    nr, m = a.shape
+    flat = a.reshape(nr * m)
+    for i in range(nr):
+        for j in range(n):
+            flat[i * n + j] = flat[i * m + keep[j]]
+    return flat[:nr * n].reshape((nr, n))
+
+
+@njit(cache=True, error_model="numpy")
+def _narrow(a, n):
+    """The C-ordered array a (..., m) reinterpreted with n <= m columns
+    (work space: its values are not kept)."""
+    shape = a.shape[:-1] + (n,)
+    return a.reshape(a.size)[:np.prod(np.array(shape))].reshape(shape)
+
+
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def ell_pcg(A, cols, inv_diag, mode, kron, fringe, b, x, rtol, maxiter, nt, work):
+def ell_pcg(A, cols, inv_diag, mode, kron, fringe, b, x, problem, rtol, maxiter, nt, work):
     """Preconditioned conjugate gradients for A x = b (all columns at once,
-    each with its own scalars), started from x; column c stops when
-    |r_c| <= rtol |b_c|. The preconditioner (``mode``) is 0 the inverse
-    lumped mass ``inv_diag``, 1 the Kronecker one of
+    each with its own scalars), started from x.
+
+    Column c is converged when |r_c|^2 <= rtol^2 sum |b_c'|^2 over the
+    columns c' of its problem (``problem[c]``: the components of one vector
+    field are measured together, so a component that is round-off beside
+    the others, e.g. the horizontal one of a symmetric body under gravity,
+    is not iterated to a relative accuracy of its own). Columns converged
+    by the warm start take no iteration; a problem whose right-hand side is
+    zero gets x = 0. Converged columns leave the iteration: the others are
+    packed to the front of the work arrays, so the late iterations of a few
+    slow columns cost only their share. The preconditioner (``mode``) is 0
+    the inverse lumped mass ``inv_diag``, 1 the Kronecker one of
     :mod:`skfem_mpm.kernels.kronecker` (``kron``: the arguments of
     ``apply_kronecker`` before r, z), 2 that with the fringe correction of
     :mod:`skfem_mpm.kernels.fringe` (``fringe``: ``FringeFactor.args``).
-    ``work`` holds five arrays shaped like b. Returns the iterations of the
-    slowest column, negated when a column ended above the tolerance (the
-    iteration limit, or a breakdown: a preconditioner that is not positive
-    definite)."""
+    ``work`` holds six arrays shaped like b. Returns the iterations, negated
+    when a column ended above its tolerance (the iteration limit, or a
+    breakdown: a preconditioner that is not positive definite)."""
     nr, nc = b.shape
     r = work[0]
-    z = work[1]
-    d = work[2]
     q = work[3]
-    spare = work[4]
     partial = np.zeros((nt, nc))
+    sums = np.zeros((nt, 2, nc))
     _ell_product_dot(A, cols, x, q, partial)
-    bnorm = np.zeros(nc)
+    bb = np.zeros(nc)
+    rr = np.zeros(nc)
     for i in range(nr):
         for c in range(nc):
-            r[i, c] = b[i, c] - q[i, c]
-            bnorm[c] += b[i, c] * b[i, c]
-    _precondition(A, cols, r, z, spare, inv_diag, mode, kron, fringe)
-    rz = np.zeros(nc)
-    for i in range(nr):
-        for c in range(nc):
-            d[i, c] = z[i, c]
-            rz[c] += r[i, c] * z[i, c]
+            ri = b[i, c] - q[i, c]
+            r[i, c] = ri
+            bb[c] += b[i, c] * b[i, c]
+            rr[c] += ri * ri
+    limit = np.zeros(nc)
+    converged = np.zeros(nc, dtype=np.bool_)
     active = np.empty(nc, dtype=np.bool_)
     for c in range(nc):
-        active[c] = not (rz[c] <= 0.0 or bnorm[c] == 0.0)
-    alpha = np.zeros(nc)
+        for c2 in range(nc):
+            if problem[c2] == problem[c]:
+                limit[c] += bb[c2]
+        limit[c] *= rtol * rtol
+        if limit[c] == 0.0:  # b = 0 for the whole problem
+            for i in range(nr):
+                x[i, c] = 0.0
+        converged[c] = limit[c] == 0.0 or rr[c] <= limit[c]
+        active[c] = not converged[c]
+    columns = np.arange(nc)  # compact column j is column columns[j] of x
+    xc = x
+    packed = False  # xc is x until the first packing
+    d = work[2]
+    rz = np.zeros(nc)
     beta = np.zeros(nc)
-    sums = np.zeros((nt, 2, nc))
+    first = True
     it = 0
-    while it < maxiter:
-        if not np.any(active):
+    while True:
+        width = xc.shape[1]
+        keep = np.flatnonzero(active[:width])
+        n = keep.shape[0]
+        if n < width:  # pack the unconverged columns to the front
+            if n == 0:
+                break
+            if not packed:
+                packed = True
+                xc = _narrow(work[5], n)
+                for i in range(nr):
+                    for j in range(n):
+                        xc[i, j] = x[i, keep[j]]
+            else:
+                for j in range(width):
+                    if not active[j]:
+                        for i in range(nr):
+                            x[i, columns[j]] = xc[i, j]
+                xc = _pack(xc, keep, n)
+            r = _pack(r, keep, n)
+            if not first:
+                d = _pack(d, keep, n)
+            columns = columns[keep]
+            limit = limit[keep]
+            rz = rz[keep]
+            beta = beta[keep]
+            active = active[keep]
+            if mode > 0:  # the preconditioners' work space
+                kron = (kron[0], kron[1], kron[2], kron[3], _narrow(kron[4], n), kron[5])
+            if mode == 2:
+                fringe = fringe[:11] + (_narrow(fringe[11], n), _narrow(fringe[12], n),
+                                        _narrow(fringe[13], (n + 1) // 2))
+        if it >= maxiter:
             break
+        width = n
+        z = _narrow(work[1], width)
+        q = _narrow(work[3], width)
+        spare = _narrow(work[4], width)
+        if first:  # z = P^-1 r, d = z
+            first = False
+            d = _narrow(work[2], width)
+            _precondition(A, cols, r, z, spare, inv_diag, mode, kron, fringe)
+            for j in range(width):
+                rz[j] = 0.0
+            for i in range(nr):
+                for j in range(width):
+                    d[i, j] = z[i, j]
+                    rz[j] += r[i, j] * z[i, j]
+            for j in range(width):
+                if rz[j] <= 0.0:  # breakdown
+                    active[j] = False
+            continue
         it += 1
         _ell_product_dot(A, cols, d, q, partial)
-        for c in range(nc):
+        alpha = np.zeros(width)
+        for j in range(width):
             dq = 0.0
             for t in range(nt):
-                dq += partial[t, c]
-            if dq == 0.0:
-                active[c] = False
-            alpha[c] = rz[c] / dq if active[c] else 0.0
-        _cg_update(x, r, z, d, q, inv_diag, mode == 0, alpha, active, sums)
+                dq += partial[t, j]
+            if dq <= 0.0:
+                active[j] = False
+            alpha[j] = rz[j] / dq if active[j] else 0.0
+        _cg_update(xc, r, z, d, q, inv_diag, mode == 0, alpha, active, sums)
         if mode > 0:  # z = P^-1 r and its r.z
             _precondition(A, cols, r, z, spare, inv_diag, mode, kron, fringe)
             _dots(r, z, partial)
             sums[:, 0, :] = partial
-        for c in range(nc):
-            if not active[c]:
+        for j in range(width):
+            if not active[j]:
                 continue
             rz_new = 0.0
-            rr = 0.0
+            rr_j = 0.0
             for t in range(nt):
-                rz_new += sums[t, 0, c]
-                rr += sums[t, 1, c]
-            if rr <= rtol * rtol * bnorm[c]:
-                active[c] = False
+                rz_new += sums[t, 0, j]
+                rr_j += sums[t, 1, j]
+            if rr_j <= limit[j]:
+                active[j] = False
+                converged[columns[j]] = True
                 continue
-            beta[c] = rz_new / rz[c]
-            rz[c] = rz_new
+            beta[j] = rz_new / rz[j]
+            rz[j] = rz_new
         _cg_direction(d, z, beta, active)
-    for c in range(nc):  # a column may have stopped on a breakdown (r.z <= 0)
-        rr = 0.0
-        for i in range(nr):
-            rr += r[i, c] * r[i, c]
-        if rr > rtol * rtol * bnorm[c]:
+    if packed:
+        for j in range(xc.shape[1]):
+            for i in range(nr):
+                x[i, columns[j]] = xc[i, j]
+    for c in range(nc):
+        if not converged[c]:
             return -max(it, 1)
     return it

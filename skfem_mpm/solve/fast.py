@@ -204,9 +204,10 @@ class StencilSystem:
                 mode = 0 if kron is None else 1 if fringe is None else 2
                 pre = kron.args(b.shape[1], nt) if kron is not None else self._no_kronecker
                 extra = fringe.args(b.shape[1]) if fringe is not None else FringeFactor.no_args()
-                work = self.k.scratch("cg", (5,) + b.shape)
+                work = self.k.scratch("cg", (6,) + b.shape)
                 limit = self.max_iterations or 10 * rows.size + 100
-                its = ell_pcg(A, cols, inv_diag, mode, pre, extra, b, x, self.rtol,
+                problem = np.repeat(np.arange(len(problems)), comps.size)
+                its = ell_pcg(A, cols, inv_diag, mode, pre, extra, b, x, problem, self.rtol,
                               limit, nt, work)
                 if its < 0 and fringe is not None and self._stale_fringe[g]:
                     # factors of an earlier step: retry with the current block's
@@ -214,7 +215,7 @@ class StencilSystem:
                     fringe = self._fringe(g, rows, A, cols)
                     group[3] = group[3][:6] + (fringe,)
                     more = ell_pcg(A, cols, inv_diag, mode, pre, fringe.args(b.shape[1]), b, x,
-                                   self.rtol, limit, nt, work)
+                                   problem, self.rtol, limit, nt, work)
                     its = -its + more if more > 0 else its - abs(more)
                 if its < 0:
                     raise InvalidState(f"consistent-mass CG stopped above its tolerance "
@@ -233,6 +234,11 @@ class StencilSystem:
 
     def remember(self, kind, x):
         self.warm[kind] = x.copy()
+
+    def shift_guess(self, kind, dx):
+        from .grid_system import shift_guess
+
+        shift_guess(self.warm, kind, dx)
 
     def residual(self, x, rhs):
         """M x - rhs with the fast rows lumped, on the constrained dofs (the
@@ -510,6 +516,7 @@ class FastStepper:
                 v_grid = self._v_new
                 np.multiply(a, factor * dt, out=v_grid)
                 v_grid += v_old
+                system.remember("velocity", v_grid)  # see steps.remember_end_velocity
             else:
                 a = self._grid_solve(state, system, mass, force, a_values, "acceleration",
                                      self._a, small, gravity)
@@ -520,6 +527,8 @@ class FastStepper:
                     v_grid = self._v_new
                     np.multiply(a, factor * dt, out=v_grid)
                     v_grid += v_old
+                    if system is not None:
+                        system.remember("velocity", v_grid)
             if c.any:
                 if system is not None:
                     state.reactions = c.reactions(system.residual(a, force))
@@ -531,6 +540,8 @@ class FastStepper:
             with state.timer("g2p"):
                 momentum_new = k.g2p2g(p, a, dt, new.v)
             with state.timer("solve"):
+                if system is not None:  # see steps.grid_to_particles
+                    system.shift_guess("velocity", dt * a)
                 v_grid = self._grid_solve(state, system, mass, momentum_new,
                                           c.values(state.t + dt) if c.prescribed else None,
                                           "velocity", self._v_new, small)

@@ -292,8 +292,20 @@ class GridSystem:
         if self.mass_solver == "cg" and self.consistent is not None:
             self.warm[kind] = x.copy()
 
+    def shift_guess(self, kind, dx):
+        """Add dx to the kept warm start of ``kind`` (if there is one)."""
+        shift_guess(self.warm, kind, dx)
+
     def residual(self, x, rhs):
         """M x - rhs (for reactions on constrained dofs)."""
         if self.consistent is None:
             return self.lumped[:, None] * x - rhs
         return self.consistent @ x - rhs
+
+
+def shift_guess(warm, kind, dx):
+    """warm[kind] += dx (a new array; warm data may be shared with a
+    checkpoint) when a warm start of dx's shape is kept."""
+    prev = warm.get(kind)
+    if prev is not None and prev.shape == dx.shape:
+        warm[kind] = prev + dx

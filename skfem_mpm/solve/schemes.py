@@ -18,7 +18,7 @@ CD:   central difference with staggered velocities: the particles carry
 import numpy as np
 
 from .steps import (commit, grid_to_particles, grid_velocity, internal_force, particles_to_grid,
-                    solve_grid, update_stress)
+                    remember_end_velocity, solve_grid, update_stress)
 
 __all__ = ["step_musl", "step_usl", "step_usf", "step_cd", "SCHEME_STEPS"]
 
@@ -46,6 +46,7 @@ def _usl(state, first_half_step):
     solve_grid(state, data, need_old_velocity=True)
     factor = 0.5 if first_half_step else 1.0
     data.velocity = data.velocity_old + (factor * state.dt) * data.acceleration
+    remember_end_velocity(data)
     L = grid_to_particles(state, data, velocity_factor=factor)
     update_stress(state, L, data)
     _external_work(state, data)
@@ -87,6 +88,7 @@ def step_usf(state):
     data.velocity_old = v_old
     solve_grid(state, data)
     data.velocity = v_old + state.dt * data.acceleration
+    remember_end_velocity(data)
     grid_to_particles(state, data)
     _external_work(state, data)
     commit(state, data)

@@ -265,6 +265,15 @@ def grid_velocity(state, data, momentum, t):
     return v
 
 
+def remember_end_velocity(data):
+    """Keep the step's end grid velocity v_old + dt a as the warm start of
+    the next step's velocity solve (M v = P with the next step's particle
+    momentum, which the particles carry from this v: a closer start than
+    this step's v_old, which misses the whole change dt a)."""
+    if data.system is not None:
+        data.system.remember("velocity", data.velocity)
+
+
 def solve_grid(state, data, need_old_velocity=False):
     """Nodal accelerations a with M a = f (damping applied if declared):
     fixed dofs get a = 0, prescribed ones (v(t + dt) - v(t)) / dt."""
@@ -302,6 +311,8 @@ def grid_to_particles(state, data, velocity_factor=1.0):
     if data.velocity is None:  # MUSL: project the new particle momentum
         with state.timer("p2g"):
             momentum = data.project_momentum(p, v_new)
+        if data.system is not None:  # CG warm start: last step's v plus this step's dt a
+            data.system.shift_guess("velocity", dt * data.acceleration)
         data.velocity = grid_velocity(state, data, momentum, state.t + dt)
     with state.timer("g2p"):
         dx = dt * tr.to_particles(data.velocity)
