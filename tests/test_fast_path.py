@@ -295,7 +295,7 @@ def test_fringe_correction_matches_its_formula():
     k, stencil, mass, constraints = _block_system(cells=12)
     system = StencilSystem(k, stencil, mass, constraints, np.zeros(mass.size), {})
     group = next(iter(system.groups.values()))
-    A, cols, _, _, _, kron, _ = system._compact(group)
+    A, cols, _, _, _, kron, _, _ = system._compact(group)
     n = A.shape[0]
     M = np.zeros((n, n))
     np.add.at(M, (np.repeat(np.arange(n), A.shape[1]), cols.ravel()), A.ravel())
@@ -478,3 +478,52 @@ def test_velocity_warm_start_is_the_last_end_velocity(scheme):
     runs = 2 if scheme == "musl" else 1
     assert len(log) >= result.counts["steps"] * runs >= 12 * runs
     assert sum(log[5 * runs:]) <= 2, log
+
+
+def test_fast_row_fractions_kernel_matches_lumping_fraction():
+    from skfem_mpm.kernels.mpm import fast_row_fractions
+    from skfem_mpm.solve.timestep import lumping_fraction
+
+    rng = np.random.default_rng(3)
+    n = 500
+    stencil = rng.uniform(0.1, 1.0, (n, 25))
+    stiffness = rng.uniform(0.0, 3.0, n)
+    mass = np.where(rng.uniform(size=n) < 0.2, 0.0, 1.0)
+    out = np.empty(n)
+    count = fast_row_fractions(stiffness, stencil, mass, 2.0, out)
+    expected = np.where(mass > 0, lumping_fraction(stiffness / (2.0 * stencil[:, 12])), 0.0)
+    assert np.abs(out - expected).max() < 1e-14
+    assert count == np.count_nonzero(expected) and 0 < count < n
+
+
+def test_stencil_systems_reuse_what_depends_on_the_free_dofs_only():
+    """Systems built in turn on the same kernels for different free-dof
+    sets (the kept columns, groups and Kronecker factors are rebuilt when
+    the set changes and reused when it comes back) and a solve with
+    nonzero fixed values after one without (the fixed-column part is added
+    to the built system) all match the dense solve."""
+    from skfem_mpm.kernels.mpm import Kernels
+    from skfem_mpm.solve.fast import StencilSystem
+    from skfem_mpm.solve.grid_system import Constraints
+
+    from skfem_mpm.bench import scene_2d
+
+    scene, _ = scene_2d(cells=12, steps=1)
+    grid = scene.grid
+    k = Kernels(grid)
+    constraints = Constraints(grid, [e for e in scene.effects if type(e).__name__ == "Fixed"])
+    full = Particles.seed(grid, 3, 1.0, region=((0.0, 1.0), (0.0, 1.0)))
+    part = full.subset(np.flatnonzero(full.x[:, 0] < 0.6))
+    rng = np.random.default_rng(8)
+    values = np.zeros((grid.ndofs, 2))
+    values[constraints.mask] = rng.standard_normal(np.count_nonzero(constraints.mask))
+    zeros = np.zeros_like(values)
+    for p in (full, part, part, full):
+        mass = k.p2g(p, None)[0].copy()
+        stencil = k.consistent_stencil(p)[0].copy()
+        rhs = rng.standard_normal((grid.ndofs, 2)) * mass[:, None]
+        system = StencilSystem(k, stencil, mass, constraints, np.zeros(grid.ndofs), {})
+        for vals in (zeros, values):
+            got = system.solve(rhs, vals, "velocity")
+            exact = _dense_free_solve(k, stencil, mass, constraints, rhs, vals)
+            assert np.abs(got - exact).max() < 1e-10 * np.abs(exact).max()

@@ -78,7 +78,25 @@ class KroneckerData:
     (``rows`` in the grid's dof numbering, row-major: k = b nbx + a)."""
 
     def __init__(self, bands, row_sums, geometry, rows, lumped, lumped_rows=None,
-                 diagonal=None):
+                 diagonal=None, previous=None):
+        """``previous``: the data of an earlier step; its factors and box
+        numbering are reused when it was built for the same free dofs."""
+        key = rows.tobytes()
+        if previous is not None and previous.key == key and previous.geometry == geometry:
+            self.Lx, self.Ly, self.gauss, self.box_index = (previous.Lx, previous.Ly,
+                                                            previous.gauss, previous.box_index)
+            self.a0, self.b0, self.shape = previous.a0, previous.b0, previous.shape
+        else:
+            self._factor(bands, row_sums, geometry, rows)
+        self.key, self.geometry = key, geometry
+        self.local = self.box_index
+        self.inv_scale = 1.0 / np.sqrt(lumped[rows] / self.gauss)
+        if lumped_rows is not None and lumped_rows.any():
+            self.local = self.box_index.copy()
+            self.local[lumped_rows] = -1
+            self.inv_scale[lumped_rows] = 1.0 / diagonal[lumped_rows]
+
+    def _factor(self, bands, row_sums, geometry, rows):
         p, nbx, nby, dim = geometry
         a, b = rows % nbx, rows // nbx
         self.a0, self.b0 = int(a.min()), int(b.min())
@@ -88,15 +106,11 @@ class KroneckerData:
         self.Lx = _inverse_diagonal(banded_cholesky(bands[0], self.a0, a1))
         if dim == 2:
             self.Ly = _inverse_diagonal(banded_cholesky(bands[1], self.b0, b1))
-            gauss = row_sums[0][a] * row_sums[1][b]
+            self.gauss = row_sums[0][a] * row_sums[1][b]
         else:
             self.Ly = np.ones((1, p + 1))
-            gauss = row_sums[0][a]
-        self.local = ((b - self.b0) * (a1 - self.a0) + (a - self.a0)).astype(np.int64)
-        self.inv_scale = 1.0 / np.sqrt(lumped[rows] / gauss)
-        if lumped_rows is not None and lumped_rows.any():
-            self.local[lumped_rows] = -1
-            self.inv_scale[lumped_rows] = 1.0 / diagonal[lumped_rows]
+            self.gauss = row_sums[0][a]
+        self.box_index = ((b - self.b0) * (a1 - self.a0) + (a - self.a0)).astype(np.int64)
         self.shape = (b1 - self.b0, a1 - self.a0)
 
     def args(self, nc, nt):

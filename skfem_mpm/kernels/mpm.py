@@ -1237,7 +1237,8 @@ def _slot_dof(a, b, s, p, pb, width, nbx, nby):
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols):
+def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, write_cols,
+                   write_fixed):
     """The free-dof rows of the consistent mass, ELL form.
 
     Row k = rows[r] of M with (1) the fraction theta = max(fast_k, fast_j) of
@@ -1245,7 +1246,9 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols):
     ``fast`` in [0, 1] per dof) and (2) its columns split into free ones
     (index[j] >= 0: A[r, s], cols[r, s] = index[j]) and fixed ones
     (F[r, s] = (1 - theta) M_kj, fcols[r, s] = j), which
-    :func:`compact_problem` moves to the right-hand side."""
+    :func:`compact_problem` moves to the right-hand side. cols depends on
+    the free-dof set only and F, fcols are read only for nonzero fixed
+    values: they are written when ``write_cols``, ``write_fixed``."""
     nr = rows.shape[0]
     ns = M.shape[1]
     centre = (ns - 1) // 2
@@ -1258,9 +1261,11 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols):
         b = k // nbx
         for s in range(ns):
             A[r, s] = 0.0
-            cols[r, s] = r
-            F[r, s] = 0.0
-            fcols[r, s] = k
+            if write_cols:
+                cols[r, s] = r
+            if write_fixed:
+                F[r, s] = 0.0
+                fcols[r, s] = k
             if s == centre:
                 continue
             j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
@@ -1271,11 +1276,31 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols):
             diag += theta * mks
             if index[j] >= 0:
                 A[r, s] = (1.0 - theta) * mks
-                cols[r, s] = index[j]
-            else:
+                if write_cols:
+                    cols[r, s] = index[j]
+            elif write_fixed:
                 F[r, s] = (1.0 - theta) * mks
                 fcols[r, s] = j
         A[r, centre] = diag
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def fast_row_fractions(stiffness, stencil, mass, limit, out):
+    """out_k = theta(K_k / (limit M_kk)) on dofs with mass, 0 on the others:
+    the fast-row lumping fractions of :func:`skfem_mpm.solve.timestep.lumping_fraction`
+    (theta(q) = smoothstep(2 q - 1)) in one pass; returns their count > 0."""
+    centre = (stencil.shape[1] - 1) // 2
+    count = 0
+    for k in prange(mass.shape[0]):
+        theta = 0.0
+        if mass[k] > 0.0:
+            q = stiffness[k] / (limit * max(stencil[k, centre], 1e-300))
+            t = min(max(2.0 * q - 1.0, 0.0), 1.0)
+            theta = t * t * (3.0 - 2.0 * t)
+        out[k] = theta
+        if theta > 0.0:
+            count += 1
+    return count
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)

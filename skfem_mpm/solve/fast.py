@@ -71,44 +71,65 @@ class StencilSystem:
         self.inactive = lumped <= 0
         self.fast = np.ascontiguousarray(fast, dtype=np.float64)
         mask = constraints.mask
-        self.groups = {}  # constraint pattern -> [components, free rows, dof -> row]
-        for c in range(mask.shape[1]):
-            key = mask[:, c].tobytes()
-            if key not in self.groups:
-                rows = np.flatnonzero(~(mask[:, c] | self.inactive))
-                index = np.full(lumped.size, -1, dtype=np.int64)
-                index[rows] = np.arange(rows.size)
-                self.groups[key] = [[], rows, index, None]
-            self.groups[key][0].append(c)
+        # what depends only on the free-dof sets is kept on the kernels
+        # between steps (it changes only when particles enter or leave a
+        # support or the constraints change)
+        self.memo = kernels.__dict__.setdefault("stencil_memo", {})
+        key = mask.tobytes() + self.inactive.tobytes()
+        kept = self.memo.get("groups")
+        if kept is None or kept[0] != key:
+            groups = {}  # constraint pattern -> (components, free rows, dof -> row)
+            for c in range(mask.shape[1]):
+                pattern = mask[:, c].tobytes()
+                if pattern not in groups:
+                    rows = np.flatnonzero(~(mask[:, c] | self.inactive))
+                    index = np.full(lumped.size, -1, dtype=np.int64)
+                    index[rows] = np.arange(rows.size)
+                    groups[pattern] = ([], rows, index)
+                groups[pattern][0].append(c)
+            reaction_rows = np.flatnonzero(np.logical_or.reduce(list(mask.T)))  # 20x any(axis=1)
+            kept = self.memo["groups"] = (key, groups, reaction_rows)
+        self.groups = {pattern: [comps, rows, index, None]
+                       for pattern, (comps, rows, index) in kept[1].items()}
+        self.reaction_rows = kept[2]
         self._stale_fringe = {}
-        self.reaction_rows = np.flatnonzero(np.logical_or.reduce(list(mask.T)))  # 20x any(axis=1)
         self.iterations = 0
 
-    def _compact(self, group):
-        """The group's free-dof matrix (built once per step and pattern)."""
+    def _compact(self, group, need_fixed=False):
+        """The group's free-dof matrix (built once per step and pattern; its
+        fixed-column part F only when ``need_fixed``: nonzero fixed values)."""
         from ..kernels.mpm import compact_system
 
         comps, rows, index, built = group
-        if built is None:
-            ns = self.stencil.shape[1]
-            g = list(self.groups.values()).index(group)  # scratch arrays per group
-            A, F = self.k.scratch(f"A{g}", (rows.size, ns)), self.k.scratch(f"F{g}", (rows.size, ns))
-            cols = self.k.scratch(f"cols{g}", (rows.size, ns), np.int32)
-            fcols = self.k.scratch(f"fcols{g}", (rows.size, ns), np.int32)
-            compact_system(self.stencil, *self.geometry, rows, index, self.fast, A, cols, F,
-                           fcols)
-            inv_diag = 1.0 / self.lumped[rows]
-            kron = fringe = None
-            if self.preconditioner == "kronecker" and rows.size:
-                from ..kernels.kronecker import KroneckerData
+        if built is not None and (built[7] or not need_fixed):
+            return built
+        ns = self.stencil.shape[1]
+        g = list(self.groups.values()).index(group)  # scratch arrays per group
+        A, F = self.k.scratch(f"A{g}", (rows.size, ns)), self.k.scratch(f"F{g}", (rows.size, ns))
+        cols = self.k.scratch(f"cols{g}", (rows.size, ns), np.int32)
+        fcols = self.k.scratch(f"fcols{g}", (rows.size, ns), np.int32)
+        key = rows.tobytes()
+        write_cols = self.memo.get(f"cols{g}") != key  # cols{g} holds this set's columns
+        compact_system(self.stencil, *self.geometry, rows, index, self.fast, A, cols, F,
+                       fcols, write_cols, need_fixed)
+        self.memo[f"cols{g}"] = key
+        if built is not None:  # F added to this step's system (A rewritten, equal)
+            built = group[3] = built[:7] + (True,)
+            return built
+        inv_diag = 1.0 / self.lumped[rows]
+        kron = fringe = None
+        if self.preconditioner == "kronecker" and rows.size:
+            from ..kernels.kronecker import KroneckerData
 
-                centre = (ns - 1) // 2
-                kron = KroneckerData(*self.k.axis_mass(), self.geometry, rows, self.lumped,
-                                     self.fast[rows] >= self.LUMPED_ROW, A[:, centre].copy())
-                if self.FRINGE_LAYERS > 0 and (self.FRINGE_FROM <= 0
-                                               or f"fringe{g}_on" in self.warm):
-                    fringe = self._fringe(g, rows, A, cols)
-            built = group[3] = (A, cols, F, fcols, inv_diag, kron, fringe)
+            centre = (ns - 1) // 2
+            kron = KroneckerData(*self.k.axis_mass(), self.geometry, rows, self.lumped,
+                                 self.fast[rows] >= self.LUMPED_ROW, A[:, centre].copy(),
+                                 previous=self.memo.get(f"kronecker{g}"))
+            self.memo[f"kronecker{g}"] = kron
+            if self.FRINGE_LAYERS > 0 and (self.FRINGE_FROM <= 0
+                                           or f"fringe{g}_on" in self.warm):
+                fringe = self._fringe(g, rows, A, cols)
+        built = group[3] = (A, cols, F, fcols, inv_diag, kron, fringe, need_fixed)
         return built
 
     # The particles move little in a step, so the fringe factors of an
@@ -185,9 +206,10 @@ class StencilSystem:
         for rhs, values, kind in problems:
             out = np.array(values, dtype=np.float64, copy=True)  # fixed dofs keep theirs
             outs.append(out)
+        has_values = [bool(values.any()) for _, values, _ in problems]
         for g, group in enumerate(self.groups.values()):
             comps, rows, index, _ = group
-            A, cols, F, fcols, inv_diag, kron, fringe = self._compact(group)
+            A, cols, F, fcols, inv_diag, kron, fringe, _ = self._compact(group, any(has_values))
             comps = np.asarray(comps, dtype=np.int64)
             nc = len(problems) * comps.size
             b = self.k.scratch(f"b{g}", (rows.size, nc))
@@ -195,7 +217,7 @@ class StencilSystem:
             for i, (rhs, values, kind) in enumerate(problems):
                 prev = self.warm.get(kind)
                 has_prev = prev is not None and prev.shape == rhs.shape
-                compact_problem(rows, rhs, values, bool(values.any()),
+                compact_problem(rows, rhs, values, has_values[i],
                                 prev if has_prev else rhs, has_prev, comps, i * comps.size,
                                 F, fcols, b, x)
             if rows.size:
@@ -213,7 +235,7 @@ class StencilSystem:
                     # factors of an earlier step: retry with the current block's
                     self.warm.pop(f"fringe{g}_rows", None)
                     fringe = self._fringe(g, rows, A, cols)
-                    group[3] = group[3][:6] + (fringe,)
+                    group[3] = group[3][:6] + (fringe,) + group[3][7:]
                     more = ell_pcg(A, cols, inv_diag, mode, pre, fringe.args(b.shape[1]), b, x,
                                    problem, self.rtol, limit, nt, work)
                     its = -its + more if more > 0 else its - abs(more)
@@ -455,9 +477,13 @@ class FastStepper:
         self._fast_rows_fn = fast_rows
         self._stencil_K = (stencil, K)
         if self._use_cg(state) and not small:
-            diagonal = stencil[:, (stencil.shape[1] - 1) // 2]
-            fast = np.where(mass > 0, fast_rows(diagonal), 0.0) if limit is not None \
-                else np.zeros(mass.size)
+            from ..kernels.mpm import fast_row_fractions
+
+            fast = self.kernels.scratch("fast_rows", mass.size)
+            if limit is not None:  # fast_rows of the dofs with mass, in one kernel
+                fast_row_fractions(K, stencil, mass, limit, fast)
+            else:
+                fast[:] = 0.0
             return StencilSystem(self.kernels, stencil, mass, state.constraints, fast, state.warm)
         M = self.kernels.stencil_csr(stencil)
         solver = "cg" if state.method.mass_solver == "cg" else "direct"
