@@ -502,11 +502,10 @@ def test_stencil_systems_reuse_what_depends_on_the_free_dofs_only():
     the set changes and reused when it comes back) and a solve with
     nonzero fixed values after one without (the fixed-column part is added
     to the built system) all match the dense solve."""
+    from skfem_mpm.bench import scene_2d
     from skfem_mpm.kernels.mpm import Kernels
     from skfem_mpm.solve.fast import StencilSystem
     from skfem_mpm.solve.grid_system import Constraints
-
-    from skfem_mpm.bench import scene_2d
 
     scene, _ = scene_2d(cells=12, steps=1)
     grid = scene.grid
