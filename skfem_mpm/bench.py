@@ -119,7 +119,7 @@ def consistent_comparison(cells=(64, 128), steps=20, repeat=3):
     sends stress waves through it. Returns rows with ms per step, the phase
     split of the median run and the mean CG iterations per solve."""
     from .solve import Method, simulate
-    from .solve import fast as fast_module
+    from .solve import stencil_system as fast_module
     from .solve.timestep import critical_time_step
 
     cg = dict(mass="consistent", mass_solver="cg")

@@ -91,7 +91,7 @@ def test_fast_path_failure_keeps_the_last_good_state():
 
 @pytest.mark.parametrize("solver", ("cg", "direct", "auto", "cg-lumped-preconditioner"))
 def test_consistent_mass_fast_path_matches_reference(solver, monkeypatch):
-    from skfem_mpm.solve.fast import StencilSystem
+    from skfem_mpm.solve.stencil_system import StencilSystem
 
     if solver == "cg-lumped-preconditioner":
         monkeypatch.setattr(StencilSystem, "preconditioner", "lumped")
@@ -237,7 +237,7 @@ def test_kronecker_preconditioner_cuts_cg_iterations():
     the Kronecker preconditioner needs far fewer CG iterations than the
     lumped-mass one, and its fringe correction far fewer again, all to the
     same solution."""
-    from skfem_mpm.solve.fast import StencilSystem
+    from skfem_mpm.solve.stencil_system import StencilSystem
 
     k, stencil, mass, constraints = _block_system()
     rhs = np.random.default_rng(1).standard_normal((mass.size, 2)) * mass[:, None]
@@ -290,7 +290,7 @@ def test_fringe_correction_matches_its_formula():
     from skfem_mpm.kernels.fringe import (FringeFactor, FringePattern, apply_corrected,
                                           fringe_solve)
     from skfem_mpm.kernels.kronecker import apply_kronecker
-    from skfem_mpm.solve.fast import StencilSystem
+    from skfem_mpm.solve.stencil_system import StencilSystem
 
     k, stencil, mass, constraints = _block_system(cells=12)
     system = StencilSystem(k, stencil, mass, constraints, np.zeros(mass.size), {})
@@ -351,7 +351,7 @@ def test_stale_fringe_factors_are_replaced_when_cg_fails():
     its tolerance: CG retries with the current block's factors, which are
     then kept. A CG that cannot reach its tolerance raises."""
     from skfem_mpm.errors import InvalidState
-    from skfem_mpm.solve.fast import StencilSystem
+    from skfem_mpm.solve.stencil_system import StencilSystem
 
     k, stencil, mass, constraints = _block_system(cells=16)
     rhs = np.random.default_rng(2).standard_normal((mass.size, 2)) * mass[:, None]
@@ -379,7 +379,7 @@ def test_fringe_correction_turns_on_where_kronecker_alone_iterates_long():
     """A CG run with the Kronecker preconditioner alone that takes at least
     FRINGE_FROM iterations turns the fringe correction on for the next
     solves (through the warm data); fewer iterations leave it off."""
-    from skfem_mpm.solve.fast import StencilSystem
+    from skfem_mpm.solve.stencil_system import StencilSystem
 
     k, stencil, mass, constraints = _block_system()
     rhs = np.random.default_rng(5).standard_normal((mass.size, 2)) * mass[:, None]
@@ -418,7 +418,7 @@ def test_cg_columns_converge_per_problem_and_leave_the_iteration(pre, layers):
     problem meets rtol measured over the whole problem, matches the dense
     solve and the same problem solved alone; the zero problem gives x = 0;
     a warm start that already solves the system takes no iteration."""
-    from skfem_mpm.solve.fast import StencilSystem
+    from skfem_mpm.solve.stencil_system import StencilSystem
 
     k, stencil, mass, constraints = _block_system(cells=16)
     rng = np.random.default_rng(7)
@@ -466,7 +466,7 @@ def test_velocity_warm_start_is_the_last_end_velocity(scheme):
     second solve) already meet the tolerance and CG takes no iteration
     after the start-up steps (5 per step with the last step's v_old)."""
     from skfem_mpm.bench import scene_2d
-    from skfem_mpm.solve.fast import StencilSystem
+    from skfem_mpm.solve.stencil_system import StencilSystem
 
     scene, _ = scene_2d(cells=16, steps=12)
     log = []
@@ -504,7 +504,7 @@ def test_stencil_systems_reuse_what_depends_on_the_free_dofs_only():
     to the built system) all match the dense solve."""
     from skfem_mpm.bench import scene_2d
     from skfem_mpm.kernels.mpm import Kernels
-    from skfem_mpm.solve.fast import StencilSystem
+    from skfem_mpm.solve.stencil_system import StencilSystem
     from skfem_mpm.solve.grid_system import Constraints
 
     scene, _ = scene_2d(cells=12, steps=1)

@@ -41,7 +41,7 @@ def warm_up_kernels(grid, fast=False):
                 k.g2p(p, zeros, zeros, 0.0, 1.0, flip, fused, material, new, L, acc)
     k.small_mass(np.ones(grid.ndofs), 1e-3)
     stencil, K = k.consistent_mass(p)[0], None
-    from ..solve.fast import StencilSystem
+    from ..solve.stencil_system import StencilSystem
     from ..solve.grid_system import Constraints
 
     st, K = k.consistent_stencil(p)

@@ -6,7 +6,8 @@ import time
 from ..errors import InvalidState, SimulationError
 from .method import Method
 from .result import Recorder
-from .fast import FastStepper, fast_path_applies
+from .compiled import CompiledExecutor, compiled_executor_applies
+from .reference import ReferenceExecutor
 from .schemes import SCHEME_STEPS
 from .state import prepare
 
@@ -90,13 +91,10 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
     else:
         recorder = Recorder()
         recorder.save(state, share=True)
-    fast, why_not = fast_path_applies(state)
-    if fast:
-        step = FastStepper(state).step
-        path = "fast"
-    else:
-        step = SCHEME_STEPS[method.scheme]
-        path = f"reference ({why_not})"
+    fast, why_not = compiled_executor_applies(state)
+    ops = CompiledExecutor(state) if fast else ReferenceExecutor(state, why_not)
+    scheme = SCHEME_STEPS[method.scheme]
+    path = ops.path
     jit_time = warm_up(state, fast)
     bar = _progress_bar(progress, state.n_steps)
     t0 = time.perf_counter()
@@ -105,7 +103,7 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
             state.next_step_size()
             last_good = state.particles
             try:
-                data = step(state)
+                data = scheme(ops, state)
             except InvalidState as exc:
                 state.particles = last_good
                 result = recorder.result(state, time.perf_counter() - t0, jit_time,

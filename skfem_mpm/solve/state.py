@@ -158,6 +158,11 @@ class State:
         self.dt = remaining if dt >= remaining * (1 - 1e-12) else dt
         return self.dt
 
+    def advance(self):
+        """The step is done: count it and move the time on."""
+        self.step += 1
+        self.t = self.t_next()
+
     def t_next(self):
         if self.adaptive:
             return self.scene.t_end if self.finished_after_step() else self.t + self.dt

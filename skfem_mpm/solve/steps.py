@@ -1,14 +1,18 @@
 """The MPM step as named functions a user can call in their own loop.
 
     state = prepare(scene, method)
-    while state.t < scene.t_end:
+    while not state.done:
+        state.next_step_size()
         grid = particles_to_grid(state)          # mass, momentum, forces on the grid
         solve_grid(state, grid)                  # nodal accelerations (and velocities)
         L = grid_to_particles(state, grid)       # particle velocities, positions
-        update_stress(state, L)                  # constitutive update
-        commit(state, grid)                      # checks, the new state becomes current
+        update_stress(state, L, grid)            # constitutive update
+        commit(state, grid)                      # external work, checks, new state current
 
-``simulate`` is this loop (with the scheme's ordering, saves and guards).
+This is MUSL on the reference executor. ``simulate`` runs the scheme of
+:mod:`skfem_mpm.solve.schemes` on an executor, with saves and guards; these
+functions are the reference executor's operations
+(:class:`skfem_mpm.solve.reference.ReferenceExecutor`).
 The formulas (sums over particles p and grid dofs i, N_ip = N_i(x_p)):
 
     lumped mass        m_i = sum_p m_p N_ip
@@ -29,8 +33,10 @@ from ..quadrature import _csr, _csr_pattern, transfer_matrices
 from ..reconstruct import RECONSTRUCTORS, integration_rule
 from .timestep import fast_dof_limit, lumping_fraction
 
-__all__ = ["Transfer", "GridData", "particles_to_grid", "solve_grid", "grid_to_particles",
-           "update_stress", "commit", "particle_forces", "internal_force"]
+__all__ = ["Transfer", "GridData", "particles_to_grid", "solve_velocity", "solve_grid",
+           "update_particle_velocities", "project_velocity", "move_particles",
+           "grid_to_particles", "update_stress", "external_work", "commit", "particle_forces",
+           "internal_force"]
 
 
 class Transfer:
@@ -98,6 +104,9 @@ class GridData:
         self.velocity_old = None   # grid velocity from the particle momentum
         self.new = {}              # arrays of the new particle state
         self.external_grid = None  # grid force of the declared loads
+        self.L = None              # velocity gradient at the particles
+        self.particle_acceleration = None  # N a at the particles
+        self.keep_acceleration = False     # CD: the state keeps N a (reported velocities)
 
     def stiffness_weights(self):
         """sum over the integration points of mass * |grad N_i|^2 per dof:
@@ -274,12 +283,24 @@ def remember_end_velocity(data):
         data.system.remember("velocity", data.velocity)
 
 
-def solve_grid(state, data, need_old_velocity=False):
+def solve_velocity(state, data):
+    """Grid velocity v^n with M v^n = P (constrained dofs: their velocity at t),
+    kept as ``data.velocity_old``."""
+    data.velocity_old = grid_velocity(state, data, data.momentum, state.t)
+    return data.velocity_old
+
+
+def solve_grid(state, data, need_old_velocity=False, end_velocity=None):
     """Nodal accelerations a with M a = f (damping applied if declared):
-    fixed dofs get a = 0, prescribed ones (v(t + dt) - v(t)) / dt."""
+    fixed dofs get a = 0, prescribed ones (v(t + dt) - v(t)) / dt.
+
+    With ``end_velocity=c`` (USL, CD, USF) also the grid velocity that moves
+    the particles, v = v^n + c dt a, with v^n from M v^n = P."""
     t, dt = state.t, state.dt
-    if need_old_velocity or state.damping:
-        data.velocity_old = grid_velocity(state, data, data.momentum, t)
+    if end_velocity is not None:
+        need_old_velocity = True
+    if (need_old_velocity or state.damping) and data.velocity_old is None:
+        solve_velocity(state, data)
     force = data.force
     if state.damping:
         with state.timer("effects"):
@@ -294,32 +315,59 @@ def solve_grid(state, data, need_old_velocity=False):
         data.acceleration = a
         if c.any:
             state.reactions = c.reactions(system.residual(a, force))
+    if end_velocity is not None:
+        data.velocity = data.velocity_old + (end_velocity * dt) * a
+        remember_end_velocity(data)
     return a
+
+
+def update_particle_velocities(state, data, velocity_factor=1.0, keep_acceleration=False):
+    """v_p^new = v_p + c dt sum_i N_ip a_i (c = velocity_factor), into
+    ``data.new``; ``keep_acceleration`` (CD) keeps N a for the reported
+    velocities."""
+    p, dt = state.particles, state.dt
+    with state.timer("g2p"):
+        dv = data.transfer.to_particles(data.acceleration)
+        data.new["v"] = p.v + (velocity_factor * dt) * dv
+    data.particle_acceleration = dv
+    data.keep_acceleration = keep_acceleration
+
+
+def project_velocity(state, data):
+    """MUSL: the grid velocity v with M v = N^T (m v_p^new) at t + dt, from
+    the updated particle velocities (or their reconstructed momentum)."""
+    with state.timer("p2g"):
+        momentum = data.project_momentum(state.particles, data.new["v"])
+    if data.system is not None:  # CG warm start: last step's v plus this step's dt a
+        data.system.shift_guess("velocity", state.dt * data.acceleration)
+    data.velocity = grid_velocity(state, data, momentum, state.t + state.dt)
+
+
+def move_particles(state, data):
+    """Positions x_p + dt N v and displacements with the grid velocity v;
+    returns (and keeps as ``data.L``) the velocity gradient L = grad N v at
+    the old positions."""
+    p, dt = state.particles, state.dt
+    tr = data.transfer
+    with state.timer("g2p"):
+        dx = dt * tr.to_particles(data.velocity)
+        L = tr.gradient_to_particles(data.velocity)
+    data.new.update(x=p.x + dx, u=p.u + dx)
+    data.L = L
+    return L
 
 
 def grid_to_particles(state, data, velocity_factor=1.0):
     """Particle velocities v_p + f dt N a (f = velocity_factor) and positions
     x_p + dt N v_grid; returns the velocity gradient L at the old positions.
 
-    MUSL recomputes the grid velocity from the updated particle momentum
-    (``data.velocity`` is None on entry); USL/CD use v_old + dt a."""
-    p, dt = state.particles, state.dt
-    tr = data.transfer
-    with state.timer("g2p"):
-        dv = tr.to_particles(data.acceleration)
-        v_new = p.v + (velocity_factor * dt) * dv
-    if data.velocity is None:  # MUSL: project the new particle momentum
-        with state.timer("p2g"):
-            momentum = data.project_momentum(p, v_new)
-        if data.system is not None:  # CG warm start: last step's v plus this step's dt a
-            data.system.shift_guess("velocity", dt * data.acceleration)
-        data.velocity = grid_velocity(state, data, momentum, state.t + dt)
-    with state.timer("g2p"):
-        dx = dt * tr.to_particles(data.velocity)
-        L = tr.gradient_to_particles(data.velocity)
-    data.new.update(v=v_new, x=p.x + dx, u=p.u + dx)
-    data.particle_acceleration = dv
-    return L
+    When ``data.velocity`` is None (MUSL after :func:`solve_grid`) the grid
+    velocity is re-projected from the updated particle momentum; USL/CD set
+    it in :func:`solve_grid` (``end_velocity``)."""
+    update_particle_velocities(state, data, velocity_factor)
+    if data.velocity is None:
+        project_velocity(state, data)
+    return move_particles(state, data)
 
 
 def update_stress(state, L, data=None, particles=None):
@@ -358,8 +406,18 @@ def _first_bad(*arrays):
     return None
 
 
+def external_work(state, data):
+    """Work of the particle forces over the step: sum_p f_p . (x_p^(n+1) - x_p^n),
+    the displacement the scheme actually gives the particles."""
+    f_p = data.external
+    if f_p is not None:
+        state.external_work += float(np.sum(f_p * (data.new["u"] - state.particles.u)))
+
+
 def commit(state, data):
-    """Check the new state (finite, inside the grid) and make it current."""
+    """Add the step's external work; check the new state (finite, inside the
+    grid) and make it current."""
+    external_work(state, data)
     new = dict(data.new)
     p = state.particles
     with state.timer("g2p"):
@@ -368,6 +426,7 @@ def commit(state, data):
             raise InvalidState(
                 f"non-finite state (NaN or Inf) at particle {bad}", particle=bad)
         nxt = state.without_exits(p.replaced(**new))
+    if getattr(data, "keep_acceleration", False) and nxt.n == data.particle_acceleration.shape[0]:
+        state.particle_acceleration = data.particle_acceleration
     state.particles = nxt
-    state.step += 1
-    state.t = state.t_next()
+    state.advance()

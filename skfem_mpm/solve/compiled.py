@@ -1,0 +1,441 @@
+"""The compiled executor: the operations of :mod:`skfem_mpm.solve.schemes`
+on the fused numba kernels of :mod:`skfem_mpm.kernels.mpm` (spline grids).
+
+The scheme calls the same operations as on the reference executor
+(:mod:`skfem_mpm.solve.reference`, which the tests compare this one with);
+this executor fuses them into few kernels:
+
+    particles_to_grid            p2g kernel (mass, momentum, force; locate and
+                                 basis fused) and, for consistent mass, the
+                                 stencil assembly
+    solve_grid (+ end velocity)  one grid kernel for lumped USL/CD (a and
+                                 v = v^n + c dt a), else the grid system
+    update_particle_velocities   deferred: fused into the next kernel
+    project_velocity (MUSL)      g2p2g kernel (v_p^new and its momentum), then
+                                 the velocity solve
+    move_particles               g2p kernel (velocity unless already updated,
+                                 positions, L; the stress of linear
+                                 elasticity fused)
+    update_stress                the materials' update (nothing when fused)
+
+Consistent mass: a kernel assembles M into a fixed stencil pattern (and the
+per-dof stiffness weights of the fast-dof guard); :class:`StencilSystem`
+solves it by conjugate gradients, or the grid system of
+:mod:`skfem_mpm.solve.grid_system` by sparse LU.
+
+Gravity costs one grid operation (g times the nodal mass); other particle
+forces enter the p2g kernel as one array. The kernels write the new state
+into a second set of particle arrays; it becomes current only at ``commit``
+after the step's checks pass, so a failed step leaves the last good state
+untouched. The p2g kernel's time is reported under ``p2g`` (it fuses
+locate, basis and p2g), the g2p kernel's under ``g2p`` (locate, basis, g2p
+and, for linear elasticity, constitutive).
+"""
+import numpy as np
+
+from ..errors import InvalidState
+from ..materials import LinearElastic
+from ..spline import SplineGrid
+from . import steps
+from .stencil_system import StencilSystem
+
+__all__ = ["compiled_executor_applies", "CompiledExecutor"]
+
+
+def compiled_executor_applies(state):
+    """(True, '') or (False, the reason the reference executor is used)."""
+    m = state.method
+    if state.backend != "numba":
+        return False, "backend numpy"
+    if not isinstance(state.grid, SplineGrid):
+        return False, "not a SplineGrid"
+    if m.reconstruction != "none":
+        return False, "reconstruction"
+    if m.scheme not in ("usl", "cd", "musl"):
+        return False, f"scheme {m.scheme}"
+    return True, ""
+
+
+class CompiledGrid:
+    """What one compiled step keeps on the grid (and the new particle state)."""
+
+    def __init__(self, mass, momentum, force, stencil, work_forces, grid_force):
+        self.mass, self.momentum, self.force = mass, momentum, force
+        self.stencil = stencil          # (M stencil, stiffness weights) or None
+        self.work_forces = work_forces  # particle forces whose work is counted
+        self.grid_force = grid_force    # grid force of side tractions
+        self.system = None              # the consistent-mass system
+        self.small = 0                  # tiny-mass dofs (the general solve merges them)
+        self.gravity = None             # gravity still to add as an acceleration
+        self.prepared = False
+        self.acceleration = None
+        self.velocity = None            # grid velocity that moves the particles
+        self.velocity_factor = 1.0
+        self.keep_acceleration = False
+        self.particle_velocities_done = False
+        self.new = None                 # the new particle state (Particles)
+        self.L = None
+        self.outside = -1               # first particle outside the grid, or -1
+
+
+class CompiledExecutor:
+    """Executes the scheme operations of one simulation on the compiled kernels."""
+
+    path = "fast"
+
+    def __init__(self, state):
+        from ..kernels.mpm import Kernels
+
+        self.kernels = Kernels(state.grid)
+        self.gravity = np.zeros(state.grid.dim)
+        self.gravity_work = False
+        self.other_forces = []
+        for f in state.forces:
+            if f.__class__.__name__ == "Gravity":
+                self.gravity = self.gravity + f.g
+                self.gravity_work = True
+            else:
+                self.other_forces.append(f)
+        self.fused = len(state.bodies) == 1 and type(state.bodies[0][0]) is LinearElastic
+        timer = state.timer
+        timer.note_fused("p2g", ("locate", "basis", "p2g"))
+        timer.note_fused("g2p", ("locate", "basis", "g2p")
+                         + (("constitutive",) if self.fused else ()))
+        self._spare = None
+        self._owned = set()
+        self._acc = None
+        nd, dim = state.grid.ndofs, state.grid.dim
+        self._v_old = np.empty((nd, dim))
+        self._v_new = np.empty((nd, dim))
+        self._a = np.empty((nd, dim))
+        self._no_gravity = np.zeros(dim)
+
+    # ---------------------------------------------------------------- buffers
+    WRITTEN = ("x", "v", "u", "stress", "V")
+
+    def _new_particles(self, p):
+        """The arrays the kernels write the new state into: the state before
+        the current one, if this stepper allocated its arrays (the scene's
+        own arrays are never written), else fresh ones."""
+        spare = self._spare
+        owned = spare is not None and spare.n == p.n and \
+            all(id(getattr(spare, k)) in self._owned for k in self.WRITTEN)
+        if not owned:
+            spare = p.replaced()
+            for k in self.WRITTEN:
+                a = np.empty_like(getattr(p, k))
+                setattr(spare, k, a)
+                self._owned.add(id(a))
+        for name in ("m", "X", "V0", "body", "F"):
+            setattr(spare, name, getattr(p, name))
+        if not self.fused:
+            spare.stress, spare.V = p.stress, p.V  # replaced by the material update
+        return spare
+
+    # ------------------------------------------------------------------- step
+    def external(self, state):
+        """Particle forces other than gravity (effects phase), the grid force
+        of side tractions, and the particle forces whose work is counted."""
+        p = state.particles
+        fext, grid_force, work_forces = None, None, None
+        if self.other_forces:
+            with state.timer("effects"):
+                for f in self.other_forces:
+                    term = f.forces(p, state.t)
+                    work_forces = term if work_forces is None else work_forces + term
+                    if hasattr(f, "grid_forces"):
+                        g = f.grid_forces(p, state.t, state.grid)
+                        grid_force = g if grid_force is None else grid_force + g
+                    else:
+                        fext = term if fext is None else fext + term
+        return fext, grid_force, work_forces
+
+    def _small_dofs(self, state, mass):
+        """Number of tiny-mass dofs this step (the reference merge takes over
+        when there are any)."""
+        if state.method.small_mass <= 0:
+            return 0
+        _, count = self.kernels.small_mass(mass, state.method.small_mass)
+        state.small_dofs_max = max(state.small_dofs_max, count)
+        return count
+
+    def _reference_solve(self, state, mass, rhs, values, kind, gravity=None):
+        from .grid_system import GridSystem
+
+        full = rhs if gravity is None else rhs + mass[:, None] * gravity[None, :]
+        system = GridSystem(mass, state.constraints, None, state.adjacency,
+                            state.method.small_mass)
+        return system.solve(full, np.zeros_like(rhs) if values is None else values, kind)
+
+    def solve(self, state, mass, rhs, values, kind, out, small, gravity=None):
+        """Lumped M x = rhs (+ gravity as an acceleration on free dofs) with
+        the constraints, into ``out``."""
+        if small:
+            out[:] = self._reference_solve(state, mass, rhs, values, kind, gravity)
+            return out
+        g = self._no_gravity if gravity is None else gravity
+        return self.kernels.solve(mass, rhs, g, state.constraints.mask, values, out)
+
+    # Which consistent-mass solver is faster depends on the scene. When the
+    # CG iterated over the whole grid with a lumped preconditioner (about
+    # 150 iterations at rtol 1e-13), a floating block at 128 x 128 took
+    # CG 341 ms against LU 99 ms per step. The CG now runs on the free dofs
+    # with the Kronecker preconditioner and its fringe correction: on the
+    # 2D bench block 6 iterations per step where it carries stress waves
+    # (14 ms per step; a fresh LU costs 129 ms on the falling block).
+    # "auto" times one CG and one LU acceleration solve on the first step
+    # whose CG solve needs at least 20 iterations and keeps the faster for
+    # the run (CG stays when no solve is that hard); the choice is kept in
+    # the checkpoint's warm data.
+
+    def _use_cg(self, state):
+        solver = state.method.mass_solver
+        if solver == "direct":
+            return False
+        if solver == "cg":
+            return True
+        choice = state.warm.get("auto_solver")
+        return choice is None or int(choice[0]) == 0
+
+    def _choose_solver(self, state, mass, problems, stencil, K):
+        """'auto', first step: time the CG solves just made against LU."""
+        import time
+
+        from .grid_system import GridSystem
+
+        M = self.kernels.stencil_csr(stencil)
+        t0 = time.perf_counter()
+        lu = GridSystem(mass, state.constraints, M, state.adjacency, state.method.small_mass,
+                        "direct", {}, fast_rows=self._fast_rows_fn)
+        for rhs, values, kind in problems:
+            lu.solve(rhs, values, kind)
+        state.warm["auto_solver"] = np.array([1 if time.perf_counter() - t0 < self._cg_time
+                                              else 0])
+
+    def _grid_solve(self, state, system, mass, rhs, values, kind, out, small, gravity=None):
+        """M x = rhs: the consistent system when there is one, else lumped."""
+        if system is None:
+            return self.solve(state, mass, rhs, values, kind, out, small, gravity)
+        return self._consistent_solves(state, system, mass, [(rhs, values, kind)], [out])[0]
+
+    def _consistent_solves(self, state, system, mass, problems, outs):
+        """Consistent M x = rhs for each (rhs, values or None, kind) into
+        ``outs``; a stencil system solves them in one CG run."""
+        import time
+
+        problems = [(rhs, np.zeros_like(rhs) if values is None else values, kind)
+                    for rhs, values, kind in problems]
+        if isinstance(system, StencilSystem):
+            t0 = time.perf_counter()
+            before = system.iterations
+            xs = system.solve_many(problems)
+            for (_, _, kind), x in zip(problems, xs):
+                system.remember(kind, x)
+            representative = system.iterations - before >= 20  # not a trivial early solve
+            if state.method.mass_solver == "auto" and "auto_solver" not in state.warm and \
+                    representative and any(kind == "acceleration" for _, _, kind in problems):
+                self._cg_time = time.perf_counter() - t0
+                self._choose_solver(state, mass, problems, *self._stencil_K)
+        else:
+            xs = [system.solve(rhs, values, kind) for rhs, values, kind in problems]
+            if state.method.mass_solver == "cg":
+                for (_, _, kind), x in zip(problems, xs):
+                    system.remember(kind, x)
+        for out, x in zip(outs, xs):
+            out[:] = x
+        return outs
+
+    def _buffers(self, p):
+        if self._acc is None or self._acc.shape[0] != p.n:
+            self._acc = np.empty((p.n, p.dim))
+            self._L = np.empty((p.n, p.dim, p.dim)) if not self.fused else np.empty((1, 1, 1))
+        return self._acc, self._L
+
+    def _consistent_system(self, state, mass, stencil, K):
+        """The step's consistent-mass system: compiled stencil CG, or the
+        general grid system (sparse LU with ``mass_solver="direct"``, and
+        whenever tiny-mass dofs must be merged)."""
+        from .grid_system import GridSystem
+        from .timestep import fast_dof_limit, lumping_fraction
+
+        guard = state.method.frequency_guard
+        limit = None
+        if guard > 0:
+            limit = guard * fast_dof_limit(state.grid.degree) / (state.dt * state.wave_speed_now) ** 2
+        small = self._small_dofs(state, mass)
+        fast_rows = None if limit is None else (
+            lambda diag: lumping_fraction(K / (limit * np.maximum(diag, 1e-300))))
+        self._fast_rows_fn = fast_rows
+        self._stencil_K = (stencil, K)
+        if self._use_cg(state) and not small:
+            from ..kernels.mpm import fast_row_fractions
+
+            fast = self.kernels.scratch("fast_rows", mass.size)
+            if limit is not None:  # fast_rows of the dofs with mass, in one kernel
+                fast_row_fractions(K, stencil, mass, limit, fast)
+            else:
+                fast[:] = 0.0
+            return StencilSystem(self.kernels, stencil, mass, state.constraints, fast, state.warm)
+        M = self.kernels.stencil_csr(stencil)
+        solver = "cg" if state.method.mass_solver == "cg" else "direct"
+        return GridSystem(mass, state.constraints, M, state.adjacency, state.method.small_mass,
+                          solver, state.warm, fast_rows=fast_rows)
+
+    # ------------------------------------------------------------ operations
+    def particles_to_grid(self, state):
+        p = state.particles
+        k = self.kernels
+        fext, grid_force, work_forces = self.external(state)
+        with state.timer("p2g"):
+            mass, momentum, force = k.p2g(p, fext)
+        stencil = None
+        if state.method.mass == "consistent":
+            with state.timer("mass_matrix"):
+                stencil = k.consistent_stencil(p)
+        return CompiledGrid(mass, momentum, force, stencil, work_forces, grid_force)
+
+    def _prepare(self, state, grid):
+        """The step's grid system (consistent mass), tiny-mass count and
+        gravity: a grid acceleration on lumped free dofs, a force m g with
+        consistent mass (timed as solve)."""
+        if grid.prepared:
+            return
+        grid.prepared = True
+        gravity = self.gravity if self.gravity_work else None
+        with state.timer("solve"):
+            if grid.grid_force is not None:
+                grid.force += grid.grid_force
+            if grid.stencil is not None:
+                grid.system = self._consistent_system(state, grid.mass, *grid.stencil)
+                grid.small = True  # solves go through the system
+                if gravity is not None:
+                    grid.force += grid.mass[:, None] * gravity[None, :]
+                    gravity = None
+            else:
+                grid.small = self._small_dofs(state, grid.mass)
+        grid.gravity = gravity
+
+    def solve_velocity(self, state, grid):
+        raise NotImplementedError("the compiled executor has no USF step")
+
+    def solve_grid(self, state, grid, end_velocity=None):
+        self._prepare(state, grid)
+        k, c, dt = self.kernels, state.constraints, state.dt
+        system, mass, small = grid.system, grid.mass, grid.small
+        momentum, force, gravity = grid.momentum, grid.force, grid.gravity
+        with state.timer("solve"):
+            t_values = c.values(state.t) if c.prescribed else None
+            a_values = (c.values(state.t + dt) - t_values) / dt if c.prescribed else None
+        v_old = None
+        if state.damping:
+            with state.timer("effects"):
+                v_old = self._grid_solve(state, system, mass, momentum, t_values, "velocity",
+                                         self._v_old, small)
+                if gravity is not None:
+                    force = force + mass[:, None] * gravity[None, :]
+                    gravity = None
+                for d in state.damping:
+                    force = d.apply(force, v_old)
+        factor = end_velocity
+        v_grid = None
+        with state.timer("solve"):
+            if factor is not None and not small and not state.damping:
+                k.usl_grid(mass, momentum, force, self._no_gravity if gravity is None
+                           else gravity, c.mask, t_values, a_values, factor * dt,
+                           self._a, self._v_new)
+                a, v_grid = self._a, self._v_new
+            elif factor is not None and system is not None and v_old is None:
+                a, v_old = self._consistent_solves(
+                    state, system, mass, [(force, a_values, "acceleration"),
+                                          (momentum, t_values, "velocity")],
+                    [self._a, self._v_old])
+                v_grid = self._v_new
+                np.multiply(a, factor * dt, out=v_grid)
+                v_grid += v_old
+                system.remember("velocity", v_grid)  # see steps.remember_end_velocity
+            else:
+                a = self._grid_solve(state, system, mass, force, a_values, "acceleration",
+                                     self._a, small, gravity)
+                if factor is not None:
+                    if v_old is None:
+                        v_old = self._grid_solve(state, system, mass, momentum, t_values,
+                                                 "velocity", self._v_old, small)
+                    v_grid = self._v_new
+                    np.multiply(a, factor * dt, out=v_grid)
+                    v_grid += v_old
+                    if system is not None:
+                        system.remember("velocity", v_grid)
+            if c.any:
+                if system is not None:
+                    state.reactions = c.reactions(system.residual(a, force))
+                else:
+                    state.defer_reactions(c, mass, a, force, gravity)
+        grid.force, grid.gravity = force, gravity
+        grid.acceleration, grid.velocity = a, v_grid
+        return a
+
+    def update_particle_velocities(self, state, grid, velocity_factor=1.0,
+                                   keep_acceleration=False):
+        """Deferred: the next kernel (g2p2g or g2p) applies it."""
+        grid.velocity_factor = velocity_factor
+        grid.keep_acceleration = keep_acceleration
+
+    def project_velocity(self, state, grid):
+        p, dt, c = state.particles, state.dt, state.constraints
+        grid.new = self._new_particles(p)
+        with state.timer("g2p"):
+            momentum_new = self.kernels.g2p2g(p, grid.acceleration, grid.velocity_factor * dt,
+                                              grid.new.v)
+        grid.particle_velocities_done = True
+        with state.timer("solve"):
+            if grid.system is not None:  # see steps.project_velocity
+                grid.system.shift_guess("velocity", dt * grid.acceleration)
+            grid.velocity = self._grid_solve(state, grid.system, grid.mass, momentum_new,
+                                             c.values(state.t + dt) if c.prescribed else None,
+                                             "velocity", self._v_new, grid.small)
+
+    def move_particles(self, state, grid):
+        p, dt = state.particles, state.dt
+        if grid.new is None:
+            grid.new = self._new_particles(p)
+        acc, L_out = self._buffers(p)
+        material = state.bodies[0][0]
+        with state.timer("g2p"):
+            bad, out, neg = self.kernels.g2p(
+                p, grid.acceleration, grid.velocity, dt, grid.velocity_factor,
+                not grid.particle_velocities_done, self.fused, material, grid.new, L_out,
+                acc if grid.keep_acceleration else None)
+        if neg >= 0:
+            raise InvalidState(f"J = det(I + dt L) <= 0 at particle {neg}", particle=neg)
+        if bad >= 0:
+            raise InvalidState(f"non-finite state (NaN or Inf) at particle {bad}", particle=bad)
+        grid.L, grid.outside = L_out, out
+
+    def update_stress(self, state, grid, velocity=None):
+        if velocity is not None:
+            raise NotImplementedError("the compiled executor has no USF step")
+        if not self.fused:
+            new = grid.new
+            new.stress, new.V, new.F = steps.update_stress(state, grid.L,
+                                                           particles=state.particles)
+
+    def internal_force(self, state, grid):
+        raise NotImplementedError("the compiled executor has no USF step")
+
+    def commit(self, state, grid):
+        p, new, dt = state.particles, grid.new, state.dt
+        if self.gravity_work:
+            state.external_work += float(
+                self.kernels.mass_times_displacement(grid.mass, grid.velocity, dt) @ self.gravity)
+        if grid.work_forces is not None:
+            state.external_work += float(np.sum(grid.work_forces * (new.u - p.u)))
+        if grid.keep_acceleration:
+            state.particle_acceleration = self._acc
+            self._acc = None  # the state keeps this one; the next step writes a new one
+        if grid.outside >= 0:
+            state.particles = state.without_exits(new)
+            self._spare = None
+        else:
+            self._spare = p
+            state.particles = new
+        state.advance()

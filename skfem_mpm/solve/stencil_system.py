@@ -1,0 +1,252 @@
+"""Consistent-mass solves on the spline grid's fixed stencil, compiled
+(the compiled executor's mass system; :mod:`skfem_mpm.solve.compiled`).
+"""
+import numpy as np
+
+from ..errors import InvalidState
+
+__all__ = ["StencilSystem"]
+
+
+class StencilSystem:
+    """Consistent-mass solves on the grid's fixed stencil, compiled.
+
+    Same equations as :class:`~skfem_mpm.solve.grid_system.GridSystem`
+    without tiny-mass merging (a step with tiny masses uses that class):
+    the fast-dof rows are lumped, constrained and massless dofs keep their
+    known values (moved to the right-hand side), and conjugate gradients
+    preconditioned with the lumped mass, warm started from the previous
+    step, solve all components (and several right-hand sides, see
+    :meth:`solve_many`) at once. Only the free dofs enter the iteration:
+    for each constraint pattern a kernel copies their rows of the stencil
+    into a compact row-by-row (ELL) matrix. The preconditioner is the
+    Kronecker one of :mod:`skfem_mpm.kernels.kronecker` (``"kronecker"``,
+    default), with the fringe correction of :mod:`skfem_mpm.kernels.fringe`
+    on ``FRINGE_LAYERS`` layers of the free-dof set's edge once the
+    Kronecker step alone has needed ``FRINGE_FROM`` iterations (0 layers:
+    never), or the inverse lumped mass (``"lumped"``).
+    """
+
+    preconditioner = "kronecker"
+    FRINGE_LAYERS = 3
+    max_iterations = None  # per CG run; None: 10 x the free dofs + 100
+    iteration_log = None  # a list: each CG run appends its iterations (benchmarks)
+    LUMPED_ROW = 0.2
+    _no_kronecker = (np.ones((1, 1)), np.ones((1, 1)), np.zeros(1, dtype=np.int64), np.ones(1),
+                     np.zeros((1, 1, 1)), 1)
+
+    def __init__(self, kernels, stencil, lumped, constraints, fast, warm, rtol=1e-13):
+        self.k = kernels
+        self.geometry = kernels.stencil_geometry
+        self.stencil = stencil
+        self.constraints = constraints
+        self.warm = warm
+        self.rtol = rtol
+        self.small_dofs = 0
+        self.lumped = lumped
+        self.inactive = lumped <= 0
+        self.fast = np.ascontiguousarray(fast, dtype=np.float64)
+        mask = constraints.mask
+        # what depends only on the free-dof sets is kept on the kernels
+        # between steps (it changes only when particles enter or leave a
+        # support or the constraints change)
+        self.memo = kernels.__dict__.setdefault("stencil_memo", {})
+        key = mask.tobytes() + self.inactive.tobytes()
+        kept = self.memo.get("groups")
+        if kept is None or kept[0] != key:
+            groups = {}  # constraint pattern -> (components, free rows, dof -> row)
+            for c in range(mask.shape[1]):
+                pattern = mask[:, c].tobytes()
+                if pattern not in groups:
+                    rows = np.flatnonzero(~(mask[:, c] | self.inactive))
+                    index = np.full(lumped.size, -1, dtype=np.int64)
+                    index[rows] = np.arange(rows.size)
+                    groups[pattern] = ([], rows, index)
+                groups[pattern][0].append(c)
+            reaction_rows = np.flatnonzero(np.logical_or.reduce(list(mask.T)))  # 20x any(axis=1)
+            kept = self.memo["groups"] = (key, groups, reaction_rows)
+        self.groups = {pattern: [comps, rows, index, None]
+                       for pattern, (comps, rows, index) in kept[1].items()}
+        self.reaction_rows = kept[2]
+        self._stale_fringe = {}
+        self.iterations = 0
+
+    def _compact(self, group, need_fixed=False):
+        """The group's free-dof matrix (built once per step and pattern; its
+        fixed-column part F only when ``need_fixed``: nonzero fixed values)."""
+        from ..kernels.mpm import compact_system
+
+        comps, rows, index, built = group
+        if built is not None and (built[7] or not need_fixed):
+            return built
+        ns = self.stencil.shape[1]
+        g = list(self.groups.values()).index(group)  # scratch arrays per group
+        A, F = self.k.scratch(f"A{g}", (rows.size, ns)), self.k.scratch(f"F{g}", (rows.size, ns))
+        cols = self.k.scratch(f"cols{g}", (rows.size, ns), np.int32)
+        fcols = self.k.scratch(f"fcols{g}", (rows.size, ns), np.int32)
+        key = rows.tobytes()
+        write_cols = self.memo.get(f"cols{g}") != key  # cols{g} holds this set's columns
+        compact_system(self.stencil, *self.geometry, rows, index, self.fast, A, cols, F,
+                       fcols, write_cols, need_fixed)
+        self.memo[f"cols{g}"] = key
+        if built is not None:  # F added to this step's system (A rewritten, equal)
+            built = group[3] = built[:7] + (True,)
+            return built
+        inv_diag = 1.0 / self.lumped[rows]
+        kron = fringe = None
+        if self.preconditioner == "kronecker" and rows.size:
+            from ..kernels.kronecker import KroneckerData
+
+            centre = (ns - 1) // 2
+            kron = KroneckerData(*self.k.axis_mass(), self.geometry, rows, self.lumped,
+                                 self.fast[rows] >= self.LUMPED_ROW, A[:, centre].copy(),
+                                 previous=self.memo.get(f"kronecker{g}"))
+            self.memo[f"kronecker{g}"] = kron
+            if self.FRINGE_LAYERS > 0 and (self.FRINGE_FROM <= 0
+                                           or f"fringe{g}_on" in self.warm):
+                fringe = self._fringe(g, rows, A, cols)
+        built = group[3] = (A, cols, F, fcols, inv_diag, kron, fringe, need_fixed)
+        return built
+
+    # The particles move little in a step, so the fringe factors of an
+    # earlier step's M_FF stay a close symmetric positive definite
+    # approximation of M_FF^-1: they are kept while CG needs at most
+    # FRINGE_SLACK iterations more than in the first solve with them (the
+    # factorisation with its set-up costs about as much as three CG
+    # iterations at 128 x 128 cells). The block they came from is kept in
+    # the warm data, so a restart from a checkpoint factorises the same
+    # block and continues bit for bit.
+    FRINGE_SLACK = 1
+    # The fringe correction costs two sparse triangular solves and two
+    # partial products per iteration, worth it where the Kronecker
+    # preconditioner alone needs many iterations (25 on the 2D bench block,
+    # 6 with the correction) but not where it needs few (8 on the small soil
+    # column, 6 with it, and 25% more solve time). A group turns it on, for
+    # the rest of the run, after a CG run with the Kronecker preconditioner
+    # alone took at least FRINGE_FROM iterations (the switch is warm data,
+    # so restarts follow it).
+    FRINGE_FROM = 12
+
+    def _fringe(self, g, rows, A, cols):
+        """The fringe correction's factors for group g, or None (the
+        pattern is kept on the kernels while the free-dof set stays)."""
+        from ..kernels.fringe import FringeFactor, FringePattern
+
+        cache = self.k.__dict__.setdefault("fringe_patterns", {})
+        pattern = cache.get(g)
+        if pattern is None or pattern.key != rows.tobytes() or \
+                pattern.layers != self.FRINGE_LAYERS:
+            pattern = cache[g] = FringePattern(rows, cols, self.geometry, self.FRINGE_LAYERS)
+        if not pattern.fringe.size:
+            return None
+        key = f"fringe{g}"
+        stored_rows, data = self.warm.get(key + "_rows"), self.warm.get(key + "_block")
+        self._stale_fringe[g] = True  # factors of an earlier step's block
+        if stored_rows is None or not np.array_equal(stored_rows, rows) or \
+                data.size != pattern.indices.size:
+            self._stale_fringe[g] = False
+            data = pattern.block_values(A)
+            for name in [k for k in self.warm if k.startswith(key + "_fresh")]:
+                del self.warm[name]
+            self.warm.update({key + "_rows": rows.copy(), key + "_block": data})
+        if pattern.factor is None or pattern.factor.data is not data:
+            pattern.factor = FringeFactor(data, pattern)
+        return pattern.factor
+
+    def _keep_fringe(self, g, kinds, iterations):
+        """After a CG run with group g's fringe factors (on the right-hand
+        sides ``kinds``): drop them (the next step factorises anew) when it
+        took more than FRINGE_SLACK iterations beyond the first run with
+        them on the same kinds."""
+        name = f"fringe{g}_fresh_" + "+".join(kinds)
+        fresh = self.warm.get(name)
+        if fresh is None:
+            self.warm[name] = np.array([iterations])
+        elif iterations > fresh[0] + self.FRINGE_SLACK:
+            self.warm.pop(f"fringe{g}_rows", None)
+
+    def solve(self, rhs, values, kind):
+        """x with M x = rhs on the free dofs and x = values on the fixed ones."""
+        return self.solve_many([(rhs, values, kind)])[0]
+
+    def solve_many(self, problems):
+        """Several solves with this matrix in one CG run: ``problems`` is a
+        list of (rhs, values, kind) (kind names the warm start); returns the
+        solutions in order."""
+        from numba import get_num_threads
+
+        from ..kernels.fringe import FringeFactor
+        from ..kernels.mpm import compact_problem, ell_pcg, expand_problem
+
+        outs = []
+        for rhs, values, kind in problems:
+            out = np.array(values, dtype=np.float64, copy=True)  # fixed dofs keep theirs
+            outs.append(out)
+        has_values = [bool(values.any()) for _, values, _ in problems]
+        for g, group in enumerate(self.groups.values()):
+            comps, rows, index, _ = group
+            A, cols, F, fcols, inv_diag, kron, fringe, _ = self._compact(group, any(has_values))
+            comps = np.asarray(comps, dtype=np.int64)
+            nc = len(problems) * comps.size
+            b = self.k.scratch(f"b{g}", (rows.size, nc))
+            x = self.k.scratch(f"x{g}", (rows.size, nc))
+            for i, (rhs, values, kind) in enumerate(problems):
+                prev = self.warm.get(kind)
+                has_prev = prev is not None and prev.shape == rhs.shape
+                compact_problem(rows, rhs, values, has_values[i],
+                                prev if has_prev else rhs, has_prev, comps, i * comps.size,
+                                F, fcols, b, x)
+            if rows.size:
+                before = self.iterations
+                nt = get_num_threads()
+                mode = 0 if kron is None else 1 if fringe is None else 2
+                pre = kron.args(b.shape[1], nt) if kron is not None else self._no_kronecker
+                extra = fringe.args(b.shape[1]) if fringe is not None else FringeFactor.no_args()
+                work = self.k.scratch("cg", (6,) + b.shape)
+                limit = self.max_iterations or 10 * rows.size + 100
+                problem = np.repeat(np.arange(len(problems)), comps.size)
+                its = ell_pcg(A, cols, inv_diag, mode, pre, extra, b, x, problem, self.rtol,
+                              limit, nt, work)
+                if its < 0 and fringe is not None and self._stale_fringe[g]:
+                    # factors of an earlier step: retry with the current block's
+                    self.warm.pop(f"fringe{g}_rows", None)
+                    fringe = self._fringe(g, rows, A, cols)
+                    group[3] = group[3][:6] + (fringe,) + group[3][7:]
+                    more = ell_pcg(A, cols, inv_diag, mode, pre, fringe.args(b.shape[1]), b, x,
+                                   problem, self.rtol, limit, nt, work)
+                    its = -its + more if more > 0 else its - abs(more)
+                if its < 0:
+                    raise InvalidState(f"consistent-mass CG stopped above its tolerance "
+                                       f"{self.rtol:g} after {-its} iterations")
+                self.iterations += its
+                if mode == 1 and self.FRINGE_LAYERS > 0 and its >= self.FRINGE_FROM:
+                    self.warm[f"fringe{g}_on"] = np.array([1])
+                if fringe is not None:
+                    self._keep_fringe(g, [kind for _, _, kind in problems],
+                                      self.iterations - before)
+                if self.iteration_log is not None:
+                    self.iteration_log.append(self.iterations - before)
+            for i, out in enumerate(outs):
+                expand_problem(rows, x, comps, i * comps.size, out)
+        return outs
+
+    def remember(self, kind, x):
+        self.warm[kind] = x.copy()
+
+    def shift_guess(self, kind, dx):
+        from .grid_system import shift_guess
+
+        shift_guess(self.warm, kind, dx)
+
+    def residual(self, x, rhs):
+        """M x - rhs with the fast rows lumped, on the constrained dofs (the
+        rows the reactions read; zero elsewhere)."""
+        from ..kernels.mpm import stencil_rows_product
+
+        rows = self.reaction_rows
+        y = np.empty((rows.size, x.shape[1]))
+        stencil_rows_product(self.stencil, *self.geometry, rows, self.inactive, self.fast,
+                             np.ascontiguousarray(x), y)
+        out = np.zeros_like(rhs)
+        out[rows] = y - rhs[rows]
+        return out

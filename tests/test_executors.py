@@ -1,0 +1,173 @@
+"""The two executors of the one scheme code agree.
+
+Every scheme's sequence is written once (skfem_mpm.solve.schemes); the
+reference executor (NumPy transfer matrices) and the compiled one (numba
+kernels) run it. They must agree on every combination of scheme x mass x
+degree x dimension x material x effect: the default tier runs a
+pairwise-covering set (every pair of option values in at least one case),
+the slow tier the full product. Tolerances: 1e-12 relative with lumped
+mass; with consistent mass the compiled executor solves by conjugate
+gradients to rtol 1e-13 against the reference's sparse LU, so the bound is
+1e-9 relative.
+
+Tiers: pairwise (default), every triple of option values (``slow``, about
+100 cases), the full product of 648 cases (``exhaustive``: run it with
+``pytest -m exhaustive tests/test_executors.py`` after changing an
+executor; it takes about half an hour on 2 cores).
+"""
+import itertools
+
+import numpy as np
+import pytest
+
+from skfem_mpm import (Body, BodyForce, Damping, Fixed, Gravity, LinearElastic, Method,
+                       NeoHookean, Particles, Prescribed, Scene, SplineGrid, Traction, simulate)
+from skfem_mpm.materials import Material, det, incremental_deformation
+from skfem_mpm.solve.state import prepare
+
+FACTORS = {
+    "scheme": ("musl", "usl", "cd"),
+    "mass": ("lumped", "consistent"),
+    "degree": (1, 2, 3),
+    "dim": (1, 2),
+    "material": ("linear", "neo-hookean", "custom"),
+    "effect": ("none", "gravity", "body-force", "traction", "prescribed", "damping"),
+}
+
+
+class CappedStress(Material):
+    """A user's small-strain material (not fused into any kernel): linear
+    elasticity with every stress component clamped to +-cap."""
+
+    def __init__(self, E, nu, cap):
+        self.inner = LinearElastic(E, nu)
+        self.cap = cap
+
+    def update(self, particles, L, dt):
+        stress, V, F = self.inner.update(particles, L, dt)
+        return np.clip(stress, -self.cap, self.cap), V, F
+
+    def wave_speed(self, particles):
+        return self.inner.wave_speed(particles)
+
+    def strain_energy(self, particles):
+        return self.inner.strain_energy(particles)
+
+
+def covering_cases(factors, strength=2):
+    """A greedy covering set: every combination of values of any
+    ``strength`` factors occurs in at least one case (deterministic). Each
+    case starts from the first combination not yet covered and fills the
+    other factors with the value that covers the most new combinations."""
+    names = list(factors)
+    groups = list(itertools.combinations(names, strength))
+
+    def key(case, group):
+        return tuple((name, case[name]) for name in group)
+
+    uncovered = {tuple(zip(group, values)) for group in groups
+                 for values in itertools.product(*(factors[n] for n in group))}
+
+    def new_combinations(case):
+        return sum(key(case, g) in uncovered for g in groups if all(n in case for n in g))
+
+    def order(combination):
+        return tuple((names.index(n), factors[n].index(v)) for n, v in combination)
+
+    cases = []
+    while uncovered:
+        case = dict(min(uncovered, key=order))
+        for name in names:
+            if name not in case:
+                case[name] = max(factors[name],
+                                 key=lambda value: (new_combinations(dict(case, **{name: value})),
+                                                    -factors[name].index(value)))
+        case = {name: case[name] for name in names}
+        cases.append(case)
+        uncovered -= {key(case, g) for g in groups}
+    return cases
+
+
+def scene_for(case, steps=20):
+    dim, degree = case["dim"], case["degree"]
+    if dim == 1:
+        grid = SplineGrid.line(0.0, 1.0, 8, degree)
+        region = ((0.0, 0.7),)
+        velocity = lambda X: 0.05 * np.sin(np.pi * X)  # noqa: E731
+    else:
+        grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (6, 5), degree)
+        region = ((0.0, 0.7), (0.0, 0.62))
+        velocity = lambda X: np.column_stack((0.05 * X[:, 1], -0.03 * X[:, 0]))  # noqa: E731
+    particles = Particles.seed(grid, 2, 1.0, region=region, velocity=velocity)
+    material = {"linear": LinearElastic(10.0, 0.3),
+                "neo-hookean": NeoHookean(10.0, 0.3),
+                "custom": CappedStress(10.0, 0.3, 2e-3)}[case["material"]]
+    base_side = "left" if dim == 1 else "bottom"
+    effects = []
+    effect = case["effect"]
+    if effect == "prescribed":
+        if dim == 1:
+            effects.append(Prescribed("left", 0, lambda t: 0.02 * t))
+        else:
+            effects += [Fixed("bottom", 1), Prescribed("bottom", 0, lambda t: 0.02 * t)]
+    else:
+        effects.append(Fixed(base_side))
+    g = -2.0 if dim == 1 else (0.0, -2.0)
+    effects += {"none": [], "prescribed": [], "gravity": [Gravity(g)],
+                "body-force": [BodyForce(lambda X, t: 0.5 * np.cos(3 * X + t))],
+                "traction": [Traction("right", (lambda t: 0.01 * t) if dim == 1
+                                      else (lambda t: (0.01 * t, -0.005)))],
+                "damping": [Damping(0.05)]}[effect]
+    scene = Scene(grid, Body(particles, material), 1.0, effects=effects)
+    dt = prepare(scene, Method(scheme=case["scheme"], mass=case["mass"])).dt
+    return Scene(grid, Body(particles, material), steps * dt, effects=effects)
+
+
+def check_agreement(case):
+    scene = scene_for(case)
+    method = dict(scheme=case["scheme"], mass=case["mass"])
+    ref = simulate(scene, Method(backend="numpy", **method), save_every=5)
+    fast = simulate(scene, Method(backend="numba", **method), save_every=5)
+    assert fast.path == "fast" and ref.path.startswith("reference"), (fast.path, ref.path)
+    tol = 1e-12 if case["mass"] == "lumped" else 1e-9
+    for key in ("x", "v", "stress"):
+        a, b = ref.history[key], fast.history[key]
+        scale = max(np.abs(a).max(), 1e-300)
+        assert np.abs(a - b).max() <= tol * scale, (key, np.abs(a - b).max() / scale)
+    w_ref, w_fast = ref.energies["external_work"], fast.energies["external_work"]
+    assert np.abs(w_ref - w_fast).max() <= tol * max(np.abs(w_ref).max(), 1e-300) + 1e-300
+
+
+PAIRWISE = covering_cases(FACTORS, 2)
+
+
+def _id(case):
+    return "-".join(str(v) for v in case.values())
+
+
+@pytest.mark.parametrize("strength", (2, 3))
+def test_the_covering_sets_cover_every_combination(strength):
+    cases = covering_cases(FACTORS, strength)
+    for group in itertools.combinations(FACTORS, strength):
+        seen = {tuple(c[n] for n in group) for c in cases}
+        assert seen == set(itertools.product(*(FACTORS[n] for n in group))), group
+    assert len(cases) < {2: 30, 3: 150}[strength]
+
+
+@pytest.mark.parametrize("case", PAIRWISE, ids=_id)
+def test_executors_agree_pairwise(case):
+    check_agreement(case)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", [c for c in covering_cases(FACTORS, 3) if c not in PAIRWISE],
+                         ids=_id)
+def test_executors_agree_three_wise(case):
+    check_agreement(case)
+
+
+@pytest.mark.exhaustive
+@pytest.mark.parametrize("case", [dict(zip(FACTORS, values))
+                                  for values in itertools.product(*FACTORS.values())], ids=_id)
+def test_executors_agree_on_every_combination(case):
+    check_agreement(case)
