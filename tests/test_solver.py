@@ -186,3 +186,32 @@ def test_gravity_free_fall_matches_ballistics():
     assert abs(drop - 0.5 * 9.81 * 0.1 ** 2) < 1e-12
     # external work equals the loss of potential energy m g drop
     assert np.isclose(r.energies["external_work"][-1], parts.m.sum() * 9.81 * drop, rtol=1e-12)
+
+
+def test_fem_follows_a_users_small_strain_material():
+    """fem integrates the material's own update (here the 1D elastic-perfectly
+    plastic material of examples/custom_material.py). Under monotonic loading
+    (before any point unloads) that law gives sigma = clip(E eps, +-sigma_y)
+    at every particle; linear elasticity would exceed the yield stress."""
+    import sys
+    from pathlib import Path
+
+    from skfem_mpm.quadrature import transfer_matrices
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    try:
+        from custom_material import ElasticPlastic1D
+    finally:
+        sys.path.pop(0)
+    E, yield_stress = 100.0, 0.09
+    grid = SplineGrid.line(0.0, 1.0, 16, 2)
+    particles = Particles.seed(grid, 2, 1.0, velocity=lambda X: 1e-2 * np.sin(np.pi * X))
+    scene = Scene(grid, Body(particles, ElasticPlastic1D(E, yield_stress)), 0.044,
+                  effects=[Fixed("left"), Fixed("right")])
+    result = fem(scene, Method(mass="consistent"))
+    _, G = transfer_matrices(grid, particles.X)
+    elastic = E * (G[0] @ result.grid_displacement[:, 0])
+    stress = result.particles.stress[:, 0, 0]
+    assert np.abs(elastic).max() > 1.05 * yield_stress  # the plastic branch is reached
+    assert np.abs(stress - np.clip(elastic, -yield_stress, yield_stress)).max() \
+        <= 1e-12 * yield_stress

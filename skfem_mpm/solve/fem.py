@@ -9,13 +9,21 @@ and the same explicit integrator as the MPM method:
     v^(n+1) = v^n + dt a^n,   u^(n+1) = u^n + dt v^(n+1)     (musl/usl/usf)
     the first velocity step is halved for 'cd' (central difference)
 
-    f_int,i = sum_g w_g sigma(eps(u))(X_g) grad N_i(X_g)          (small strain)
+    f_int,i = sum_g w_g sigma_g grad N_i(X_g)                     (small strain)
     f_int,i = sum_g w_g P(I + grad_X u)(X_g) grad_X N_i(X_g)      (finite strain)
+
+Small strain: the stress at each Gauss point comes from the material's own
+update (``material.update``, the same law MPM calls) with the velocity
+gradient L_g = grad v^(n+1)(X_g) of the step, so a user's material (plastic,
+path dependent) is honoured; for linear elasticity the sum of increments
+equals sigma_0 + C : eps(u) to round-off. Finite strain: the first Piola
+stress of the material's hyperelastic law at F = I + grad_X u.
 
 Gauss points are particles that do not move, so the same transfer matrices
 serve both methods. The scene's particles are carried as material points:
 their displacement is interpolated at their reference positions, so errors
-are measured at the same points as MPM's. The body must fill the grid.
+are measured at the same points as MPM's (with small strain their stress is
+integrated by the material's update too, with L_p = grad v(X_p)). The body must fill the grid.
 Initial velocity (and stress) fields are fitted from the particles by
 mass-weighted discrete least squares (which reproduces every field of the
 space, so it keeps the order p + 1).
@@ -119,6 +127,14 @@ class _FemModel:
             coeffs = self._fit(NpT @ (particles.m[:, None] * s0.reshape(s0.shape[0], -1)))
             self.stress0_g = (self.Ng @ coeffs).reshape(-1, dim, dim)
             self.stress0_p = (self.Np @ coeffs).reshape(-1, dim, dim)
+        if not self.finite:  # the stress state of the Gauss points and of the particles
+            zero = np.zeros((xg.shape[0], dim, dim))
+            self.gauss.stress = self.stress0_g.copy() if self.has_initial_stress else zero
+            self.points = particles.replaced(
+                stress=self.stress0_p.copy() if self.has_initial_stress
+                else np.zeros_like(particles.stress))
+            self.point_groups = [(mat, np.flatnonzero(particles.body == i))
+                                 for i, mat in enumerate(self.materials)]
         forces = [e for e in scene.effects if e.kind == "force"]
         self.gravity = [e for e in forces if e.__class__.__name__ == "Gravity"]
         self.body_forces = [e for e in forces if e.__class__.__name__ == "BodyForce"]
@@ -139,29 +155,33 @@ class _FemModel:
     def gradient(self, G, u):
         return np.stack([Gd @ u for Gd in G], axis=-1)  # (n, comps, dim)
 
-    def stress_at(self, grad_u, body, initial=None):
-        """First Piola stress and F (finite strain), or Cauchy stress and None
-        (small strain: sigma0 + C : eps), at points of the given bodies."""
+    def first_piola(self, grad_u, body):
+        """Finite strain: first Piola stress and F = I + grad_X u at points
+        of the given bodies."""
         dim = grad_u.shape[-1]
-        out = np.zeros_like(grad_u) if initial is None else initial.copy()
-        F = np.eye(dim) + grad_u if self.finite else None
-        eps = None if self.finite else 0.5 * (grad_u + np.swapaxes(grad_u, 1, 2))
+        out = np.zeros_like(grad_u)
+        F = np.eye(dim) + grad_u
         for i, m in enumerate(self.materials):
             idx = np.flatnonzero(body == i)
-            if not idx.size:
-                continue
-            if self.finite:
+            if idx.size:
                 out[idx] = m.first_piola(F[idx])
-            elif dim == 1:
-                out[idx] += m.E * eps[idx]
-            else:
-                e = eps[idx]
-                tr = e[:, 0, 0] + e[:, 1, 1]
-                s = 2 * m.mu * e
-                s[:, 0, 0] += m.lam * tr
-                s[:, 1, 1] += m.lam * tr
-                out[idx] += s
         return out, F
+
+    @staticmethod
+    def _material_update(points, groups, L, dt):
+        """Each body's material update of ``points``' stress with L."""
+        stress = points.stress.copy()
+        for material, idx in groups:
+            if idx.size:
+                stress[idx] = material.update(points.subset(idx), L[idx], dt)[0]
+        points.stress = stress
+
+    def update_stress(self, v, dt):
+        """Small strain: the materials' update at the Gauss points and at the
+        particles with the step's velocity gradient (du = dt v)."""
+        with self.timer("constitutive"):
+            self._material_update(self.gauss, self.groups, self.gradient(self.Gg, v), dt)
+            self._material_update(self.points, self.point_groups, self.gradient(self.Gp, v), dt)
 
     def cauchy(self, F, body):
         out = np.zeros_like(F)
@@ -172,10 +192,11 @@ class _FemModel:
         return out
 
     def internal_force(self, u):
-        with self.timer("constitutive"):
-            grad_u = self.gradient(self.Gg, u)
-            init = self.stress0_g if self.has_initial_stress else None
-            S, F = self.stress_at(grad_u, self.gauss.body, init)
+        if self.finite:
+            with self.timer("constitutive"):
+                S, F = self.first_piola(self.gradient(self.Gg, u), self.gauss.body)
+        else:
+            S, F = self.gauss.stress, None
         with self.timer("p2g"):
             ws = self.wg[:, None, None] * S
             f = -sum(self.GgT[d] @ ws[:, :, d] for d in range(len(self.GgT)))
@@ -232,10 +253,11 @@ class _FemState:
         m, ref = self.model, self.reference
         with self.timer("g2p"):
             u_p = m.Np @ self.u
-            grad_u = m.gradient(m.Gp, self.u)
-            init = m.stress0_p if m.has_initial_stress else None
-            S, F = m.stress_at(grad_u, ref.body, init)
-            stress = m.cauchy(F, ref.body) if m.finite else S
+            if m.finite:
+                S, F = m.first_piola(m.gradient(m.Gp, self.u), ref.body)
+                stress = m.cauchy(F, ref.body)
+            else:
+                stress, F = m.points.stress, None
             self.particles = ref.replaced(x=ref.X + u_p, u=u_p, v=m.Np @ self.v, stress=stress,
                                           F=F if m.finite else ref.F)
         g = m.gauss
@@ -318,6 +340,8 @@ def fem(scene, method=None, save_every=None, progress=False):
             if f_ext is not None:
                 state.external_work += float(np.sum(f_ext * du))
             state.u = state.u + du
+        if not model.finite:
+            model.update_stress(state.v, dt)
         f_int, S, F = model.internal_force(state.u)
         if not (np.all(np.isfinite(state.u)) and np.all(np.isfinite(state.v))):
             result = recorder.result(state, time.perf_counter() - t0, 0.0, kind="fem")
