@@ -97,11 +97,16 @@ class CompiledExecutor:
             else:
                 self.other_forces.append(f)
         self.fused = len(state.bodies) == 1 and type(state.bodies[0][0]) is LinearElastic
+        # every material has a compiled point law: the constitutive kernel runs them
+        self.point_laws = not self.fused and all(
+            material.point_update is not None for material, _ in state.bodies)
+        self.finite = state.scene.finite_strain
         timer = state.timer
         timer.note_fused("p2g", ("locate", "basis", "p2g"))
         timer.note_fused("g2p", ("locate", "basis", "g2p")
                          + (("constitutive",) if self.fused else ()))
         self._spare = None
+        self._owned_F = []  # F arrays the constitutive kernel may write
         self._owned = set()
         self._acc = None
         nd, dim = state.grid.ndofs, state.grid.dim
@@ -109,6 +114,8 @@ class CompiledExecutor:
         self._v_new = np.empty((nd, dim))
         self._a = np.empty((nd, dim))
         self._no_gravity = np.zeros(dim)
+        self._no_index = np.zeros(0, dtype=np.int64)
+        self._first_bad = np.full(self.kernels.nthreads, -1, dtype=np.int64)
 
     # ---------------------------------------------------------------- buffers
     WRITTEN = ("x", "v", "u", "stress", "V")
@@ -128,7 +135,13 @@ class CompiledExecutor:
                 self._owned.add(id(a))
         for name in ("m", "X", "V0", "body", "F"):
             setattr(spare, name, getattr(p, name))
-        if not self.fused:
+        if self.point_laws and self.finite:  # F is written by the constitutive kernel
+            free = [F for F in self._owned_F if F is not p.F and F.shape == p.F.shape]
+            if not free:
+                free = [np.empty_like(p.F)]
+                self._owned_F = [F for F in self._owned_F if F is p.F] + free
+            spare.F = free[0]
+        if not (self.fused or self.point_laws):
             spare.stress, spare.V = p.stress, p.V  # replaced by the material update
         return spare
 
@@ -412,12 +425,37 @@ class CompiledExecutor:
         grid.L, grid.outside = L_out, out
 
     def update_stress(self, state, grid, velocity=None):
+        """Linear elasticity alone: already done in the g2p kernel; materials
+        with compiled point laws: the constitutive kernel per body; others:
+        their NumPy ``update``."""
         if velocity is not None:
             raise NotImplementedError("the compiled executor has no USF step")
-        if not self.fused:
-            new = grid.new
-            new.stress, new.V, new.F = steps.update_stress(state, grid.L,
-                                                           particles=state.particles)
+        if self.fused:
+            return
+        p, new = state.particles, grid.new
+        if not self.point_laws:
+            new.stress, new.V, new.F = steps.update_stress(state, grid.L, particles=p)
+            return
+        from ..kernels.constitutive import material_update
+
+        with state.timer("constitutive"):
+            flags = self._first_bad
+            bad = -1
+            no_state = self.kernels.scratch("no_state", (p.n, 0))
+            F = p.F if self.finite else grid.L  # not read for small strain
+            F_out = new.F if self.finite else grid.L
+            for material, index in state.bodies:
+                every = isinstance(index, slice)
+                material_update(material.point_update.address(),
+                                material.point_parameters(p.dim),
+                                self._no_index if every else index, every, grid.L, state.dt,
+                                self.finite, p.stress, F, p.V, p.V0, no_state, new.stress,
+                                F_out, new.V, no_state, flags)
+                hits = flags[flags >= 0]
+                if hits.size:
+                    bad = int(hits.min()) if bad < 0 else min(bad, int(hits.min()))
+        if bad >= 0:
+            raise InvalidState(f"J = det(I + dt L) <= 0 at particle {bad}", particle=bad)
 
     def internal_force(self, state, grid):
         raise NotImplementedError("the compiled executor has no USF step")

@@ -45,10 +45,10 @@ def warm_up(state, fast):
     """Compile the kernels the run will use on a tiny input; returns seconds."""
     if state.backend != "numba":
         return 0.0
-    from ..kernels.warmup import warm_up_kernels
+    from .warmup import warm_up_kernels
 
     t0 = time.perf_counter()
-    warm_up_kernels(state.grid, fast=fast)
+    warm_up_kernels(state.grid, fast=fast, materials=state.materials)
     return time.perf_counter() - t0
 
 

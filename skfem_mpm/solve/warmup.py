@@ -5,10 +5,11 @@ import numpy as np
 __all__ = ["warm_up_kernels"]
 
 
-def warm_up_kernels(grid, fast=False):
+def warm_up_kernels(grid, fast=False, materials=()):
     """Compile on a small grid of the same dimension and degree (the machine
     code does not depend on the grid's size, and no grid-sized buffer is
-    allocated)."""
+    allocated); with ``fast``, also the constitutive kernel and the point
+    laws of ``materials`` that have one."""
     if not hasattr(grid, "breakpoints"):
         return
     from ..spline import SplineGrid
@@ -21,9 +22,9 @@ def warm_up_kernels(grid, fast=False):
         grid.axis_functions(axis, x[:, axis], backend="numba")
     if not fast:
         return
+    from ..kernels.mpm import Kernels
     from ..materials import LinearElastic
     from ..particles import Particles
-    from .mpm import Kernels
 
     k = Kernels(grid)
     p = Particles(x.copy(), np.ones(1), np.ones(1))
@@ -41,8 +42,8 @@ def warm_up_kernels(grid, fast=False):
                 k.g2p(p, zeros, zeros, 0.0, 1.0, flip, fused, material, new, L, acc)
     k.small_mass(np.ones(grid.ndofs), 1e-3)
     stencil, K = k.consistent_mass(p)[0], None
-    from ..solve.stencil_system import StencilSystem
-    from ..solve.grid_system import Constraints
+    from .grid_system import Constraints
+    from .stencil_system import StencilSystem
 
     st, K = k.consistent_stencil(p)
     system = StencilSystem(k, st + np.eye(1, st.shape[1], (st.shape[1] - 1) // 2),
@@ -57,3 +58,24 @@ def warm_up_kernels(grid, fast=False):
         k.solve(np.ones(grid.ndofs), zeros, np.zeros(dim), mask, values, out)
         k.usl_grid(np.ones(grid.ndofs), zeros, zeros, np.zeros(dim), mask, values, values, 0.0,
                    out, zeros.copy())
+    _warm_up_point_laws(grid.dim, materials)
+
+
+def _warm_up_point_laws(dim, materials):
+    """Compile (or load) the constitutive kernel and each material's point
+    law on one particle."""
+    from numba import get_num_threads
+
+    from ..kernels.constitutive import material_update
+
+    one = np.zeros((1, dim, dim))
+    for material in materials:
+        if material.point_update is None:
+            continue
+        finite = bool(material.finite_strain)
+        F = np.broadcast_to(np.eye(dim), (1, dim, dim)).copy()
+        state = np.zeros((1, 0))
+        material_update(material.point_update.address(), material.point_parameters(dim),
+                        np.zeros(0, dtype=np.int64), True, one, 0.0, finite, one.copy(), F,
+                        np.ones(1), np.ones(1), state, one.copy(), F.copy(), np.ones(1), state,
+                        np.full(get_num_threads(), -1, dtype=np.int64))

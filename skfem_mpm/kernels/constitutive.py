@@ -1,0 +1,103 @@
+"""The compiled constitutive update: every material's point law through one
+cached kernel (any dimension).
+
+For each particle i of a body (``index``, or every particle):
+
+    A = I + dt L_i                          the step's deformation increment
+    finite strain:  F_i <- A F_i,  V_i = V0_i det F_i
+    small strain:   V_i <- V_i det A
+    stress_i <- law(params, L_i, F, dt, stress_i, ...)     F = F_i or A
+
+The law is a C callback of the signature
+:data:`skfem_mpm.materials.compiled.POINT_SIGNATURE`, passed by its address
+(so this kernel is compiled and cached once for all materials). Returns the first particle with
+det <= 0 (-1 for none); the NumPy reference is each material's ``update``.
+"""
+import numpy as np
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.extending import intrinsic
+
+__all__ = ["material_update"]
+
+
+@intrinsic
+def _call_law(typingctx, address, params, L, F, dim, dt, stress, state, stress_out, state_out):
+    """Call the C callback at ``address`` (an integer: typing it costs
+    nothing per call, unlike a function object) with the data pointers of
+    the arrays (POINT_SIGNATURE)."""
+    sig = types.void(address, params, L, F, dim, dt, stress, state, stress_out, state_out)
+
+    def codegen(context, builder, signature, args):
+        a_address, a_params, a_L, a_F, a_dim, a_dt, a_s, a_st, a_so, a_sto = args
+        ty = signature.args
+        double_p = ir.DoubleType().as_pointer()
+        intp = context.get_value_type(types.intp)
+
+        def data(i, value):
+            return context.make_array(ty[i])(context, builder, value).data
+
+        def length(i, value):
+            return builder.extract_value(context.make_array(ty[i])(context, builder, value)
+                                         .shape, 0)
+
+        fnty = ir.FunctionType(ir.VoidType(), [double_p, intp, double_p, double_p, intp,
+                                               ir.DoubleType(), double_p, double_p, intp,
+                                               double_p, double_p])
+        fn = builder.inttoptr(a_address, fnty.as_pointer())
+        builder.call(fn, [data(1, a_params), length(1, a_params), data(2, a_L), data(3, a_F),
+                          a_dim, a_dt, data(6, a_s), data(7, a_st), length(7, a_st),
+                          data(8, a_so), data(9, a_sto)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@njit(cache=True, inline="always")
+def _det(A, dim):
+    if dim == 1:
+        return A[0, 0]
+    if dim == 2:
+        return A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+    return (A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1])
+            - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
+            + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]))
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def material_update(law, params, index, every, L, dt, finite, stress, F, V, V0, state,
+                    stress_out, F_out, V_out, state_out, first_bad):
+    """See the module docstring; ``first_bad`` (threads,) receives each
+    block's first particle with det <= 0 (or -1)."""
+    n = L.shape[0] if every else index.shape[0]
+    dim = L.shape[1]
+    nt = first_bad.shape[0]
+    for t in prange(nt):
+        A = np.empty((dim, dim))
+        G = np.empty((dim, dim))
+        bad = -1
+        for k in range(t * n // nt, (t + 1) * n // nt):
+            i = k if every else index[k]
+            for a in range(dim):
+                for b in range(dim):
+                    A[a, b] = dt * L[i, a, b] + (1.0 if a == b else 0.0)
+            if finite:
+                for a in range(dim):
+                    for b in range(dim):
+                        s = 0.0
+                        for c in range(dim):
+                            s += A[a, c] * F[i, c, b]
+                        F_out[i, a, b] = s
+                        G[a, b] = s
+                J = _det(G, dim)
+                V_out[i] = V0[i] * J
+                _call_law(law, params, L[i], G, dim, dt, stress[i], state[i], stress_out[i],
+                          state_out[i])
+            else:
+                J = _det(A, dim)
+                V_out[i] = V[i] * J
+                _call_law(law, params, L[i], A, dim, dt, stress[i], state[i], stress_out[i],
+                          state_out[i])
+            if not J > 0.0 and bad < 0:
+                bad = i
+        first_bad[t] = bad

@@ -1,0 +1,14 @@
+"""Constitutive models, one file each; the interface is
+:class:`~skfem_mpm.materials.base.Material`.
+
+Write your own by following the same shape (see examples/custom_material.py);
+give it a compiled ``point_update`` (:func:`point_update`) and the compiled
+executor runs it without leaving compiled code.
+"""
+from .base import Material, det, incremental_deformation, lame_parameters
+from .compiled import point_update
+from .linear_elastic import LinearElastic
+from .neo_hookean import NeoHookean
+
+__all__ = ["Material", "LinearElastic", "NeoHookean", "lame_parameters", "det",
+           "incremental_deformation", "point_update"]

@@ -1,0 +1,69 @@
+"""Small-strain isotropic linear elasticity."""
+import numpy as np
+
+from ..validation import check_positive
+from .base import Material, check_nu, det, incremental_deformation, lame_parameters
+from .compiled import PointUpdate
+
+__all__ = ["LinearElastic"]
+
+
+class LinearElastic(Material):
+    """Small-strain isotropic linear elasticity (hypoelastic rate form).
+
+        d_eps = dt sym(L),   d_sigma = lambda tr(d_eps) I + 2 mu d_eps     (2D, plane strain)
+        d_sigma = E d_eps                                                 (1D, E alone)
+        V <- det(I + dt L) V
+
+    P-wave speed c = sqrt((lambda + 2 mu) / rho) in 2D, sqrt(E / rho) in 1D.
+    """
+
+    finite_strain = False
+    point_update = PointUpdate("skfem_mpm.materials.laws:linear_elastic")
+
+    def __init__(self, E, nu=0.0):
+        self.E = check_positive("E", E)
+        self.nu = check_nu(nu)
+        self.lam, self.mu = lame_parameters(self.E, self.nu)
+
+    def __repr__(self):
+        return f"LinearElastic(E={self.E:g}, nu={self.nu:g})"
+
+    def modulus(self, dim):
+        """The P-wave modulus: E in 1D, lambda + 2 mu in 2D."""
+        return self.E if dim == 1 else self.lam + 2 * self.mu
+
+    def update(self, particles, L, dt):
+        dim = L.shape[-1]
+        d_eps = 0.5 * dt * (L + np.swapaxes(L, 1, 2))
+        if dim == 1:
+            d_sigma = self.E * d_eps
+        else:
+            trace = d_eps[:, 0, 0] + d_eps[:, 1, 1]
+            d_sigma = 2 * self.mu * d_eps
+            d_sigma[:, 0, 0] += self.lam * trace
+            d_sigma[:, 1, 1] += self.lam * trace
+        J_inc = det(incremental_deformation(L, dt))
+        return particles.stress + d_sigma, particles.V * J_inc, None
+
+    def point_parameters(self, dim):
+        """(E,) in 1D, (lambda, mu) in 2D and 3D."""
+        return np.array([self.E]) if dim == 1 else np.array([self.lam, self.mu])
+
+    def wave_speed(self, particles):
+        rho = particles.m / particles.V
+        return float(np.sqrt(self.modulus(particles.dim) / rho.min()))
+
+    def strain_energy(self, particles):
+        """sum_p (1/2) sigma : eps V_p with eps = C^-1 sigma (plane strain)."""
+        s = particles.stress
+        if particles.dim == 1:
+            w = 0.5 * s[:, 0, 0] ** 2 / self.E
+        else:
+            E, nu = self.E, self.nu
+            sxx, syy, sxy = s[:, 0, 0], s[:, 1, 1], s[:, 0, 1]
+            exx = ((1 - nu ** 2) * sxx - nu * (1 + nu) * syy) / E
+            eyy = ((1 - nu ** 2) * syy - nu * (1 + nu) * sxx) / E
+            exy = sxy / (2 * self.mu)
+            w = 0.5 * (sxx * exx + syy * eyy + 2 * sxy * exy)
+        return float(np.sum(w * particles.V))
