@@ -12,6 +12,23 @@ A scene that does not declare an effect never evaluates it: there is no
 default gravity, no boundary search without a traction, no damping pass.
 Forces on particles reach the grid through the same transfer as every other
 particle quantity (N^T f_p); constraints act on grid dofs.
+
+The protocol (what an executor asks of every effect; the defaults of
+:class:`Effect` contribute nothing, so an effect overrides only its own):
+
+    bind(particles, grid)       -> [particle forces]  (see ParticleForce)
+    constraints(grid)           -> [(component, dofs, velocity(t) or None)]
+    force_modifiers()           -> [objects with modify_force(f, v) -> f]
+    side_traction()             -> (side, traction(x, t)) or None  (fem loads
+                                   the grid side with Gauss quadrature)
+
+A particle force (:class:`ParticleForce`) gives ``forces(particles, t)``
+(n, dim) and may give ``grid_forces`` (where it is not applied at the
+particle centres), ``acceleration`` (a uniform acceleration g with
+f_p = m_p g: an executor may apply it on the grid as m_i g), ``surface``
+(a load on the body's surface, not a volume force), and the state it keeps
+about particles (``rebind`` after removals, ``checkpoint_arrays`` /
+``restore`` for restarts).
 """
 import inspect
 
@@ -20,17 +37,58 @@ import numpy as np
 from .errors import InvalidState
 from .validation import check_finite_array
 
-__all__ = ["Effect", "Gravity", "BodyForce", "Traction", "Fixed", "Prescribed", "Damping"]
+__all__ = ["Effect", "ParticleForce", "Gravity", "BodyForce", "Traction", "Fixed", "Prescribed",
+           "Damping"]
 
 
 class Effect:
-    """Base class. ``kind`` is ``"force"`` (a force on particles),
-    ``"constraint"`` (grid dofs with known velocity) or ``"damping"``."""
-
-    kind = None
+    """Base class of the effects of a scene: each contributes through the
+    protocol of the module docstring and inherits nothing elsewhere."""
 
     def check(self, grid):
         """Validate against the scene's grid (raise ValueError)."""
+
+    def bind(self, particles, grid):
+        """The particle forces of this effect for a run (none by default)."""
+        return []
+
+    def constraints(self, grid):
+        """[(component, scalar dofs, velocity(t) or None)] (none by default)."""
+        return []
+
+    def force_modifiers(self):
+        """Objects whose ``modify_force(force, velocity)`` changes the grid
+        force before the solve (none by default)."""
+        return []
+
+    def side_traction(self):
+        """(side, traction(x, t)) for a load on a named side (fem), or None."""
+        return None
+
+
+class ParticleForce:
+    """A force on particles for one run (what ``Effect.bind`` returns)."""
+
+    surface = False      # a load on the body's surface (not a volume force)
+    acceleration = None  # a uniform acceleration g with f_p = m_p g, or None
+
+    def forces(self, particles, t):  # pragma: no cover - interface
+        """f_p, shape (n, dim)."""
+        raise NotImplementedError
+
+    def grid_forces(self, particles, t, grid):
+        """The grid force when it is not N^T f_p (side tractions), or None."""
+        return None
+
+    def rebind(self, keep):
+        """After particles were removed (``keep``: the survivors' mask)."""
+
+    def checkpoint_arrays(self):
+        """The arrays a restart needs to rebuild this force ({name: array})."""
+        return {}
+
+    def restore(self, arrays):
+        """Take back what :meth:`checkpoint_arrays` gave."""
 
 
 def _numbers(name, value, what):
@@ -48,11 +106,9 @@ def _vector(name, value, dim):
     return check_finite_array(name, a)
 
 
-class Gravity(Effect):
+class Gravity(Effect, ParticleForce):
     """Gravitational acceleration in the user's axes: ``Gravity((0.0, -9.81))``
     in 2D, ``Gravity(-9.81)`` in 1D (negative points toward -x)."""
-
-    kind = "force"
 
     def __init__(self, g):
         self.g = _numbers("g", g, "a number (1D) or a vector of numbers")
@@ -64,18 +120,20 @@ class Gravity(Effect):
     def check(self, grid):
         self.g = _vector("g", self.g, grid.dim)
 
-    def bind(self, particles):
-        return self
+    @property
+    def acceleration(self):
+        return self.g
+
+    def bind(self, particles, grid):
+        return [self]
 
     def forces(self, particles, t):
         return particles.m[:, None] * self.g[None, :]
 
 
-class BodyForce(Effect):
+class BodyForce(Effect, ParticleForce):
     """A body force per unit reference mass ``b(X, t)``, X of shape (n, dim);
     returns (n, dim) (or (n,) in 1D). Used by manufactured solutions."""
-
-    kind = "force"
 
     def __init__(self, b):
         if not callable(b):
@@ -85,8 +143,8 @@ class BodyForce(Effect):
     def __repr__(self):
         return f"BodyForce({getattr(self.b, '__name__', 'b')})"
 
-    def bind(self, particles):
-        return self
+    def bind(self, particles, grid):
+        return [self]
 
     def forces(self, particles, t):
         n, dim = particles.n, particles.dim
@@ -131,8 +189,6 @@ class Traction(Effect):
     With ``fem`` a side name loads the grid's side with Gauss quadrature.
     """
 
-    kind = "force"
-
     def __init__(self, where, tau, depth=None, body=None):
         if isinstance(where, str):
             if where not in SIDES:
@@ -166,6 +222,12 @@ class Traction(Effect):
     def traction(self, x, t):
         return self.tau(x, t) if self._takes_x else self.tau(t)
 
+    def side_traction(self):
+        if not isinstance(self.where, str):
+            raise ValueError("fem applies tractions on named sides; this scene loads "
+                             "a particle mask (use a side name such as 'right')")
+        return self.where, self.traction
+
     def bind(self, particles, grid):
         """Bind to the particles once per run (reference configuration)."""
         dim = particles.dim
@@ -182,8 +244,8 @@ class Traction(Effect):
             edge = outer[candidates].max()
             mask = candidates & (outer > edge - 0.5 * size)
             index = np.flatnonzero(mask)
-            return SurfaceTraction(self, index, particles.V0[index] / size[index], size[index],
-                                   axis, sign)
+            return [SurfaceTraction(self, index, particles.V0[index] / size[index],
+                                    size[index], axis, sign)]
         mask = self.where
         if mask.shape != (particles.n,):
             raise ValueError(
@@ -194,18 +256,30 @@ class Traction(Effect):
                 raise ValueError("a traction on a particle mask in 2D needs depth= "
                                  "(the thickness of the loaded layer)")
             depth = float(particles.V0[mask].sum())
-        return BoundTraction(self, np.flatnonzero(mask), particles.V0[mask] / depth)
+        return [BoundTraction(self, np.flatnonzero(mask), particles.V0[mask] / depth)]
 
 
-class BoundTraction:
+class BoundTraction(ParticleForce):
     """A traction carried by a layer of particles (a mask): f_p = a_p tau."""
 
-    kind = "force"
+    surface = True
 
     def __init__(self, effect, index, share):
         self.effect = effect
         self.index = index
         self.share = share
+
+    def rebind(self, keep):
+        alive = keep[self.index]
+        self.index = (np.cumsum(keep) - 1)[self.index[alive]]
+        self.share = self.share[alive]
+
+    def checkpoint_arrays(self):
+        return {"index": self.index, "share": self.share}
+
+    def restore(self, arrays):
+        self.index = arrays["index"].copy()
+        self.share = arrays["share"].copy()
 
     def loads(self, particles, t):
         """(index, forces (k, dim)) of the loaded particles."""
@@ -242,6 +316,17 @@ class SurfaceTraction(BoundTraction):
         self.size = size
         self.axis = axis
         self.sign = sign
+
+    def rebind(self, keep):
+        self.size = self.size[keep[self.index]]
+        super().rebind(keep)
+
+    def checkpoint_arrays(self):
+        return dict(super().checkpoint_arrays(), size=self.size)
+
+    def restore(self, arrays):
+        super().restore(arrays)
+        self.size = arrays["size"].copy()
 
     def points(self, particles):
         i = self.index
@@ -281,8 +366,6 @@ class Fixed(Effect):
     ``component`` 0/1 fixes one component (a sliding wall fixes the normal
     one), None all of them."""
 
-    kind = "constraint"
-
     def __init__(self, side, component=None):
         _check_component(component, 2)  # the grid's dimension is checked in the scene
         self.side = side
@@ -304,8 +387,6 @@ class Fixed(Effect):
 class Prescribed(Effect):
     """A prescribed velocity ``velocity(t)`` of one component on a grid side
     (moving walls, loading plates)."""
-
-    kind = "constraint"
 
     def __init__(self, side, component, velocity):
         if component is not None:
@@ -340,8 +421,6 @@ class Damping(Effect):
         f_i <- f_i - alpha |f_i| sign(v_i),      0 <= alpha < 1.
     """
 
-    kind = "damping"
-
     def __init__(self, alpha):
         if isinstance(alpha, bool) or not isinstance(alpha, (int, float, np.floating)) \
                 or not 0.0 <= float(alpha) < 1.0:
@@ -351,5 +430,8 @@ class Damping(Effect):
     def __repr__(self):
         return f"Damping({self.alpha:g})"
 
-    def apply(self, force, velocity):
+    def force_modifiers(self):
+        return [self]
+
+    def modify_force(self, force, velocity):
         return force - self.alpha * np.abs(force) * np.sign(velocity)

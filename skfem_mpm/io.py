@@ -107,9 +107,8 @@ def write_checkpoint(path, state, recorder):
     for key, value in state.warm.items():
         arrays[f"warm_{key}"] = value
     for i, f in enumerate(state.forces):
-        if hasattr(f, "index"):
-            arrays[f"force{i}_index"] = f.index
-            arrays[f"force{i}_share"] = f.share
+        for name, value in f.checkpoint_arrays().items():
+            arrays[f"force{i}_{name}"] = value
     arrays.update(recorder.state_arrays())
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp.npz")
@@ -167,9 +166,10 @@ def restore_state(state, data):
     state.timer = PhaseTimer.from_state(json.loads(str(data["timer"])))
     state.small_dofs_max = int(data["small_dofs_max"])
     for i, f in enumerate(state.forces):
-        if f"force{i}_index" in data:
-            f.index = data[f"force{i}_index"].copy()
-            f.share = data[f"force{i}_share"].copy()
+        prefix = f"force{i}_"
+        kept = {k[len(prefix):]: data[k] for k in data if k.startswith(prefix)}
+        if kept:
+            f.restore(kept)
     state._bind_bodies()
     reactions = [{k: np.array(v) for k, v in r.items()}
                  for r in json.loads(str(data["rec_reactions"]))]

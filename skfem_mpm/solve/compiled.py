@@ -90,9 +90,9 @@ class CompiledExecutor:
         self.gravity = np.zeros(state.grid.dim)
         self.gravity_work = False
         self.other_forces = []
-        for f in state.forces:
-            if f.__class__.__name__ == "Gravity":
-                self.gravity = self.gravity + f.g
+        for f in state.forces:  # uniform accelerations act on the grid: m_i g
+            if f.acceleration is not None:
+                self.gravity = self.gravity + f.acceleration
                 self.gravity_work = True
             else:
                 self.other_forces.append(f)
@@ -156,8 +156,8 @@ class CompiledExecutor:
                 for f in self.other_forces:
                     term = f.forces(p, state.t)
                     work_forces = term if work_forces is None else work_forces + term
-                    if hasattr(f, "grid_forces"):
-                        g = f.grid_forces(p, state.t, state.grid)
+                    g = f.grid_forces(p, state.t, state.grid)
+                    if g is not None:
                         grid_force = g if grid_force is None else grid_force + g
                     else:
                         fext = term if fext is None else fext + term
@@ -340,19 +340,19 @@ class CompiledExecutor:
             t_values = c.values(state.t) if c.prescribed else None
             a_values = (c.values(state.t + dt) - t_values) / dt if c.prescribed else None
         v_old = None
-        if state.damping:
+        if state.force_modifiers:
             with state.timer("effects"):
                 v_old = self._grid_solve(state, system, mass, momentum, t_values, "velocity",
                                          self._v_old, small)
                 if gravity is not None:
                     force = force + mass[:, None] * gravity[None, :]
                     gravity = None
-                for d in state.damping:
-                    force = d.apply(force, v_old)
+                for modifier in state.force_modifiers:
+                    force = modifier.modify_force(force, v_old)
         factor = end_velocity
         v_grid = None
         with state.timer("solve"):
-            if factor is not None and not small and not state.damping:
+            if factor is not None and not small and not state.force_modifiers:
                 k.usl_grid(mass, momentum, force, self._no_gravity if gravity is None
                            else gravity, c.mask, t_values, a_values, factor * dt,
                            self._a, self._v_new)

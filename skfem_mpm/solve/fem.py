@@ -35,7 +35,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
-from ..effects import Traction
 from ..errors import SimulationError
 from ..kernels import resolve_backend
 from ..particles import Particles
@@ -135,22 +134,23 @@ class _FemModel:
                 else np.zeros_like(particles.stress))
             self.point_groups = [(mat, np.flatnonzero(particles.body == i))
                                  for i, mat in enumerate(self.materials)]
-        forces = [e for e in scene.effects if e.kind == "force"]
-        self.gravity = [e for e in forces if e.__class__.__name__ == "Gravity"]
-        self.body_forces = [e for e in forces if e.__class__.__name__ == "BodyForce"]
-        self.tractions = []
-        for e in forces:
-            if isinstance(e, Traction):
-                if not isinstance(e.where, str):
-                    raise ValueError("fem applies tractions on named sides; this scene loads "
-                                     "a particle mask (use a side name such as 'right')")
-                xs, ws = _side_rule(grid, e.where, k)
-                Ns, _ = transfer_matrices(grid, xs)
-                self.tractions.append((e, xs, ws, Ns))
-        self.damping = [e for e in scene.effects if e.kind == "damping"]
-        with timer("effects"):
-            self.f_gravity = sum((NgT @ (rho * wg)[:, None] * e.g[None, :] for e in self.gravity),
-                                 np.zeros((grid.ndofs, dim))) if self.gravity else None
+        self.tractions = []  # loads on named sides: Gauss quadrature on the side
+        volume = []  # the other particle forces, at the Gauss points
+        for e in scene.effects:
+            side = e.side_traction()
+            if side is None:
+                volume += e.bind(self.gauss, grid)
+                continue
+            xs, ws = _side_rule(grid, side[0], k)
+            Ns, _ = transfer_matrices(grid, xs)
+            self.tractions.append((side[1], xs, ws, Ns))
+        self.volume_forces = [f for f in volume if f.acceleration is None]
+        self.force_modifiers = [m for e in scene.effects for m in e.force_modifiers()]
+        uniform = [f for f in volume if f.acceleration is not None]
+        self.f_uniform = None  # constant in time: m_i g
+        if uniform:
+            with timer("effects"):
+                self.f_uniform = sum(NgT @ f.forces(self.gauss, 0.0) for f in uniform)
 
     def gradient(self, G, u):
         return np.stack([Gd @ u for Gd in G], axis=-1)  # (n, comps, dim)
@@ -203,17 +203,15 @@ class _FemModel:
         return f, S, F
 
     def external_force(self, u, t):
-        if not (self.gravity or self.body_forces or self.tractions):
+        if self.f_uniform is None and not (self.volume_forces or self.tractions):
             return None
         with self.timer("effects"):
-            f = np.zeros_like(u) if self.f_gravity is None else self.f_gravity.copy()
-            for e in self.body_forces:
-                g = self.gauss
-                b = np.asarray(e.b(g.x, t), dtype=np.float64).reshape(g.n, -1)
-                f += self.NgT @ ((self.rho * self.wg)[:, None] * b)
-            for e, xs, ws, Ns in self.tractions:
+            f = np.zeros_like(u) if self.f_uniform is None else self.f_uniform.copy()
+            for force in self.volume_forces:
+                f += self.NgT @ force.forces(self.gauss, t)
+            for traction, xs, ws, Ns in self.tractions:
                 x = xs + Ns @ u
-                tau = np.asarray(e.traction(x, t), dtype=np.float64)
+                tau = np.asarray(traction(x, t), dtype=np.float64)
                 tau = np.broadcast_to(tau.reshape(-1, u.shape[1]) if tau.ndim else tau,
                                       (xs.shape[0], u.shape[1]))
                 f += Ns.T @ (ws[:, None] * tau)
@@ -288,7 +286,7 @@ def fem(scene, method=None, save_every=None, progress=False):
     _check_fills_grid(scene, particles)
     model = _FemModel(scene, method, particles, timer)
     state = _FemState(scene, method, model, particles, timer)
-    constraints = Constraints(scene.grid, [e for e in scene.effects if e.kind == "constraint"])
+    constraints = Constraints(scene.grid, scene.effects)
     solver = method.mass_solver if method.mass_solver != "auto" else "direct"
     system = GridSystem(model.lumped, constraints, model.consistent, None, 0.0, solver, {})
     state.constraints = constraints
@@ -325,9 +323,9 @@ def fem(scene, method=None, save_every=None, progress=False):
         f_ext = model.external_force(state.u, t)
         if f_ext is not None:
             force = force + f_ext
-        if model.damping:
-            for d in model.damping:
-                force = d.apply(force, state.v)
+        if model.force_modifiers:
+            for modifier in model.force_modifiers:
+                force = modifier.modify_force(force, state.v)
         with timer("solve"):
             a_values = (values(t + dt) - values(t)) / dt if constraints.prescribed \
                 else np.zeros_like(force)

@@ -1,9 +1,9 @@
 """The state of a run: particles, time, step size, bound effects, timers."""
 import math
+import time
 
 import numpy as np
 
-from ..effects import Traction
 from ..errors import InvalidState
 from ..kernels import resolve_backend
 from .grid_system import Constraints, dof_adjacency
@@ -40,15 +40,11 @@ class State:
         self.warm = {}
         self.particle_acceleration = None
         self.materials = [b.material for b in scene.bodies]
-        self.forces_declared = [e for e in scene.effects if e.kind == "force"]
-        self.damping = [e for e in scene.effects if e.kind == "damping"]
-        self.constraints = Constraints(self.grid, [e for e in scene.effects
-                                                   if e.kind == "constraint"])
+        self.force_modifiers = [m for e in scene.effects for m in e.force_modifiers()]
+        self.constraints = Constraints(self.grid, scene.effects)
         self.forces = []
         self.bodies = []
-        if self.forces_declared:
-            with self.timer("effects"):
-                self._bind_forces()
+        self._bind_forces()
         self._bind_bodies()
         self._adjacency = None
         solver = method.mass_solver
@@ -59,8 +55,12 @@ class State:
 
     # --------------------------------------------------------------- binding
     def _bind_forces(self):
-        self.forces = [e.bind(self.particles, self.grid) if isinstance(e, Traction)
-                       else e.bind(self.particles) for e in self.forces_declared]
+        """The particle forces of the effects (timed as effects when there
+        are any: a scene without forces never enters that phase)."""
+        t0 = time.perf_counter()
+        self.forces = [f for e in self.scene.effects for f in e.bind(self.particles, self.grid)]
+        if self.forces:
+            self.timer.add("effects", time.perf_counter() - t0)
 
     def _bind_bodies(self):
         if len(self.materials) == 1:  # all particles: no index array needed
@@ -97,12 +97,8 @@ class State:
 
     def rebind(self, keep):
         """After particles were removed (``keep`` is the mask of survivors)."""
-        new_position = np.cumsum(keep) - 1
         for f in self.forces:
-            if hasattr(f, "index"):
-                alive = keep[f.index]
-                f.index = new_position[f.index[alive]]
-                f.share = f.share[alive]
+            f.rebind(keep)
         self._bind_bodies()
 
     @property

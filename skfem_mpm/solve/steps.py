@@ -129,8 +129,7 @@ def particle_forces(state, which=None):
     ``which`` = 'volume' (gravity, body forces) or 'surface' (tractions:
     for work accounting; side tractions reach the grid through
     :func:`surface_forces`) selects one kind."""
-    chosen = [f for f in state.forces
-              if which is None or (which == "surface") == hasattr(f, "share")]
+    chosen = [f for f in state.forces if which is None or (which == "surface") == f.surface]
     if not chosen:
         return None
     with state.timer("effects"):
@@ -147,11 +146,10 @@ def surface_forces(state, external):
     total = None
     with state.timer("effects"):
         for f in state.forces:
-            if not hasattr(f, "share"):
+            if not f.surface:
                 continue
-            if hasattr(f, "grid_forces"):
-                term = f.grid_forces(state.particles, state.t, state.grid)
-            else:
+            term = f.grid_forces(state.particles, state.t, state.grid)
+            if term is None:
                 term = external.to_grid(f.forces(state.particles, state.t))
             total = term if total is None else total + term
     return total
@@ -299,13 +297,13 @@ def solve_grid(state, data, need_old_velocity=False, end_velocity=None):
     t, dt = state.t, state.dt
     if end_velocity is not None:
         need_old_velocity = True
-    if (need_old_velocity or state.damping) and data.velocity_old is None:
+    if (need_old_velocity or state.force_modifiers) and data.velocity_old is None:
         solve_velocity(state, data)
     force = data.force
-    if state.damping:
+    if state.force_modifiers:
         with state.timer("effects"):
-            for d in state.damping:
-                force = d.apply(force, data.velocity_old)
+            for modifier in state.force_modifiers:
+                force = modifier.modify_force(force, data.velocity_old)
     with state.timer("solve"):
         system = _system(state, data)
         c = state.constraints
