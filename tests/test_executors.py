@@ -124,8 +124,8 @@ def scene_for(case, steps=20):
     particles = Particles.seed(grid, 2, 1.0, region=region, velocity=velocity)
     material = {"linear": LinearElastic(10.0, 0.3),
                 "neo-hookean": NeoHookean(10.0, 0.3),
-                "custom": CappedStress(10.0, 0.3, 2e-3),
-                "custom-compiled": CappedStressCompiled(10.0, 0.3, 2e-3)}[case["material"]]
+                "custom": CappedStress(10.0, 0.3, 0.05),
+                "custom-compiled": CappedStressCompiled(10.0, 0.3, 0.05)}[case["material"]]
     base_side = "left" if dim == 1 else "bottom"
     effects = []
     effect = case["effect"]

@@ -526,3 +526,27 @@ def test_stencil_systems_reuse_what_depends_on_the_free_dofs_only():
             got = system.solve(rhs, vals, "velocity")
             exact = _dense_free_solve(k, stencil, mass, constraints, rhs, vals)
             assert np.abs(got - exact).max() < 1e-10 * np.abs(exact).max()
+
+
+def test_auto_mass_solver_never_times_a_direct_solve(monkeypatch):
+    """'auto' picks the stencil CG without timing it against a sparse LU (a
+    timing-based choice made identical runs and restarts differ): no
+    general grid system is built, although the first CG solves of this
+    scene need more than the 20 iterations that used to trigger the timing."""
+    from skfem_mpm.solve import compiled
+    from skfem_mpm.solve.stencil_system import StencilSystem
+
+    def no_lu(*args, **kwargs):
+        raise AssertionError("a direct solve was built")
+
+    monkeypatch.setattr(compiled, "GridSystem", no_lu)
+    log = []
+    monkeypatch.setattr(StencilSystem, "iteration_log", log)
+    grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), 24, 2)
+    parts = Particles.seed(grid, 2, 1.0, region=((0.25, 0.75), (0.25, 0.75)),
+                           velocity=lambda X: X - 0.5)
+    scene = Scene(grid, Body(parts, LinearElastic(1e3, 0.3)), 0.01,
+                  effects=[Fixed("left"), Fixed("right"), Fixed("bottom"), Fixed("top")])
+    result = simulate(scene, Method(mass="consistent", scheme="usl", mass_solver="auto"))
+    assert result.path == "fast"
+    assert max(log) >= 20

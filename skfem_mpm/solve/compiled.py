@@ -34,10 +34,14 @@ and, for linear elasticity, constitutive).
 import numpy as np
 
 from ..errors import InvalidState
+from ..kernels.constitutive import material_update
+from ..kernels.mpm import Kernels, fast_row_fractions
 from ..materials import LinearElastic
 from ..spline import SplineGrid
 from . import steps
+from .grid_system import GridSystem
 from .stencil_system import StencilSystem
+from .timestep import fast_dof_limit, lumping_fraction
 
 __all__ = ["compiled_executor_applies", "CompiledExecutor"]
 
@@ -84,8 +88,6 @@ class CompiledExecutor:
     path = "fast"
 
     def __init__(self, state):
-        from ..kernels.mpm import Kernels
-
         self.kernels = Kernels(state.grid)
         self.gravity = np.zeros(state.grid.dim)
         self.gravity_work = False
@@ -173,8 +175,6 @@ class CompiledExecutor:
         return count
 
     def _reference_solve(self, state, mass, rhs, values, kind, gravity=None):
-        from .grid_system import GridSystem
-
         full = rhs if gravity is None else rhs + mass[:, None] * gravity[None, :]
         system = GridSystem(mass, state.constraints, None, state.adjacency,
                             state.method.small_mass)
@@ -189,41 +189,14 @@ class CompiledExecutor:
         g = self._no_gravity if gravity is None else gravity
         return self.kernels.solve(mass, rhs, g, state.constraints.mask, values, out)
 
-    # Which consistent-mass solver is faster depends on the scene. When the
-    # CG iterated over the whole grid with a lumped preconditioner (about
-    # 150 iterations at rtol 1e-13), a floating block at 128 x 128 took
-    # CG 341 ms against LU 99 ms per step. The CG now runs on the free dofs
-    # with the Kronecker preconditioner and its fringe correction: on the
-    # 2D bench block 6 iterations per step where it carries stress waves
-    # (14 ms per step; a fresh LU costs 129 ms on the falling block).
-    # "auto" times one CG and one LU acceleration solve on the first step
-    # whose CG solve needs at least 20 iterations and keeps the faster for
-    # the run (CG stays when no solve is that hard); the choice is kept in
-    # the checkpoint's warm data.
+    # "auto" is conjugate gradients on the stencil (deterministic: the
+    # choice never depends on timing, so identical runs and restarts agree
+    # bit for bit). With the Kronecker preconditioner and its fringe
+    # correction the CG beat a fresh sparse LU per step on every bench
+    # scene measured (see the README's speed paragraph); "direct" forces LU.
 
     def _use_cg(self, state):
-        solver = state.method.mass_solver
-        if solver == "direct":
-            return False
-        if solver == "cg":
-            return True
-        choice = state.warm.get("auto_solver")
-        return choice is None or int(choice[0]) == 0
-
-    def _choose_solver(self, state, mass, problems, stencil, K):
-        """'auto', first step: time the CG solves just made against LU."""
-        import time
-
-        from .grid_system import GridSystem
-
-        M = self.kernels.stencil_csr(stencil)
-        t0 = time.perf_counter()
-        lu = GridSystem(mass, state.constraints, M, state.adjacency, state.method.small_mass,
-                        "direct", {}, fast_rows=self._fast_rows_fn)
-        for rhs, values, kind in problems:
-            lu.solve(rhs, values, kind)
-        state.warm["auto_solver"] = np.array([1 if time.perf_counter() - t0 < self._cg_time
-                                              else 0])
+        return state.method.mass_solver != "direct"
 
     def _grid_solve(self, state, system, mass, rhs, values, kind, out, small, gravity=None):
         """M x = rhs: the consistent system when there is one, else lumped."""
@@ -234,21 +207,12 @@ class CompiledExecutor:
     def _consistent_solves(self, state, system, mass, problems, outs):
         """Consistent M x = rhs for each (rhs, values or None, kind) into
         ``outs``; a stencil system solves them in one CG run."""
-        import time
-
         problems = [(rhs, np.zeros_like(rhs) if values is None else values, kind)
                     for rhs, values, kind in problems]
         if isinstance(system, StencilSystem):
-            t0 = time.perf_counter()
-            before = system.iterations
             xs = system.solve_many(problems)
             for (_, _, kind), x in zip(problems, xs):
                 system.remember(kind, x)
-            representative = system.iterations - before >= 20  # not a trivial early solve
-            if state.method.mass_solver == "auto" and "auto_solver" not in state.warm and \
-                    representative and any(kind == "acceleration" for _, _, kind in problems):
-                self._cg_time = time.perf_counter() - t0
-                self._choose_solver(state, mass, problems, *self._stencil_K)
         else:
             xs = [system.solve(rhs, values, kind) for rhs, values, kind in problems]
             if state.method.mass_solver == "cg":
@@ -268,9 +232,6 @@ class CompiledExecutor:
         """The step's consistent-mass system: compiled stencil CG, or the
         general grid system (sparse LU with ``mass_solver="direct"``, and
         whenever tiny-mass dofs must be merged)."""
-        from .grid_system import GridSystem
-        from .timestep import fast_dof_limit, lumping_fraction
-
         guard = state.method.frequency_guard
         limit = None
         if guard > 0:
@@ -278,11 +239,7 @@ class CompiledExecutor:
         small = self._small_dofs(state, mass)
         fast_rows = None if limit is None else (
             lambda diag: lumping_fraction(K / (limit * np.maximum(diag, 1e-300))))
-        self._fast_rows_fn = fast_rows
-        self._stencil_K = (stencil, K)
         if self._use_cg(state) and not small:
-            from ..kernels.mpm import fast_row_fractions
-
             fast = self.kernels.scratch("fast_rows", mass.size)
             if limit is not None:  # fast_rows of the dofs with mass, in one kernel
                 fast_row_fractions(K, stencil, mass, limit, fast)
@@ -436,8 +393,6 @@ class CompiledExecutor:
         if not self.point_laws:
             new.stress, new.V, new.F = steps.update_stress(state, grid.L, particles=p)
             return
-        from ..kernels.constitutive import material_update
-
         with state.timer("constitutive"):
             flags = self._first_bad
             bad = -1

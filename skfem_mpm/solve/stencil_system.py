@@ -2,8 +2,14 @@
 (the compiled executor's mass system; :mod:`skfem_mpm.solve.compiled`).
 """
 import numpy as np
+from numba import get_num_threads
 
 from ..errors import InvalidState
+from ..kernels.fringe import FringeFactor, FringePattern
+from ..kernels.kronecker import KroneckerData
+from ..kernels.mpm import (compact_problem, compact_system, ell_pcg, expand_problem,
+                           stencil_rows_product)
+from .grid_system import shift_guess
 
 __all__ = ["StencilSystem"]
 
@@ -74,8 +80,6 @@ class StencilSystem:
     def _compact(self, group, need_fixed=False):
         """The group's free-dof matrix (built once per step and pattern; its
         fixed-column part F only when ``need_fixed``: nonzero fixed values)."""
-        from ..kernels.mpm import compact_system
-
         comps, rows, index, built = group
         if built is not None and (built[7] or not need_fixed):
             return built
@@ -95,8 +99,6 @@ class StencilSystem:
         inv_diag = 1.0 / self.lumped[rows]
         kron = fringe = None
         if self.preconditioner == "kronecker" and rows.size:
-            from ..kernels.kronecker import KroneckerData
-
             centre = (ns - 1) // 2
             kron = KroneckerData(*self.k.axis_mass(), self.geometry, rows, self.lumped,
                                  self.fast[rows] >= self.LUMPED_ROW, A[:, centre].copy(),
@@ -130,8 +132,6 @@ class StencilSystem:
     def _fringe(self, g, rows, A, cols):
         """The fringe correction's factors for group g, or None (the
         pattern is kept on the kernels while the free-dof set stays)."""
-        from ..kernels.fringe import FringeFactor, FringePattern
-
         cache = self.k.__dict__.setdefault("fringe_patterns", {})
         pattern = cache.get(g)
         if pattern is None or pattern.key != rows.tobytes() or \
@@ -173,10 +173,6 @@ class StencilSystem:
         """Several solves with this matrix in one CG run: ``problems`` is a
         list of (rhs, values, kind) (kind names the warm start); returns the
         solutions in order."""
-        from numba import get_num_threads
-
-        from ..kernels.fringe import FringeFactor
-        from ..kernels.mpm import compact_problem, ell_pcg, expand_problem
 
         outs = []
         for rhs, values, kind in problems:
@@ -234,15 +230,11 @@ class StencilSystem:
         self.warm[kind] = x.copy()
 
     def shift_guess(self, kind, dx):
-        from .grid_system import shift_guess
-
         shift_guess(self.warm, kind, dx)
 
     def residual(self, x, rhs):
         """M x - rhs with the fast rows lumped, on the constrained dofs (the
         rows the reactions read; zero elsewhere)."""
-        from ..kernels.mpm import stencil_rows_product
-
         rows = self.reaction_rows
         y = np.empty((rows.size, x.shape[1]))
         stencil_rows_product(self.stencil, *self.geometry, rows, self.inactive, self.fast,
