@@ -10,6 +10,7 @@ from .compiled import CompiledExecutor, compiled_executor_applies
 from .reference import ReferenceExecutor
 from .schemes import SCHEME_STEPS
 from .state import prepare
+from .threads import ThreadPolicy
 
 __all__ = ["simulate"]
 
@@ -97,9 +98,12 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
     path = ops.path
     jit_time = warm_up(state, fast)
     bar = _progress_bar(progress, state.n_steps)
+    threads = ThreadPolicy(ops.kernels.nthreads) if fast else None
     t0 = time.perf_counter()
     try:
         while not state.done:
+            if threads is not None:
+                threads.update()
             state.next_step_size()
             last_good = state.particles
             try:
@@ -125,6 +129,8 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
             if callback is not None and callback(state.step, state) is False:
                 break
     finally:
+        if threads is not None:
+            threads.restore()
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - t0

@@ -47,6 +47,7 @@ class State:
         self._bind_forces()
         self._bind_bodies()
         self._adjacency = None
+        self._adaptive = None
         solver = method.mass_solver
         if solver == "auto":
             solver = "direct" if self.grid.ndofs < 20000 else "cg"
@@ -111,7 +112,11 @@ class State:
     # ------------------------------------------------------------ time step
     @property
     def adaptive(self):
-        return self.method.dt is None and self.scene.finite_strain
+        """The step size follows the current wave speed (finite strain, no
+        fixed dt); fixed for the run."""
+        if self._adaptive is None:
+            self._adaptive = self.method.dt is None and self.scene.finite_strain
+        return self._adaptive
 
     def wave_speed(self):
         p = self.particles

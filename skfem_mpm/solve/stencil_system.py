@@ -2,7 +2,6 @@
 (the compiled executor's mass system; :mod:`skfem_mpm.solve.compiled`).
 """
 import numpy as np
-from numba import get_num_threads
 
 from ..errors import InvalidState
 from ..kernels.fringe import FringeFactor, FringePattern
@@ -194,7 +193,7 @@ class StencilSystem:
                                 F, fcols, b, x)
             if rows.size:
                 before = self.iterations
-                nt = get_num_threads()
+                nt = self.k.nthreads  # the run's fixed blocks (solve/threads.py)
                 mode = 0 if kron is None else 1 if fringe is None else 2
                 pre = kron.args(b.shape[1], nt) if kron is not None else self._no_kronecker
                 extra = fringe.args(b.shape[1]) if fringe is not None else FringeFactor.no_args()
