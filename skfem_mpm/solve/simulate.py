@@ -49,7 +49,7 @@ def warm_up(state, fast):
     from .warmup import warm_up_kernels
 
     t0 = time.perf_counter()
-    warm_up_kernels(state.grid, fast=fast, materials=state.materials)
+    warm_up_kernels(state.grid, fast=fast, materials=state.materials, method=state.method)
     return time.perf_counter() - t0
 
 

@@ -5,11 +5,15 @@ import numpy as np
 __all__ = ["warm_up_kernels"]
 
 
-def warm_up_kernels(grid, fast=False, materials=()):
+def warm_up_kernels(grid, fast=False, materials=(), method=None):
     """Compile on a small grid of the same dimension and degree (the machine
     code does not depend on the grid's size, and no grid-sized buffer is
     allocated); with ``fast``, also the constitutive kernel and the point
-    laws of ``materials`` that have one."""
+    laws of ``materials`` that have one. With a ``method``, only what its
+    run calls: the consistent-mass assembly and CG (the largest share of
+    the compile time) only for consistent mass, the MUSL re-projection only
+    for MUSL, the one-pass USL grid step only for USL and CD, the tiny-mass
+    scan only when the merge is on."""
     if not hasattr(grid, "breakpoints"):
         return
     from ..spline import SplineGrid
@@ -32,33 +36,53 @@ def warm_up_kernels(grid, fast=False, materials=()):
     dim = grid.dim
     zeros = np.zeros((grid.ndofs, dim))
     material = LinearElastic(1.0, 0.0)
+    def needs(what):
+        if method is None:
+            return True
+        return {"consistent": method.mass == "consistent",
+                "musl": method.scheme == "musl",
+                "usl_grid": method.scheme in ("usl", "cd"),
+                "small_mass": method.small_mass > 0}[what]
+
     for fext in (None, np.zeros((1, dim))):
         k.p2g(p, fext)
-    k.g2p2g(p, zeros, 0.0, new.v)
+    if needs("musl"):
+        k.g2p2g(p, zeros, 0.0, new.v)
     for fused in (True, False):
         L = np.empty((1, dim, dim)) if not fused else np.empty((1, 1, 1))
         for flip in (True, False):
             for acc in (None, np.empty((1, dim))):
                 k.g2p(p, zeros, zeros, 0.0, 1.0, flip, fused, material, new, L, acc)
-    k.small_mass(np.ones(grid.ndofs), 1e-3)
-    stencil, K = k.consistent_mass(p)[0], None
+    if needs("small_mass"):
+        k.small_mass(np.ones(grid.ndofs), 1e-3)
+    k.mass_times_displacement(np.ones(grid.ndofs), zeros, 0.0)
+    if needs("consistent"):
+        _warm_up_consistent(k, p, grid)
+    mask = np.zeros((grid.ndofs, dim), dtype=bool)
+    out = np.empty((grid.ndofs, dim))
+    for values in (None, zeros):
+        k.solve(np.ones(grid.ndofs), zeros, np.zeros(dim), mask, values, out)
+        if needs("usl_grid"):
+            k.usl_grid(np.ones(grid.ndofs), zeros, zeros, np.zeros(dim), mask, values, values,
+                       0.0, out, zeros.copy())
+    _warm_up_point_laws(grid.dim, materials)
+
+
+def _warm_up_consistent(k, p, grid):
+    """The consistent-mass assembly, the stencil CG and its residual."""
+    from ..kernels.mpm import fast_row_fractions
     from .grid_system import Constraints
     from .stencil_system import StencilSystem
 
+    dim = grid.dim
+    k.stencil_csr(k.consistent_stencil(p)[0])
     st, K = k.consistent_stencil(p)
     system = StencilSystem(k, st + np.eye(1, st.shape[1], (st.shape[1] - 1) // 2),
                            np.ones(grid.ndofs), Constraints(grid, []),
                            np.zeros(grid.ndofs), {})
     system.solve(np.ones((grid.ndofs, dim)), np.zeros((grid.ndofs, dim)), "velocity")
     system.residual(np.ones((grid.ndofs, dim)), np.ones((grid.ndofs, dim)))
-    del stencil
-    mask = np.zeros((grid.ndofs, dim), dtype=bool)
-    out = np.empty((grid.ndofs, dim))
-    for values in (None, zeros):
-        k.solve(np.ones(grid.ndofs), zeros, np.zeros(dim), mask, values, out)
-        k.usl_grid(np.ones(grid.ndofs), zeros, zeros, np.zeros(dim), mask, values, values, 0.0,
-                   out, zeros.copy())
-    _warm_up_point_laws(grid.dim, materials)
+    fast_row_fractions(K, st, np.ones(grid.ndofs), 1.0, np.empty(grid.ndofs))
 
 
 def _warm_up_point_laws(dim, materials):
