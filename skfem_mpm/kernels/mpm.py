@@ -29,6 +29,7 @@ from numba import get_num_threads, njit, prange
 
 from .fringe import apply_corrected
 from .kronecker import apply_kronecker
+from .tiny_mass import merged_lumped_solve
 from .weights import FAST, extracted_functions, locate_axis_point
 
 __all__ = ["Kernels"]
@@ -1216,6 +1217,15 @@ class Kernels:
         has = v_values is not None
         usl_grid(mass, momentum, force, gravity, constrained, v_values if has else force,
                  a_values if has else force, has, vdt, a, v_new)
+
+    def merged_solve(self, mass, rhs, gravity, constrained, values, tol, out):
+        """Lumped solve with the tiny-mass merge into ``out``; returns the
+        number of small dofs, or -1 when the reference merge must be used
+        (see :mod:`skfem_mpm.kernels.tiny_mass`)."""
+        has = values is not None
+        nbx, nby = (self.ndofs, 1) if self.dim == 1 else self.grid.basis_per_axis
+        return merged_lumped_solve(mass, rhs, gravity, constrained, values if has else rhs, has,
+                                   nbx, nby, self.p, tol, out)
 
     def solve(self, mass, rhs, gravity, constrained, values, out):
         """Lumped solve into ``out`` (see lumped_solve)."""

@@ -182,11 +182,14 @@ class CompiledExecutor:
 
     def solve(self, state, mass, rhs, values, kind, out, small, gravity=None):
         """Lumped M x = rhs (+ gravity as an acceleration on free dofs) with
-        the constraints, into ``out``."""
-        if small:
-            out[:] = self._reference_solve(state, mass, rhs, values, kind, gravity)
-            return out
+        the constraints, into ``out``; with tiny-mass dofs, the compiled
+        merge (the reference merge when a merged row outgrows the kernel's)."""
         g = self._no_gravity if gravity is None else gravity
+        if small:
+            if self.kernels.merged_solve(mass, rhs, g, state.constraints.mask, values,
+                                         state.method.small_mass, out) < 0:
+                out[:] = self._reference_solve(state, mass, rhs, values, kind, gravity)
+            return out
         return self.kernels.solve(mass, rhs, g, state.constraints.mask, values, out)
 
     # "auto" is conjugate gradients on the stencil (deterministic: the

@@ -55,6 +55,10 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
                 k.g2p(p, zeros, zeros, 0.0, 1.0, flip, fused, material, new, L, acc)
     if needs("small_mass"):
         k.small_mass(np.ones(grid.ndofs), 1e-3)
+        for values in (None, zeros):
+            k.merged_solve(np.ones(grid.ndofs), zeros, np.zeros(dim),
+                           np.zeros((grid.ndofs, dim), dtype=bool), values, 1e-3,
+                           np.empty((grid.ndofs, dim)))
     k.mass_times_displacement(np.ones(grid.ndofs), zeros, 0.0)
     if needs("consistent"):
         _warm_up_consistent(k, p, grid)
