@@ -43,19 +43,40 @@ def _parse_set(items):
     return params
 
 
+def _method_default(name):
+    """The default of ``Method(name=...)``: the command line and the API agree."""
+    import inspect
+
+    from .solve.method import Method
+
+    return inspect.signature(Method).parameters[name].default
+
+
 def _run_options(p):
-    p.add_argument("benchmark")
-    p.add_argument("--variant", default=None)
-    p.add_argument("--set", action="append", metavar="NAME=VALUE", dest="params")
-    p.add_argument("--degree", type=int, default=2)
-    p.add_argument("--cells", type=int, default=16)
-    p.add_argument("--ppc", type=int, default=2)
-    p.add_argument("--mass", default="consistent")
-    p.add_argument("--reconstruction", default="none")
-    p.add_argument("--scheme", default="musl")
-    p.add_argument("--cfl", type=float, default=0.5)
-    p.add_argument("--dt", type=float, default=None)
-    p.add_argument("--t-end", type=float, default=None, dest="t_end")
+    from .solve.method import MASSES, RECONSTRUCTIONS, SCHEMES
+
+    p.add_argument("benchmark", help="a benchmark name (see 'skfem-mpm list')")
+    p.add_argument("--variant", default=None, help="the benchmark's variant (default: its first)")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", dest="params",
+                   help="override a benchmark parameter (repeatable)")
+    p.add_argument("--degree", type=int, default=2, choices=(1, 2, 3),
+                   help="B-spline degree (default: %(default)s)")
+    p.add_argument("--cells", type=int, default=16, help="cells per axis (default: %(default)s)")
+    p.add_argument("--ppc", type=int, default=2,
+                   help="particles per cell and axis (default: %(default)s)")
+    p.add_argument("--mass", default=_method_default("mass"), choices=MASSES,
+                   help="mass matrix (default: %(default)s, as Method())")
+    p.add_argument("--reconstruction", default=_method_default("reconstruction"),
+                   choices=RECONSTRUCTIONS, help="particle data reconstruction before Gauss "
+                   "integration (default: %(default)s)")
+    p.add_argument("--scheme", default=_method_default("scheme"), choices=SCHEMES,
+                   help="time-stepping scheme (default: %(default)s)")
+    p.add_argument("--cfl", type=float, default=_method_default("cfl"),
+                   help="time step as a fraction of the critical one (default: %(default)s)")
+    p.add_argument("--dt", type=float, default=None,
+                   help="a fixed time step instead of --cfl (default: cfl * dt_crit)")
+    p.add_argument("--t-end", type=float, default=None, dest="t_end",
+                   help="end time (default: the benchmark's)")
     p.add_argument("--out", default=None, help="write a ParaView series and PNG pictures here")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
@@ -109,6 +130,9 @@ def _cmd_list(args):
 def _check_run_args(args):
     if args.degree not in (1, 2, 3):
         raise _UsageError(f"--degree must be 1, 2 or 3, got {args.degree}")
+    for flag, value in (("--t-end", args.t_end), ("--dt", args.dt), ("--cfl", args.cfl)):
+        if value is not None and not value > 0:
+            raise _UsageError(f"{flag} must be a positive number, got {value}")
     if args.cells < 1:
         raise _UsageError(f"--cells must be a positive integer, got {args.cells}")
     if args.ppc < 1:
