@@ -147,6 +147,15 @@ class CompiledExecutor:
             spare.stress, spare.V = p.stress, p.V  # replaced by the material update
         return spare
 
+    def hand_out(self, particles):
+        """The user may keep ``particles`` (a callback receives them): their
+        arrays are never written again (the kernels take fresh ones)."""
+        for k in self.WRITTEN:
+            self._owned.discard(id(getattr(particles, k)))
+        self._owned_F = [F for F in self._owned_F if F is not particles.F]
+        if self._spare is particles:
+            self._spare = None
+
     # ------------------------------------------------------------------- step
     def external(self, state):
         """Particle forces other than gravity (effects phase), the grid force

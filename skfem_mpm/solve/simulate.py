@@ -126,8 +126,10 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
                 from ..io import write_checkpoint
 
                 write_checkpoint(checkpoint[0], state, recorder)
-            if callback is not None and callback(state.step, state) is False:
-                break
+            if callback is not None:
+                ops.hand_out(state.particles)
+                if callback(state.step, state) is False:
+                    break
     finally:
         if threads is not None:
             threads.restore()
