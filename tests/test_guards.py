@@ -171,3 +171,31 @@ def test_removal_with_two_bodies_rebinds_to_the_survivors(backend):
     assert r.counts["removed"] > 0
     assert r.particles.n == stay.n + leave.n - r.counts["removed"]
     assert np.all(np.isfinite(r.particles.stress)) and np.all(r.particles.V > 0)
+
+
+@pytest.mark.parametrize("run", ["simulate", "fem"])
+def test_cfl_above_one_is_refused_like_a_dt_above_dt_crit(run):
+    from skfem_mpm import fem
+    from skfem_mpm.benchmarks import get_benchmark
+
+    b = get_benchmark("vibrating-string", "small")
+    scene = b.scene(8, 2, 2, fem=run == "fem")
+    go = simulate if run == "simulate" else fem
+    with pytest.raises(ValueError, match=r"cfl = 1\.5 .*cfl <= 1.*allow_unstable=True"):
+        go(scene, Method(cfl=1.5))
+    r = go(scene, Method(cfl=1.5, allow_unstable=True))
+    assert r.counts["steps"] > 0
+
+
+def test_a_singular_consistent_mass_is_an_invalid_state_not_a_bare_error():
+    import scipy.sparse as sp
+
+    from skfem_mpm.errors import InvalidState
+    from skfem_mpm.solve.grid_system import Constraints, GridSystem
+
+    grid = SplineGrid.line(0.0, 1.0, 4, 2)
+    n = grid.ndofs
+    M = sp.csr_matrix(np.ones((n, n)))  # rank one: singular
+    system = GridSystem(np.ones(n), Constraints(grid, []), M, None, 0.0, "direct")
+    with pytest.raises(InvalidState, match="singular"):
+        system.solve(np.ones((n, 1)), np.zeros((n, 1)), "velocity")

@@ -42,7 +42,7 @@ from ..quadrature import transfer_matrices
 from .grid_system import Constraints, GridSystem
 from .method import Method
 from .result import Recorder
-from .timestep import critical_time_step
+from .timestep import critical_time_step, stable_time_step
 from .timing import PhaseTimer
 
 __all__ = ["fem"]
@@ -296,10 +296,7 @@ def fem(scene, method=None, save_every=None, progress=False):
         return max(mat.wave_speed(g.subset(idx) if len(model.groups) > 1 else g)
                    for mat, idx in model.groups)
     dt_crit = critical_time_step(scene.grid, wave_speed(), method.mass)
-    if method.dt is not None and method.dt > dt_crit and not method.allow_unstable:
-        raise ValueError(f"dt = {method.dt:.6g} exceeds the critical time step dt_crit = "
-                         f"{dt_crit:.6g}; use a smaller dt or allow_unstable=True")
-    dt = method.dt if method.dt is not None else method.cfl * dt_crit
+    dt = stable_time_step(method, dt_crit)
     n_steps = max(1, int(np.ceil(scene.t_end / dt * (1 - 1e-12))))
     dt = scene.t_end / n_steps
     state.dt, state.dt_crit = dt, dt_crit

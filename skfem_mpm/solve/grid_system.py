@@ -56,6 +56,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ..errors import InvalidState
+
 __all__ = ["Constraints", "GridSystem", "dof_adjacency"]
 
 
@@ -237,7 +239,11 @@ class GridSystem:
             M_r = (red.T.T @ self.consistent @ red.T).tocsr()
             M_ff = M_r[red.free][:, red.free].tocsc()
             M_fc = M_r[red.free][:, red.fixed]
-            lu = spla.splu(M_ff) if self.mass_solver == "direct" else None
+            try:
+                lu = spla.splu(M_ff) if self.mass_solver == "direct" else None
+            except RuntimeError as exc:  # "Factor is exactly singular"
+                raise InvalidState(f"the consistent mass is singular on the free dofs "
+                                   f"({exc})") from exc
             self._factors[key] = (M_ff, M_fc, lu)
         return self._factors[key]
 
@@ -282,7 +288,7 @@ class GridSystem:
             sol, info = spla.cg(M_ff, bf[:, j], x0=x0, rtol=self.cg_rtol, atol=0.0,
                                 M=precond, maxiter=10 * M_ff.shape[0] + 100, callback=count)
             if info != 0:
-                raise ArithmeticError(f"CG on the consistent mass did not converge ({info})")
+                raise InvalidState(f"CG on the consistent mass did not converge ({info})")
             self.cg_iterations += iters[0]
             out[:, j] = sol
         return out
