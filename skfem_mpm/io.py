@@ -112,8 +112,12 @@ def write_checkpoint(path, state, recorder):
     arrays.update(recorder.state_arrays())
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+    try:
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+    except BaseException:  # a full disk, an interrupt: no half-written file stays
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 

@@ -199,3 +199,32 @@ def test_a_singular_consistent_mass_is_an_invalid_state_not_a_bare_error():
     system = GridSystem(np.ones(n), Constraints(grid, []), M, None, 0.0, "direct")
     with pytest.raises(InvalidState, match="singular"):
         system.solve(np.ones((n, 1)), np.zeros((n, 1)), "velocity")
+
+
+def test_a_checkpoint_folder_that_does_not_exist_is_refused_before_the_first_step(tmp_path):
+    from skfem_mpm.benchmarks import get_benchmark
+
+    scene = get_benchmark("vibrating-string", "small").scene(8, 2, 2)
+    with pytest.raises(ValueError, match="checkpoint path .*does not exist or is not writable"):
+        simulate(scene, Method(), checkpoint=(tmp_path / "missing" / "run.npz", 5))
+    with pytest.raises(ValueError, match="checkpoint path must be a str or os.PathLike"):
+        simulate(scene, Method(), checkpoint=(None, 1))
+
+
+def test_a_failed_checkpoint_write_keeps_the_run_and_leaves_no_temporary_file(tmp_path,
+                                                                              monkeypatch):
+    from skfem_mpm import SimulationError
+    from skfem_mpm.benchmarks import get_benchmark
+
+    def full_disk(file, **arrays):
+        with open(file, "wb") as f:
+            f.write(b"half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", full_disk)
+    scene = get_benchmark("vibrating-string", "small").scene(8, 2, 2)
+    with pytest.raises(SimulationError, match="checkpoint after step 3 failed") as info:
+        simulate(scene, Method(), checkpoint=(tmp_path / "run.npz", 3))
+    assert info.value.step == 3 and info.value.result.counts["steps"] == 3
+    assert np.isfinite(info.value.result.particles.x).all()
+    assert list(tmp_path.iterdir()) == []

@@ -1,5 +1,6 @@
 """``simulate``: the MPM time loop over the named step functions."""
 import numbers
+import os
 import sys
 import time
 
@@ -31,6 +32,12 @@ def _check_checkpoint(checkpoint):
     except (TypeError, ValueError):
         raise ValueError(f"checkpoint must be a pair (path, every_steps), got {checkpoint!r}") \
             from None
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"checkpoint path must be a str or os.PathLike, got {path!r}")
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+        raise ValueError(f"checkpoint path {os.fspath(path)!r}: folder {folder!r} does not "
+                         f"exist or is not writable (it is checked before the first step)")
     return path, _check_every("checkpoint every_steps", every)
 
 
@@ -125,7 +132,14 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
             if checkpoint is not None and state.step % checkpoint[1] == 0:
                 from ..io import write_checkpoint
 
-                write_checkpoint(checkpoint[0], state, recorder)
+                try:
+                    write_checkpoint(checkpoint[0], state, recorder)
+                except OSError as exc:  # e.g. a full disk: the run itself is good
+                    result = recorder.result(state, time.perf_counter() - t0, jit_time,
+                                             extra={"path": path})
+                    raise SimulationError(
+                        f"writing the checkpoint after step {state.step} failed: {exc}",
+                        result=result, step=state.step, time=state.t) from exc
             if callback is not None:
                 ops.hand_out(state.particles)
                 if callback(state.step, state) is False:
