@@ -28,6 +28,9 @@ def test_forced_instability_raises_with_last_good_state():
     p = err.result.particles
     assert all(np.all(np.isfinite(a)) for a in (p.x, p.v, p.stress, p.V))
     assert "step" in str(err)
+    # the result's time is its particles' time (only t = 0 was saved)
+    assert err.result.counts["steps"] == err.step - 1 > 0
+    assert err.result.final_time == pytest.approx(err.time) and err.time > 0
 
 
 def test_inverted_element_raises_naming_the_particle():

@@ -34,6 +34,8 @@ class Result:
         reconstruct, effects); ``phase_counts`` how often each ran.
     counts
         particles, cells, dofs, steps, removed, small_dofs_max.
+    time, final_time
+        The time of ``particles``.
     dt, dt_crit, wall_time, jit_time, method, kind ('mpm' or 'fem').
     """
 
@@ -43,7 +45,10 @@ class Result:
 
     @property
     def final_time(self):
-        return float(self.times[-1])
+        """The time of ``particles``: the end time, or the last good state's
+        time after a failure (which need not be a saved time)."""
+        time = getattr(self, "time", None)
+        return float(self.times[-1]) if time is None else float(time)
 
     def phase_table(self):
         return {p: float(self.timings.get(p, 0.0)) for p in PHASES}
@@ -135,7 +140,7 @@ class Recorder:
             phase_counts=dict(timer.counts), fused=dict(timer.fused), counts=counts,
             dt=float(state.dt), dt_crit=float(state.dt_crit), wall_time=float(wall_time),
             jit_time=float(jit_time), method=state.method.as_dict(), kind=kind,
-            grid=state.grid,
+            grid=state.grid, time=float(state.t),
         )
         if extra:
             fields.update(extra)
