@@ -144,6 +144,7 @@ def _cmd_run(args, kind):
     from .solve import Method, fem, prepare, simulate
 
     _check_run_args(args)
+    _check_out(args.out)
     bench = get_benchmark(args.benchmark, args.variant, **_parse_set(args.params))
     method = Method(scheme=args.scheme, mass=args.mass, reconstruction=args.reconstruction,
                     cfl=args.cfl, dt=args.dt)
@@ -213,9 +214,14 @@ def _cmd_study(args):
         cells = [4, 8, 16] if args.quick else [4, 8, 16, 32]
     if any(c < 1 for c in cells):
         raise _UsageError(f"--cells must be positive integers, got {cells}")
-    ppc = args.ppc or (QUICK["ppc"] if bench.dim == 1 else 2)
+    if args.ppc is not None and args.ppc < 1:
+        raise _UsageError(f"--ppc must be a positive integer, got {args.ppc}")
+    if args.cfl is not None and not args.cfl > 0:
+        raise _UsageError(f"--cfl must be a positive number, got {args.cfl}")
+    _check_out(args.out)
+    ppc = args.ppc if args.ppc is not None else (QUICK["ppc"] if bench.dim == 1 else 2)
     scheme = args.scheme or QUICK["scheme"]
-    cfl = args.cfl or QUICK["cfl"]
+    cfl = args.cfl if args.cfl is not None else QUICK["cfl"]
     executor = None
     note = (f"Timed runs: a local process pool with {os.cpu_count()} workers, one thread each, "
             f"so runs never share a core; JIT compilation is excluded (column jit_time_s).")
@@ -249,8 +255,26 @@ def _cmd_study(args):
     return 0
 
 
+def _check_out(out):
+    """--out must be a folder that exists or can be made (checked before a
+    run, so that a run is not lost when its output cannot be written)."""
+    if out is None:
+        return
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise _UsageError(f"--out {out!r} is a file, not a folder")
+    parent = os.path.dirname(os.path.abspath(out))
+    while not os.path.exists(parent):
+        parent = os.path.dirname(parent)
+    target = out if os.path.isdir(out) else parent
+    if not os.access(target, os.W_OK):
+        raise _UsageError(f"--out {out!r}: {target!r} is not writable")
+
+
 def _cmd_bench(args):
     from .bench import main as bench_main
+
+    if args.repeat is not None and args.repeat < 1:
+        raise _UsageError(f"--repeat must be a positive integer, got {args.repeat}")
 
     argv = [f"--{flag}" for flag in ("quick", "json", "reference", "consistent")
             if getattr(args, flag)]
