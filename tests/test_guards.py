@@ -231,3 +231,16 @@ def test_a_failed_checkpoint_write_keeps_the_run_and_leaves_no_temporary_file(tm
     assert info.value.step == 3 and info.value.result.counts["steps"] == 3
     assert np.isfinite(info.value.result.particles.x).all()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_fixed_and_prescribed_on_the_same_dofs_are_refused():
+    grid = SplineGrid.line(0.0, 1.0, 4, 2)
+    p = Particles.seed(grid, 2, 1.0)
+    body = Body(p, LinearElastic(1.0))
+    for effects in ([Fixed("left"), Prescribed("left", 0, lambda t: 1.0)],
+                    [Prescribed("left", 0, lambda t: 1.0), Fixed("left")],
+                    [Prescribed("left", 0, lambda t: 1.0), Prescribed("left", 0, lambda t: 2.0)]):
+        with pytest.raises(ValueError, match="constrains component 0 of dofs that another"):
+            simulate(Scene(grid, body, 0.01, effects=effects), Method())
+    # the same constraint twice is harmless
+    simulate(Scene(grid, body, 0.01, effects=[Fixed("left"), Fixed("left")]), Method())

@@ -85,8 +85,17 @@ class Constraints:
             for c, dofs, fn in e.constraints(grid):
                 self.items.append((e, c, np.asarray(dofs), fn))
         self.mask = np.zeros((grid.ndofs, dim), dtype=bool)
-        for _, c, dofs, _ in self.items:
+        prescribed = np.zeros((grid.ndofs, dim), dtype=bool)
+        for e, c, dofs, fn in self.items:
+            if fn is not None and self.mask[dofs, c].any() or \
+                    fn is None and prescribed[dofs, c].any():
+                raise ValueError(f"effects: {e!r} constrains component {c} of dofs that "
+                                 f"another effect already prescribes or fixes; a dof "
+                                 f"component takes one constraint (which one wins is not "
+                                 f"defined)")
             self.mask[dofs, c] = True
+            if fn is not None:
+                prescribed[dofs, c] = True
         self.prescribed = [(c, dofs, fn) for _, c, dofs, fn in self.items if fn is not None]
 
     @property
