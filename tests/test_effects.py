@@ -40,3 +40,18 @@ def test_effects_contribute_only_their_own_part():
     assert damping.force_modifiers() == [damping] and damping.bind(particles, grid) == []
     f = damping.modify_force(np.array([[2.0]]), np.array([[1.0]]))
     assert f[0, 0] == 2.0 - 0.1 * 2.0
+
+
+def test_a_1d_side_traction_loads_the_body_end_once_when_it_ends_inside_a_cell():
+    """The body [0, 1] ends inside a cell of the grid (13 cells on [0, 1.6]):
+    the particles of the cut cell are smaller than their neighbours, and
+    the last full-size particle's face lies within half its size of the
+    end. Only the end particle carries the load (total force tau, at the
+    body's end); the rule 'within half its own size of the edge' loaded
+    both, doubling the force."""
+    grid = SplineGrid.line(0.0, 1.6, 13, 2)
+    particles = Particles.seed(grid, 2, 1.0, region=((0.0, 1.0),))
+    force, = Traction("right", 1.0).bind(particles, grid)
+    assert force.index.tolist() == [int(np.argmax(particles.X[:, 0]))]
+    assert force.share.sum() == 1.0
+    assert force.points(particles)[0, 0] == 1.0
