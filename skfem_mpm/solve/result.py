@@ -148,7 +148,9 @@ class Recorder:
 
     # checkpoint support ------------------------------------------------------
     def state_arrays(self):
-        out = {"rec_times": np.array(self.times)}
+        last = self.last_step_saved
+        out = {"rec_times": np.array(self.times),
+               "rec_last_step": np.array(-1 if last is None else last, dtype=np.int64)}
         for k, v in self.history.items():
             out[f"rec_n_{k}"] = np.array([a.shape[0] for a in v], dtype=np.int64)
             out[f"rec_{k}"] = np.concatenate(v) if v else np.zeros(0)
@@ -160,6 +162,10 @@ class Recorder:
     def from_arrays(cls, data, reactions):
         rec = cls()
         rec.times = [float(t) for t in data["rec_times"]]
+        # the step of the last save: a run resumed at its last step (from a
+        # checkpoint written after that step's save) must not record it twice
+        last = int(data["rec_last_step"]) if "rec_last_step" in data else -1
+        rec.last_step_saved = None if last < 0 else last
         for k in HISTORY_FIELDS:
             sizes = data[f"rec_n_{k}"]
             flat = data[f"rec_{k}"]
