@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
-from skfem_mpm import (Body, Fixed, Gravity, LinearElastic, Method, NeoHookean, Particles,
-                       Prescribed, Scene, SimulationError, SplineGrid, Traction, simulate)
+from skfem_mpm import (Body, BodyForce, Damping, Fixed, Gravity, LinearElastic, Method,
+                       NeoHookean, Particles, Prescribed, Scene, SimulationError, SplineGrid,
+                       Traction, simulate)
 from skfem_mpm.benchmarks import get_benchmark
 
 
@@ -176,6 +177,93 @@ def test_removal_with_two_bodies_rebinds_to_the_survivors(backend):
     assert np.all(np.isfinite(r.particles.stress)) and np.all(r.particles.V > 0)
 
 
+# --------------------------------------------------------------- restart, every field
+MEASURED = {"wall_time", "jit_time"}  # seconds: differ between any two runs
+KEYS_ONLY = {"timings"}               # seconds per phase: compare which phases ran
+
+
+def assert_same(a, b, where):
+    """a and b equal bit for bit, recursively; an unknown type fails (so a
+    new recorded quantity cannot slip past the comparison unexamined)."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.shape == b.shape and a.dtype == b.dtype, \
+            f"{where}: {a.shape} {a.dtype} vs {b.shape} {b.dtype}"
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), \
+            f"{where}: differs by up to {np.max(np.abs(a - b)) if a.dtype.kind in 'fiu' else '?'}"
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and set(a) == set(b), f"{where}: keys {sorted(a)} vs {sorted(b)}"
+        for k in a:
+            assert_same(a[k], b[k], f"{where}[{k!r}]")  # History stacks on __getitem__
+    elif isinstance(a, (list, tuple)):
+        assert type(a) is type(b) and len(a) == len(b), f"{where}: lengths {len(a)} vs {len(b)}"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{where}[{i}]")
+    elif isinstance(a, Particles):
+        assert isinstance(b, Particles)
+        assert_same(vars(a), vars(b), f"{where}.")
+    elif isinstance(a, SplineGrid):
+        assert a is b, f"{where}: another grid"
+    elif a is None or isinstance(a, (bool, int, float, str, np.number, np.bool_)):
+        assert type(a) is type(b) and a == b, f"{where}: {a!r} vs {b!r}"
+    else:
+        raise AssertionError(f"{where}: no comparison for {type(a).__name__}; extend assert_same")
+
+
+def assert_same_result(full, resumed):
+    fields = set(vars(full))
+    assert fields == set(vars(resumed)), fields ^ set(vars(resumed))
+    for name in sorted(fields - MEASURED):
+        a, b = getattr(full, name), getattr(resumed, name)
+        if name in KEYS_ONLY:
+            a, b = sorted(a), sorted(b)
+        assert_same(a, b, name)
+
+
+def loaded_plate():
+    """A neo-Hookean plate (adaptive dt), clamped on the left, pulled on its
+    right side by a traction, under a body force, with local damping: every
+    kind of recorded quantity moves (external work of two forces,
+    reactions, damping's sign of velocity)."""
+    grid = SplineGrid.rectangle((0.0, 1.5), (0.0, 1.5), (6, 6), 2)
+    parts = Particles.seed(grid, 2, 1.0, region=((0.0, 1.0), (0.25, 1.25)),
+                           velocity=lambda X: np.column_stack((0.05 * X[:, 0], 0.02 * X[:, 0])))
+    effects = [Fixed("left"), Traction("right", lambda t: (0.2 * min(t / 0.3, 1.0), 0.02)),
+               BodyForce(lambda X, t: np.column_stack((0.0 * X[:, 0], -0.5 - 0.5 * X[:, 0]))),
+               Damping(0.05)]
+    return Scene(grid, Body(parts, NeoHookean(10.0, 0.3)), 0.6, effects=effects)
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+@pytest.mark.parametrize("scheme, mass", [("cd", "lumped"), ("cd", "consistent"),
+                                          ("musl", "lumped"), ("musl", "consistent")])
+def test_restart_reproduces_every_recorded_quantity(tmp_path, backend, scheme, mass):
+    """A run stopped after its checkpoint at step 10 and restarted from it
+    gives the Result of the uninterrupted run: every attribute of the
+    Result (enumerated, so a new one is compared too), bit for bit, except
+    measured seconds (wall and compile time; the phases timed must agree).
+
+    So does a restart from the checkpoint of the last step, which runs no
+    step: its final save (when the last step was not a save step) reports
+    the velocities from the kept state (CD: v^(n+1/2) + dt/2 N a^n, so the
+    kept acceleration must come back), and a save made before that
+    checkpoint is not recorded twice."""
+    scene = loaded_plate()
+    method = Method(scheme=scheme, mass=mass, backend=backend)
+    full = simulate(scene, method, save_every=3)
+    assert full.counts["steps"] > 20 and full.energies["external_work"][-1] != 0.0
+    assert any(np.any(f != 0) for r in full.reactions for f in r.values())
+    path = tmp_path / "run.npz"
+    stopped = simulate(scene, method, save_every=3, checkpoint=(path, 10),
+                       callback=lambda step, state: step < 10)
+    assert stopped.counts["steps"] == 10
+    resumed = simulate(scene, method, save_every=3, restart=path)
+    assert_same_result(full, resumed)
+    for save_every in (None, 1):  # the last step unsaved / saved before its checkpoint
+        full = simulate(scene, method, save_every=save_every)
+        last = tmp_path / f"last_{save_every}.npz"
+        simulate(scene, method, save_every=save_every, checkpoint=(last, 1))
+        assert_same_result(full, simulate(scene, method, save_every=save_every, restart=last))
 @pytest.mark.parametrize("run", ["simulate", "fem"])
 def test_cfl_above_one_is_refused_like_a_dt_above_dt_crit(run):
     from skfem_mpm import fem
