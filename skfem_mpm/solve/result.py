@@ -1,4 +1,6 @@
 """``Result`` of a run (MPM or FEM) and the recorder that fills it."""
+import json
+
 import numpy as np
 
 from .timing import PHASES
@@ -21,9 +23,10 @@ class Result:
     history
         Per save: ``X`` reference positions, ``x`` positions, ``u``
         displacements, ``v`` velocities, ``stress``, ``index`` (each
-        particle's index in the initial set; differs only after removals).
-        Stacked into arrays of shape (saves, n, ...) when no particle was
-        removed, otherwise lists.
+        particle's index in the initial set; differs only after removals),
+        and each material state field by its name (``particles.state``,
+        e.g. ``history["plastic_strain"]``). Stacked into arrays of shape
+        (saves, n, ...) when no particle was removed, otherwise lists.
     energies
         Per save: ``kinetic``, ``strain``, ``external_work`` (work done by
         the declared forces since t = 0) and ``total`` = kinetic + strain.
@@ -116,6 +119,8 @@ class Recorder:
         self.history["u"].append(keep(p.u))
         self.history["v"].append(keep(v))
         self.history["stress"].append(keep(p.stress))
+        for name, values in p.state.items():  # the material state, by field name
+            self.history.setdefault(name, []).append(keep(values))
         kinetic, strain = state.energies()
         self.energies["kinetic"].append(kinetic)
         self.energies["strain"].append(strain)
@@ -147,13 +152,24 @@ class Recorder:
         return Result(**fields)
 
     # checkpoint support ------------------------------------------------------
+    @staticmethod
+    def _keys(name):
+        """The checkpoint keys of a history entry: (sizes, values); a
+        material state field's keys hold a dot, which no other key has."""
+        if name in HISTORY_FIELDS:
+            return f"rec_n_{name}", f"rec_{name}"
+        return f"rec_state_n.{name}", f"rec_state.{name}"
+
     def state_arrays(self):
         last = self.last_step_saved
+        state_names = [k for k in self.history if k not in HISTORY_FIELDS]
         out = {"rec_times": np.array(self.times),
-               "rec_last_step": np.array(-1 if last is None else last, dtype=np.int64)}
+               "rec_last_step": np.array(-1 if last is None else last, dtype=np.int64),
+               "rec_state_names": np.array(json.dumps(state_names))}
         for k, v in self.history.items():
-            out[f"rec_n_{k}"] = np.array([a.shape[0] for a in v], dtype=np.int64)
-            out[f"rec_{k}"] = np.concatenate(v) if v else np.zeros(0)
+            sizes, values = self._keys(k)
+            out[sizes] = np.array([a.shape[0] for a in v], dtype=np.int64)
+            out[values] = np.concatenate(v) if v else np.zeros(0)
         for k, v in self.energies.items():
             out[f"rec_e_{k}"] = np.array(v)
         return out
@@ -166,9 +182,11 @@ class Recorder:
         # checkpoint written after that step's save) must not record it twice
         last = int(data["rec_last_step"]) if "rec_last_step" in data else -1
         rec.last_step_saved = None if last < 0 else last
-        for k in HISTORY_FIELDS:
-            sizes = data[f"rec_n_{k}"]
-            flat = data[f"rec_{k}"]
+        names = json.loads(str(data["rec_state_names"])) if "rec_state_names" in data else []
+        for k in HISTORY_FIELDS + tuple(names):
+            sizes_key, values_key = cls._keys(k)
+            sizes = data[sizes_key]
+            flat = data[values_key]
             rec.history[k] = [a.copy() for a in np.split(flat, np.cumsum(sizes)[:-1])] \
                 if sizes.size else []
         for k in ENERGY_FIELDS:

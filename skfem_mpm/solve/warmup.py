@@ -95,6 +95,7 @@ def _warm_up_point_laws(dim, materials):
     from numba import get_num_threads
 
     from ..kernels.constitutive import material_update
+    from ..materials.state import state_layout
 
     one = np.zeros((1, dim, dim))
     for material in materials:
@@ -102,8 +103,9 @@ def _warm_up_point_laws(dim, materials):
             continue
         finite = bool(material.finite_strain)
         F = np.broadcast_to(np.eye(dim), (1, dim, dim)).copy()
-        state = np.zeros((1, 0))
+        layout = state_layout(material, dim)
+        state = layout.pack(layout.initial_arrays(1)) if layout else np.zeros((1, 0))
         material_update(material.point_update.address(), material.point_parameters(dim),
                         np.zeros(0, dtype=np.int64), True, one, 0.0, finite, one.copy(), F,
-                        np.ones(1), np.ones(1), state, one.copy(), F.copy(), np.ones(1), state,
-                        np.full(get_num_threads(), -1, dtype=np.int64))
+                        np.ones(1), np.ones(1), state, one.copy(), F.copy(), np.ones(1),
+                        state.copy(), np.full(get_num_threads(), -1, dtype=np.int64))
