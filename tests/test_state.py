@@ -401,3 +401,22 @@ def test_bad_declarations_and_updates_raise():
     with pytest.raises(ValueError, match="both declare the state field 'a', with per-particle "
                                          r"shapes \(\) and \(2,\)"):
         Scene(grid, two, 0.01)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_a_failed_step_keeps_the_last_good_state(backend):
+    """A particle leaves the grid (on_exit='raise'): the error's result
+    holds the state after the last good step, equal to a run stopped there."""
+    from skfem_mpm import SimulationError
+
+    scene = bar_scene(CappedPlasticCompiled(10.0, 0.3), 1, steps=60, region=((0.3, 0.9),),
+                      velocity=lambda X: 0.3 + 0.2 * X, effects=[])
+    with pytest.raises(SimulationError) as info:
+        simulate(scene, Method(backend=backend))
+    failed = info.value.step
+    good = info.value.result.particles
+    assert failed > 3 and np.all(good.state["steps"] == failed - 1)
+    stopped = simulate(scene, Method(backend=backend),
+                       callback=lambda step, state: step < failed - 1).particles
+    for name in names(1):
+        assert np.array_equal(good.state[name], stopped.state[name]), name
