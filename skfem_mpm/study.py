@@ -76,6 +76,10 @@ def parse_method(name, scheme="musl", cfl=0.5):
                              f"{RECONSTRUCTIONS}, schemes {SCHEMES}")
     if spec["kind"] == "fem" and spec["reconstruction"] != "none":
         raise ValueError(f"fem methods take no reconstruction, got {name!r}")
+    if spec["kind"] == "fem" and spec["scheme"] == "rk4":
+        raise ValueError(f"fem methods have no scheme 'rk4' yet (method {name!r}; the study's "
+                         f"default scheme is {scheme!r}): name the fem method's scheme, "
+                         f"e.g. {'-'.join(parts[:3])}-cd")
     return spec
 
 

@@ -236,7 +236,8 @@ def loaded_plate():
 
 @pytest.mark.parametrize("backend", ["numba", "numpy"])
 @pytest.mark.parametrize("scheme, mass", [("cd", "lumped"), ("cd", "consistent"),
-                                          ("musl", "lumped"), ("musl", "consistent")])
+                                          ("musl", "lumped"), ("musl", "consistent"),
+                                          ("rk4", "lumped"), ("rk4", "consistent")])
 def test_restart_reproduces_every_recorded_quantity(tmp_path, backend, scheme, mass):
     """A run stopped after its checkpoint at step 10 and restarted from it
     gives the Result of the uninterrupted run: every attribute of the

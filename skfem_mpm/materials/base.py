@@ -100,6 +100,19 @@ class Material:
     def update(self, particles, L, dt):  # pragma: no cover - interface
         raise NotImplementedError
 
+    # Staged (Runge-Kutta) schemes evaluate the stress of each stage from the
+    # stage's kinematic state; a material offers one of these two (see
+    # skfem_mpm.solve.runge_kutta), or cannot be staged.
+
+    def stress_rate(self, particles, L):  # pragma: no cover - interface
+        """Small strain: d sigma / dt at the particles for the velocity
+        gradient L (n, dim, dim), for a rate law with no other history."""
+        raise NotImplementedError
+
+    def cauchy_stress(self, F):  # pragma: no cover - interface
+        """Finite strain: sigma(F) for deformation gradients F (n, dim, dim)."""
+        raise NotImplementedError
+
     def wave_speed(self, particles):  # pragma: no cover - interface
         raise NotImplementedError
 

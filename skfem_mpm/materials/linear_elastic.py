@@ -33,18 +33,21 @@ class LinearElastic(Material):
         """The P-wave modulus: E in 1D, lambda + 2 mu in 2D."""
         return self.E if dim == 1 else self.lam + 2 * self.mu
 
-    def update(self, particles, L, dt):
+    def stress_rate(self, particles, L):
+        """sigma' = lambda tr(D) I + 2 mu D (E D in 1D), D = sym(L)."""
         dim = L.shape[-1]
-        d_eps = 0.5 * dt * (L + np.swapaxes(L, 1, 2))
+        D = 0.5 * (L + np.swapaxes(L, 1, 2))
         if dim == 1:
-            d_sigma = self.E * d_eps
-        else:
-            trace = d_eps[:, 0, 0] + d_eps[:, 1, 1]
-            d_sigma = 2 * self.mu * d_eps
-            d_sigma[:, 0, 0] += self.lam * trace
-            d_sigma[:, 1, 1] += self.lam * trace
+            return self.E * D
+        trace = np.trace(D, axis1=1, axis2=2)
+        rate = 2 * self.mu * D
+        for d in range(dim):
+            rate[:, d, d] += self.lam * trace
+        return rate
+
+    def update(self, particles, L, dt):
         J_inc = det(incremental_deformation(L, dt))
-        return particles.stress + d_sigma, particles.V * J_inc, None
+        return particles.stress + dt * self.stress_rate(particles, L), particles.V * J_inc, None
 
     def point_parameters(self, dim):
         """(E,) in 1D, (lambda, mu) in 2D and 3D."""

@@ -249,7 +249,7 @@ class CompiledExecutor:
         guard = state.method.frequency_guard
         limit = None
         if guard > 0:
-            limit = guard * fast_dof_limit(state.grid.degree) / (state.dt * state.wave_speed_now) ** 2
+            limit = guard * fast_dof_limit(state.grid.degree, state.method.scheme) / (state.dt * state.wave_speed_now) ** 2
         small = self._small_dofs(state, mass)
         fast_rows = None if limit is None else (
             lambda diag: lumping_fraction(K / (limit * np.maximum(diag, 1e-300))))

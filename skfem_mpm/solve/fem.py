@@ -300,6 +300,10 @@ def fem(scene, method=None, save_every=None, progress=False):
     method = Method() if method is None else method
     if not isinstance(method, Method):
         raise ValueError(f"method must be a Method, got {method!r}")
+    if method.scheme == "rk4":
+        raise ValueError("fem integrates in time with the explicit symplectic step (scheme "
+                         "'musl', 'usl', 'usf' or 'cd'; 'cd' starts with a half step); "
+                         "scheme 'rk4' is not available in fem yet")
     if save_every is not None and (isinstance(save_every, bool) or int(save_every) != save_every
                                    or save_every < 1):
         raise ValueError(f"save_every must be a positive integer, got {save_every!r}")

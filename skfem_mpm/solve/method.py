@@ -7,7 +7,7 @@ from ..validation import check_choice, check_positive
 
 __all__ = ["Method", "SCHEMES", "MASSES", "RECONSTRUCTIONS"]
 
-SCHEMES = ("musl", "usl", "usf", "cd")
+SCHEMES = ("musl", "usl", "usf", "cd", "rk4")
 MASSES = ("lumped", "consistent")
 RECONSTRUCTIONS = ("none", "spline", "tls", "mls")
 ON_EXIT = ("raise", "remove")
@@ -24,8 +24,12 @@ class Method:
         velocities from the nodal accelerations, nodal velocities recomputed
         from the updated particle momentum, then strains and positions; the
         default), ``"usl"`` (update stress last), ``"usf"`` (update stress
-        first) or ``"cd"`` (central difference: USL with staggered
-        velocities, second order in time).
+        first), ``"cd"`` (central difference: USL with staggered
+        velocities, second order in time) or ``"rk4"`` (classical
+        fourth-order Runge-Kutta on the particle system, four grid passes
+        per step; stable up to sqrt(2) times the central-difference step,
+        and ``cfl`` is a fraction of that; needs materials that can be
+        staged, see :mod:`skfem_mpm.solve.runge_kutta`).
     mass
         ``"lumped"`` (row sums) or ``"consistent"`` (sparse solve).
     reconstruction

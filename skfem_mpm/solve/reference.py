@@ -5,7 +5,7 @@ It runs on any grid (spline or Lagrange), every scheme, mass, reconstruction,
 material and effect; it is the oracle the compiled executor is tested
 against.
 """
-from . import steps
+from . import runge_kutta, steps
 
 __all__ = ["ReferenceExecutor"]
 
@@ -68,6 +68,16 @@ class ReferenceExecutor:
                 if grid.external_grid is not None:
                     force += grid.external_grid
         grid.force = force
+
+    def stage_rates(self, state, particles, c, reactions=False):
+        """R(t + c dt, particles) of a Runge-Kutta stage."""
+        return runge_kutta.stage_rates(state, particles, state.t + c * state.dt, reactions)
+
+    def stage(self, state, rates, weights):
+        return runge_kutta.staged_particles(state, rates, weights)
+
+    def combine(self, state, rates, weights):
+        return runge_kutta.combined_step(state, rates, weights)
 
     def commit(self, state, grid):
         steps.commit(state, grid)

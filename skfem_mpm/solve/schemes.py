@@ -35,9 +35,19 @@ then f from the new stress, a, v = v^n + dt a and the particle update.
 CD: central difference with staggered velocities: the particles carry
 v^(n-1/2); the first step is a half step v^(1/2) = v^0 + dt/2 N a^0, then
 USL. Second order in time; reported velocities are v^(n+1/2) + dt/2 N a^n.
+RK4: classical fourth-order Runge-Kutta on the particle system; each stage
+evaluates the rates k = R(t, y) with a whole particles-to-grid, grid solve
+and grid-to-particles pass (:mod:`skfem_mpm.solve.runge_kutta`). Its own
+operations:
+
+    stage_rates            k = (N v, N a, the stress or F rate, dV/dt) of the
+                           given particles at time t (v: M v = P, a: M a = f)
+    stage                  the particles y_n + dt sum_s w_s k_s
+    combine                the step's new state y_n + dt sum_s b_s k_s and its
+                           external work
 """
 
-__all__ = ["step_musl", "step_usl", "step_usf", "step_cd", "SCHEME_STEPS"]
+__all__ = ["step_musl", "step_usl", "step_usf", "step_cd", "step_rk4", "SCHEME_STEPS"]
 
 
 def step_musl(ops, state):
@@ -82,4 +92,15 @@ def step_usf(ops, state):
     return grid
 
 
-SCHEME_STEPS = {"musl": step_musl, "usl": step_usl, "usf": step_usf, "cd": step_cd}
+def step_rk4(ops, state):
+    k1 = ops.stage_rates(state, state.particles, 0.0, reactions=True)
+    k2 = ops.stage_rates(state, ops.stage(state, [k1], [0.5]), 0.5)
+    k3 = ops.stage_rates(state, ops.stage(state, [k2], [0.5]), 0.5)
+    k4 = ops.stage_rates(state, ops.stage(state, [k3], [1.0]), 1.0)
+    step = ops.combine(state, [k1, k2, k3, k4], [1 / 6, 1 / 3, 1 / 3, 1 / 6])
+    ops.commit(state, step)
+    return step
+
+
+SCHEME_STEPS = {"musl": step_musl, "usl": step_usl, "usf": step_usf, "cd": step_cd,
+                "rk4": step_rk4}

@@ -7,6 +7,7 @@ import numpy as np
 from ..errors import InvalidState
 from ..kernels import resolve_backend
 from .grid_system import Constraints, dof_adjacency
+from .runge_kutta import check_staged
 from .timestep import critical_time_step, stable_time_step
 from .timing import PhaseTimer
 
@@ -40,6 +41,8 @@ class State:
         self.warm = {}
         self.particle_acceleration = None
         self.materials = [b.material for b in scene.bodies]
+        if method.scheme == "rk4":
+            check_staged(self.materials, self.grid.dim)
         self.force_modifiers = [m for e in scene.effects for m in e.force_modifiers()]
         self.constraints = Constraints(self.grid, scene.effects)
         self.forces = []
@@ -128,7 +131,7 @@ class State:
         m = self.method
         self.wave_speed_now = self.wave_speed()
         self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, m.mass,
-                                          m.reconstruction)
+                                          m.reconstruction, m.scheme)
         t_end = self.scene.t_end
         dt = stable_time_step(m, self.dt_crit,
                               f" (degree {self.grid.degree}, {m.mass} mass)")
@@ -146,7 +149,7 @@ class State:
             return self.dt
         self.wave_speed_now = self.wave_speed()
         self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, self.method.mass,
-                                          self.method.reconstruction)
+                                          self.method.reconstruction, self.method.scheme)
         remaining = self.scene.t_end - self.t
         dt = self.method.cfl * self.dt_crit
         self.dt = remaining if dt >= remaining * (1 - 1e-12) else dt

@@ -108,6 +108,7 @@ class GridData:
         self.L = None              # velocity gradient at the particles
         self.particle_acceleration = None  # N a at the particles
         self.keep_acceleration = False     # CD: the state keeps N a (reported velocities)
+        self.work = None                   # external work when a scheme computes its own
 
     def stiffness_weights(self):
         """sum over the integration points of mass * |grad N_i|^2 per dof:
@@ -125,49 +126,55 @@ class GridData:
         return self.transfer.to_grid(particles.m[:, None] * v)
 
 
-def particle_forces(state, which=None):
+def particle_forces(state, which=None, particles=None, t=None):
     """Sum of the declared particle forces f_p (n, dim), or None without any.
     ``which`` = 'volume' (gravity, body forces) or 'surface' (tractions:
     for work accounting; side tractions reach the grid through
-    :func:`surface_forces`) selects one kind."""
+    :func:`surface_forces`) selects one kind. ``particles`` and ``t``
+    default to the state's (a Runge-Kutta stage passes its own)."""
+    p = state.particles if particles is None else particles
+    t = state.t if t is None else t
     chosen = [f for f in state.forces if which is None or (which == "surface") == f.surface]
     if not chosen:
         return None
     with state.timer("effects"):
         total = None
         for f in chosen:
-            term = f.forces(state.particles, state.t)
+            term = f.forces(p, t)
             total = term if total is None else total + term
     return total
 
 
-def surface_forces(state, external):
+def surface_forces(state, external, particles=None, t=None):
     """Grid forces of the declared tractions: side tractions at the particles'
     faces, mask tractions through N^T; ``external`` is the Transfer."""
+    p = state.particles if particles is None else particles
+    t = state.t if t is None else t
     total = None
     with state.timer("effects"):
         for f in state.forces:
             if not f.surface:
                 continue
-            term = f.grid_forces(state.particles, state.t, state.grid)
+            term = f.grid_forces(p, t, state.grid)
             if term is None:
-                term = external.to_grid(f.forces(state.particles, state.t))
+                term = external.to_grid(f.forces(p, t))
             total = term if total is None else total + term
     return total
 
 
-def reconstructed_grid_data(state, transfer):
+def reconstructed_grid_data(state, transfer, particles=None, t=None):
     """Mass, momentum and forces integrated with Gauss quadrature of
     reconstructed particle fields (see :mod:`skfem_mpm.reconstruct`)."""
-    p, grid = state.particles, state.grid
+    p = state.particles if particles is None else particles
+    grid = state.grid
     dim = grid.dim
     method = state.method
     recon = method.reconstruction
     recon = RECONSTRUCTORS[recon] if isinstance(recon, str) else recon
     options = method.reconstruction_options
-    volume = particle_forces(state, "volume")
-    surface = particle_forces(state, "surface")
-    surface_grid = surface_forces(state, transfer) if surface is not None else None
+    volume = particle_forces(state, "volume", p, t)
+    surface = particle_forces(state, "surface", p, t)
+    surface_grid = surface_forces(state, transfer, p, t) if surface is not None else None
     with state.timer("reconstruct"):
         rule = integration_rule(grid, p, grid.degree + 2)
         Ng, Gg = transfer_matrices(grid, rule.x)
@@ -214,20 +221,21 @@ def internal_force(state, transfer, particles=None):
     return -transfer.divergence_to_grid(p.V[:, None, None] * p.stress)
 
 
-def particles_to_grid(state):
+def particles_to_grid(state, particles=None, t=None):
     """Mass (lumped, and consistent if the method needs it), momentum, and
-    internal plus external forces on the grid at the current positions."""
-    p = state.particles
+    internal plus external forces on the grid at the current positions
+    (of ``particles`` at time ``t``: default the state's)."""
+    p = state.particles if particles is None else particles
     transfer = Transfer(state.grid, p.x, state.timer, state.backend)
     if state.method.reconstruction != "none":
-        return reconstructed_grid_data(state, transfer)
-    volume = particle_forces(state, "volume")
-    surface = particle_forces(state, "surface")
-    surface_grid = surface_forces(state, transfer) if surface is not None else None
+        return reconstructed_grid_data(state, transfer, p, t)
+    volume = particle_forces(state, "volume", p, t)
+    surface = particle_forces(state, "surface", p, t)
+    surface_grid = surface_forces(state, transfer, p, t) if surface is not None else None
     with state.timer("p2g"):
         lumped = transfer.to_grid(p.m)
         momentum = transfer.to_grid(p.m[:, None] * p.v)
-        force = internal_force(state, transfer)
+        force = internal_force(state, transfer, p)
         external_grid = None
         if volume is not None:
             external_grid = transfer.to_grid(volume)
@@ -245,14 +253,15 @@ def particles_to_grid(state):
     return data
 
 
-def _system(state, data):
+def step_system(state, data):
+    """The grid system of this step's mass (built once per GridData)."""
     from .grid_system import GridSystem
 
     if data.system is None:
         fast_rows = None
         guard = state.method.frequency_guard
         if data.consistent is not None and guard > 0:
-            limit = guard * fast_dof_limit(state.grid.degree) / (state.dt * state.wave_speed_now) ** 2
+            limit = guard * fast_dof_limit(state.grid.degree, state.method.scheme) / (state.dt * state.wave_speed_now) ** 2
 
             def fast_rows(mass_diagonal):
                 k = data.stiffness_weights()  # sum over points of mass |grad N_i|^2
@@ -267,7 +276,7 @@ def _system(state, data):
 def grid_velocity(state, data, momentum, t):
     """v with M v = P, constrained dofs set to their velocity at time t."""
     with state.timer("solve"):
-        system = _system(state, data)
+        system = step_system(state, data)
         v = system.solve(momentum, state.constraints.values(t), "velocity")
         system.remember("velocity", v)
     return v
@@ -306,7 +315,7 @@ def solve_grid(state, data, need_old_velocity=False, end_velocity=None):
             for modifier in state.force_modifiers:
                 force = modifier.modify_force(force, data.velocity_old)
     with state.timer("solve"):
-        system = _system(state, data)
+        system = step_system(state, data)
         c = state.constraints
         values = (c.values(t + dt) - c.values(t)) / dt if c.prescribed else np.zeros_like(force)
         a = system.solve(force, values, "acceleration")
@@ -431,7 +440,11 @@ def _first_bad(*arrays):
 
 def external_work(state, data):
     """Work of the particle forces over the step: sum_p f_p . (x_p^(n+1) - x_p^n),
-    the displacement the scheme actually gives the particles."""
+    the displacement the scheme actually gives the particles (a Runge-Kutta
+    step brings its own quadrature of the power as ``data.work``)."""
+    if data.work is not None:
+        state.external_work += data.work
+        return
     f_p = data.external
     if f_p is not None:
         state.external_work += float(np.sum(f_p * (data.new["u"] - state.particles.u)))

@@ -34,7 +34,7 @@ from scipy.linalg import eigh
 from skfem import BilinearForm, asm
 from skfem.helpers import dot, grad
 
-__all__ = ["spectral_radius", "interior_rayleigh_quotient", "critical_time_step",
+__all__ = ["spectral_radius", "interior_rayleigh_quotient", "critical_time_step", "STABILITY_LIMIT",
            "stable_time_step",
            "fast_dof_limit", "lumping_fraction"]
 
@@ -75,12 +75,21 @@ def interior_rayleigh_quotient(degree):
     return float(asm(_stiffness, basis)[i, i] / asm(_mass, basis)[i, i])
 
 
-def fast_dof_limit(degree):
-    """4 q(p) / Lambda(p, consistent): a dof whose own Rayleigh quotient
-    satisfies dt^2 K_ii / M_ii above this would, amplified by its coupling
-    as an interior dof is, exceed the stability limit omega dt = 2 of the
-    time step chosen from Lambda (see :mod:`skfem_mpm.solve.grid_system`)."""
-    return 4.0 * interior_rayleigh_quotient(degree) / spectral_radius(degree, "consistent")
+STABILITY_LIMIT = {"rk4": 2.0 * np.sqrt(2.0)}
+"""Largest stable omega dt of a scheme on undamped oscillations where it is
+not 2 (central difference, symplectic Euler): classical RK4's stability
+region meets the imaginary axis at +-2 sqrt(2) (Hairer & Wanner, "Solving
+ODEs II", Sec. IV.2)."""
+
+
+def fast_dof_limit(degree, scheme="cd"):
+    """s^2 q(p) / Lambda(p, consistent), s = 2 (s the scheme's
+    STABILITY_LIMIT): a dof whose own Rayleigh quotient satisfies
+    dt^2 K_ii / M_ii above this would, amplified by its coupling as an
+    interior dof is, exceed the stability limit omega dt = s of the time
+    step chosen from Lambda (see :mod:`skfem_mpm.solve.grid_system`)."""
+    s = STABILITY_LIMIT.get(scheme, 2.0)
+    return s * s * interior_rayleigh_quotient(degree) / spectral_radius(degree, "consistent")
 
 
 def lumping_fraction(ratio):
@@ -92,13 +101,15 @@ def lumping_fraction(ratio):
 RECONSTRUCTION_2D = 0.6
 
 
-def critical_time_step(grid, wave_speed, mass="lumped", reconstruction="none"):
-    """dt_crit = 2 / (c sqrt(sum_d Lambda(p, mass) / h_d^2)) for the grid,
-    times RECONSTRUCTION_2D for a reconstructed method on a 2D grid."""
+def critical_time_step(grid, wave_speed, mass="lumped", reconstruction="none", scheme="cd"):
+    """dt_crit = s / (c sqrt(sum_d Lambda(p, mass) / h_d^2)) for the grid,
+    s = 2 (or the scheme's STABILITY_LIMIT), times RECONSTRUCTION_2D for a
+    reconstructed method on a 2D grid."""
     lam = spectral_radius(grid.degree, mass)
     h = np.asarray(grid.h, dtype=np.float64)
     factor = RECONSTRUCTION_2D if (grid.dim == 2 and reconstruction != "none") else 1.0
-    return float(factor * 2.0 / (wave_speed * np.sqrt(np.sum(lam / h ** 2))))
+    limit = STABILITY_LIMIT.get(scheme, 2.0)
+    return float(factor * limit / (wave_speed * np.sqrt(np.sum(lam / h ** 2))))
 
 
 def stable_time_step(method, dt_crit, what=""):
