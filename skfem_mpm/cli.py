@@ -202,7 +202,7 @@ QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.1, "scheme": "cd"}
 def _cmd_study(args):
     from .benchmarks import get_benchmark
     from .study import FULL_METHODS, QUICK_METHODS, convergence, fastest_to, markdown_table, \
-        write_report
+        time_to_reach_table, write_report
 
     params = _parse_set(args.params)
     bench = get_benchmark(args.benchmark, args.variant, **params)
@@ -246,6 +246,9 @@ def _cmd_study(args):
     print(setup)
     print(note)
     print(markdown_table(records))
+    print("time to reach a relative error e [s] (interpolated between the runs that bracket "
+          "e; blank: not reached):")
+    print(time_to_reach_table(records))
     fastest = fastest_to(records, 1e-4)
     if fastest:
         best = min(fastest, key=fastest.get)

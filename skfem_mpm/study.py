@@ -33,7 +33,8 @@ from .solve.timing import PHASES
 from .testing import observed_orders
 
 __all__ = ["parse_method", "run_one", "convergence", "work_precision", "write_report",
-           "QUICK_METHODS", "FULL_METHODS", "markdown_table"]
+           "QUICK_METHODS", "FULL_METHODS", "markdown_table", "time_to_reach",
+           "time_to_reach_table"]
 
 QUICK_METHODS = ("mpm-p1-lumped", "mpm-p2-lumped", "mpm-p2-consistent", "mpm-p3-consistent",
                  "mpm-p2-consistent-spline", "mpm-p3-consistent-spline", "fem-p2-consistent")
@@ -221,6 +222,63 @@ def fastest_to(records, target):
     return out
 
 
+def time_to_reach(records, target):
+    """{method: the wall time at which it reaches the relative error
+    ``target``, or None when no run of it does}. Along a method's runs in
+    order of resolution, the first run with error <= target and the one
+    before it bracket the target; log(time) is interpolated linearly in
+    log(error) between them. When the coarsest run already reaches it, its
+    own time is reported (an upper bound)."""
+    by_method = {}
+    for r in records:
+        by_method.setdefault(r["method"], [])
+        if r["status"] == "ok" and r.get("error", 0) > 0 and r.get("wall_time_s", 0) > 0:
+            by_method[r["method"]].append(r)
+    out = {}
+    for method, rows in by_method.items():
+        rows.sort(key=lambda r: r["cells"])
+        out[method] = None
+        for k, r in enumerate(rows):
+            if r["error"] > target:
+                continue
+            if k == 0:
+                out[method] = r["wall_time_s"]
+            else:
+                a, b = rows[k - 1], r
+                s = (math.log(target) - math.log(a["error"])) / \
+                    (math.log(b["error"]) - math.log(a["error"]))
+                out[method] = math.exp(math.log(a["wall_time_s"]) + s * (
+                    math.log(b["wall_time_s"]) - math.log(a["wall_time_s"])))
+            break
+    return out
+
+
+def reach_targets(records):
+    """The decades 10^-k between the largest and the smallest error of the
+    study (at most six, the smallest ones), as targets for
+    :func:`time_to_reach`."""
+    errors = [r["error"] for r in records if r["status"] == "ok" and r.get("error", 0) > 0]
+    if not errors:
+        return []
+    high = math.floor(math.log10(max(errors)))
+    low = math.ceil(math.log10(min(errors)))
+    return [10.0 ** k for k in range(low, high + 1)][:6][::-1]
+
+
+def time_to_reach_table(records, targets=None):
+    """A Markdown table: per method, the time to reach each target error
+    (interpolated, see :func:`time_to_reach`; blank: not reached)."""
+    targets = reach_targets(records) if targets is None else list(targets)
+    methods = list(dict.fromkeys(r["method"] for r in records))
+    times = [time_to_reach(records, e) for e in targets]
+    lines = ["| method | " + " | ".join(f"e = {e:.0e}" for e in targets) + " |",
+             "|" + "---|" * (len(targets) + 1)]
+    for m in methods:
+        lines.append(f"| {m} | " + " | ".join(_fmt(t[m]) if t.get(m) is not None else ""
+                                                for t in times) + " |")
+    return "\n".join(lines)
+
+
 # ------------------------------------------------------------------ reports
 def _fmt(value):
     if value is None:
@@ -265,7 +323,10 @@ def write_report(records, out, title=None, timing_note=None):
         f.write(f"# Study: {title}\n\n")
         if timing_note:
             f.write(timing_note + "\n\n")
-        f.write(markdown_table(records) + "\n\n## Time per phase [s]\n\n")
+        f.write(markdown_table(records) + "\n\n## Time to reach a relative error e [s]\n\n")
+        f.write("Wall time interpolated in log-log between the two runs that bracket e "
+                "(blank: not reached).\n\n")
+        f.write(time_to_reach_table(records) + "\n\n## Time per phase [s]\n\n")
         f.write(markdown_table(records, phase_cols) + "\n")
     plot_convergence(records, paths["convergence"], title)
     plot_work_precision(records, paths["work_precision"], title)

@@ -69,7 +69,7 @@ CASES = {
     "dt (fem)": (lambda: fem(s1_scene(True), Method(dt=1.0)),
                  r"dt = 1 exceeds the critical time step dt_crit = [0-9.]+"),
     # unknown option strings
-    "scheme": (lambda: Method(scheme="rk4"), r"scheme must be one of 'musl', 'usl', 'usf', 'cd', got 'rk4'"),
+    "scheme": (lambda: Method(scheme="rk3"), r"scheme must be one of 'musl', 'usl', 'usf', 'cd', 'rk4', got 'rk3'"),
     "mass": (lambda: Method(mass="row-sum"), r"mass must be one of .*got 'row-sum'"),
     "reconstruction": (lambda: Method(reconstruction="kriging"), r"reconstruction must be one of .*got 'kriging'"),
     "on_exit": (lambda: Method(on_exit="wrap"), r"on_exit must be one of .*got 'wrap'"),
