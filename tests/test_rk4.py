@@ -74,12 +74,11 @@ def test_prescribed_acceleration_is_exact_for_quartic_velocities():
 def test_rk4_with_spline_reconstruction_reaches_fourth_order_in_space():
     """S1 small, cubic + spline reconstruction, consistent mass, 2 particles
     per cell: the error falls >= 2^3.5 from 8 to 16 cells (measured 2.5e-5
-    -> 6.8e-7, order 5.2; CD on the same runs: 6.1e-5 -> 1.2e-5, 2.4).
-    cfl 0.2: at 0.5 the fast-dof guard lumps the rows next to the fixed ends
-    (README, "Known limit")."""
+    -> 6.8e-7, order 5.2; CD on the same runs: 2.9e-4 -> 7.2e-5, 2.0), at
+    the default cfl 0.5."""
     b = get_benchmark("vibrating-string", "small")
     errors = [b.errors(simulate(b.scene(cells, 3, 2), Method(
-        scheme="rk4", mass="consistent", reconstruction="spline", cfl=0.2)))["error_rms"]
+        scheme="rk4", mass="consistent", reconstruction="spline")))["error_rms"]
         for cells in (8, 16)]
     assert errors[1] < 2e-6 and orders(errors)[0] > 3.5, errors
 

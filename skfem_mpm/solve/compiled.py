@@ -250,6 +250,9 @@ class CompiledExecutor:
         limit = None
         if guard > 0:
             limit = guard * fast_dof_limit(state.grid.degree, state.method.scheme) / (state.dt * state.wave_speed_now) ** 2
+            centre = (stencil.shape[1] - 1) // 2
+            K = np.multiply(K, state.guard_weights(mass, stencil[:, centre]),
+                            out=self.kernels.scratch("guard_K", K.size))
         small = self._small_dofs(state, mass)
         fast_rows = None if limit is None else (
             lambda diag: lumping_fraction(K / (limit * np.maximum(diag, 1e-300))))

@@ -36,16 +36,28 @@ The time step assumes omega^2 <= c^2 Lambda(p) / h^2; in the interior the
 coupled spectrum exceeds a dof's own Rayleigh quotient K_ii / M_ii by
 Lambda(p) / q(p). So with
 
-    r_i = dt^2 K_ii / M_ii / (g * 4 q(p) / Lambda(p)),   K_ii ~ c^2 sum_p m_p |grad N_i(x_p)|^2,
+    r_i = w_i dt^2 K_ii / M_ii / (g * 4 q(p) / Lambda(p)),   K_ii ~ c^2 sum_p m_p |grad N_i(x_p)|^2,
 
 (``Method(frequency_guard=g)``, default 1; the limit is 0.34 for p = 2,
-0.12 for p = 3 at g = 1) the fraction theta_i = smoothstep(2 r_i - 1) of
+0.12 for p = 3 at g = 1; the 4 is s^2 for a scheme stable up to
+omega dt = s, 8 for rk4) the fraction theta_i = smoothstep(2 r_i - 1) of
 the row and column of dof i is lumped: nothing below half the limit, all of
 it above the limit, continuously in between. (A hard switch at the limit
 lumps and unlumps rows as a free surface sweeps through cells; those jumps
-accumulate with the number of cells crossed.) It fires only where the step would go unstable: on
-the bar with a free end (S3) it never does and costs no accuracy, where a
-guard on M_ii / m_i alone cost up to three orders of magnitude.
+accumulate with the number of cells crossed.) The weight w_i <= 1 measures
+each dof against its own fully covered quotient: the first functions of an
+open knot vector have a full-grid K_ii / M_ii of 2.2 and 3.7 q(p) (p = 2),
+4.9 and 9.1 q(p) (p = 3), so with w_i = 1 a grid the particles fill
+lumped the rows next to a fixed end at the default cfl 0.5 (S1, cubic,
+spline: error 1.65e-2 instead of 2.9e-4). So w_i = min(1, q(p) sum_d
+h_d^-2 / Q_i), Q_i the Gauss full-grid quotient, while particles cover the
+function, blending to 1 where they see only its tail (from
+M_ii / (m_i mu_i), see :func:`skfem_mpm.solve.timestep.covered_weights`),
+and w_i = 0 on dofs constrained in every component (they never move;
+lumping their rows only moved mass onto their free neighbours). It fires only where
+the step would go unstable: on the bar with a free end (S3) it never does
+and costs no accuracy, where a guard on M_ii / m_i alone cost up to three
+orders of magnitude.
 
 Consistent mass is solved with a sparse LU factorisation (reused for every
 solve of the step with the same free set) or with conjugate gradients

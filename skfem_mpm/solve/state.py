@@ -6,9 +6,10 @@ import numpy as np
 
 from ..errors import InvalidState
 from ..kernels import resolve_backend
+from ..spline import SplineGrid
 from .grid_system import Constraints, dof_adjacency
 from .runge_kutta import check_staged
-from .timestep import critical_time_step, stable_time_step
+from .timestep import critical_time_step, covered_weights, fast_dof_weights, stable_time_step
 from .timing import PhaseTimer
 
 __all__ = ["State", "prepare"]
@@ -51,6 +52,7 @@ class State:
         self._bind_bodies()
         self._adjacency = None
         self._adaptive = None
+        self._fast_dof_weights = None
         solver = method.mass_solver
         if solver == "auto":
             solver = "direct" if self.grid.ndofs < 20000 else "cg"
@@ -113,6 +115,20 @@ class State:
         return self._adjacency
 
     # ------------------------------------------------------------ time step
+    def guard_weights(self, lumped, diagonal):
+        """Per-dof scale of the fast-dof guard's ratio from the step's lumped
+        mass and consistent diagonal (see
+        :func:`skfem_mpm.solve.timestep.covered_weights`; 1 off spline grids;
+        0 on dofs constrained in every component, which never move)."""
+        if not isinstance(self.grid, SplineGrid):
+            return 1.0
+        if self._fast_dof_weights is None:
+            # a dof constrained in every component does not move: never fast
+            moving = ~self.constraints.mask.all(axis=1)
+            self._fast_dof_weights = (*fast_dof_weights(self.grid), moving)
+        w, mu, moving = self._fast_dof_weights
+        return covered_weights(w, mu, lumped, diagonal) * moving
+
     @property
     def adaptive(self):
         """The step size follows the current wave speed (finite strain, no

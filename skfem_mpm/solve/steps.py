@@ -264,7 +264,8 @@ def step_system(state, data):
             limit = guard * fast_dof_limit(state.grid.degree, state.method.scheme) / (state.dt * state.wave_speed_now) ** 2
 
             def fast_rows(mass_diagonal):
-                k = data.stiffness_weights()  # sum over points of mass |grad N_i|^2
+                # sum over points of mass |grad N_i|^2, scaled per dof
+                k = data.stiffness_weights() * state.guard_weights(data.lumped, mass_diagonal)
                 return lumping_fraction(k / (limit * np.maximum(mass_diagonal, 1e-300)))
 
         data.system = GridSystem(data.lumped, state.constraints, data.consistent,
