@@ -82,6 +82,21 @@ def axis_functions_kernel(x, breaks, uniform, inv_h, C, p, first, values, derivs
         extracted_functions(x[i], e, breaks, C, p, values[i], derivs[i])
 
 
+@njit(cache=True, error_model="numpy")
+def axis_functions_serial(x, breaks, uniform, inv_h, C, p, first, values, derivs):
+    """:func:`axis_functions_kernel` on one thread (same values)."""
+    for i in range(x.shape[0]):
+        e = locate_axis_point(x[i], breaks, uniform, inv_h)
+        first[i] = e
+        extracted_functions(x[i], e, breaks, C, p, values[i], derivs[i])
+
+
+SERIAL_BELOW = 8192
+"""Points below which the basis is evaluated on one thread: a parallel
+region costs more than the work there, and far more when another process
+holds a core (the threads wait for each other)."""
+
+
 def axis_functions(x, breaks, uniform, C, p):
     """(first, values, derivatives) of one axis, compiled."""
     x = np.ascontiguousarray(x, dtype=np.float64)
@@ -90,5 +105,6 @@ def axis_functions(x, breaks, uniform, C, p):
     values = np.empty((n, p + 1))
     derivs = np.empty((n, p + 1))
     inv_h = (breaks.shape[0] - 1) / (breaks[-1] - breaks[0])
-    axis_functions_kernel(x, breaks, bool(uniform), inv_h, C, p, first, values, derivs)
+    kernel = axis_functions_serial if n < SERIAL_BELOW else axis_functions_kernel
+    kernel(x, breaks, bool(uniform), inv_h, C, p, first, values, derivs)
     return first, values, derivs

@@ -22,8 +22,11 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
     grid = (SplineGrid.line(0.0, 1.0, cells, grid.degree) if grid.dim == 1
             else SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), cells, grid.degree))
     x = np.array([b[0] + 0.5 * (b[1] - b[0]) for b in grid.bounds])[None, :]
-    for axis in range(grid.dim):
-        grid.axis_functions(axis, x[:, axis], backend="numba")
+    from ..kernels.weights import SERIAL_BELOW
+
+    for axis in range(grid.dim):  # the serial and the threaded evaluation
+        for n in (1, SERIAL_BELOW):
+            grid.axis_functions(axis, np.repeat(x[:, axis], n), backend="numba")
     if not fast:
         return
     from ..kernels.mpm import Kernels
