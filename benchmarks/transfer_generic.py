@@ -62,8 +62,8 @@ def scene_3d(cells=64, ppc=2, degree=2):
     Particles.seed orders them)."""
     grid = line_grid([np.linspace(0.0, 1.0, cells + 1)] * 3, degree)
     h = 1.0 / cells
-    lo = int(round(0.25 / h))
-    hi = int(round(0.75 / h))
+    lo = round(0.25 / h)
+    hi = round(0.75 / h)
     axis = ((np.arange(lo, hi)[:, None] + (np.arange(ppc)[None, :] + 0.5) / ppc) * h).ravel()
     X = np.meshgrid(axis, axis, axis, indexing="ij")
     x = np.stack([a.ravel() for a in X], axis=1)
@@ -255,25 +255,31 @@ def three_d(degree, rounds):
              "new": summary(alone(call, rounds), p.n)} for kernel, call in new.items()]
 
 
+def small_pairs(dim, cells, ppc):
+    """(particles, {kernel: (old call, new call)}) of a small problem."""
+    from skfem_mpm import LinearElastic
+
+    scene, dt = (scene_1d if dim == 1 else scene_2d)(cells=cells, ppc=ppc)
+    grid, p = scene.grid, scene.bodies[0].particles
+    ga, gv, lame = inputs(grid, p, dt)
+    old, new = mpm.Kernels(grid), Transfers(grid)
+    a, b = new_state(p), new_state(p)
+    L = np.empty((p.n, dim, dim))
+    material = LinearElastic(1e4, 0.0 if dim == 1 else 0.3)
+    vnew = np.empty_like(p.v)
+    return p, {
+        "p2g": (lambda: old.p2g(p, None), lambda: new.p2g(p, None)),
+        "g2p2g": (lambda: old.g2p2g(p, ga, dt, vnew), lambda: new.g2p2g(p, ga, dt, vnew)),
+        "g2p": (lambda: old.g2p(p, ga, gv, dt, 1.0, True, True, material, a, L),
+                lambda: new.g2p(p, ga, gv, dt, 1.0, True, b, L, lame=lame)),
+    }
+
+
 def small_calls(rounds):
     """Microseconds per wrapper call (dispatch included) on small problems."""
     rows = []
     for dim, cells, ppc in ((1, 32, 4), (2, 16, 2)):
-        scene, dt = (scene_1d if dim == 1 else scene_2d)(cells=cells, ppc=ppc)
-        grid, p = scene.grid, scene.bodies[0].particles
-        ga, gv, lame = inputs(grid, p, dt)
-        old, new = mpm.Kernels(grid), Transfers(grid)
-        a, b = new_state(p), new_state(p)
-        L = np.empty((p.n, dim, dim))
-        from skfem_mpm import LinearElastic
-        material = LinearElastic(1e4, 0.0 if dim == 1 else 0.3)
-        vnew = np.empty_like(p.v)
-        pairs = {
-            "p2g": (lambda: old.p2g(p, None), lambda: new.p2g(p, None)),
-            "g2p2g": (lambda: old.g2p2g(p, ga, dt, vnew), lambda: new.g2p2g(p, ga, dt, vnew)),
-            "g2p": (lambda: old.g2p(p, ga, gv, dt, 1.0, True, True, material, a, L),
-                    lambda: new.g2p(p, ga, gv, dt, 1.0, True, b, L, lame=lame)),
-        }
+        p, pairs = small_pairs(dim, cells, ppc)
         for kernel, (fa, fb) in pairs.items():
             to, tn = paired(fa, fb, rounds)
             rows.append({"dim": dim, "kernel": kernel, "particles": p.n,
