@@ -36,10 +36,10 @@ from skfem_mpm.bench import scene_1d, scene_2d
 from skfem_mpm.kernels import mpm
 
 try:
-    from skfem_mpm.kernels.gather import Update, g2p_kernel
+    from skfem_mpm.kernels.gather import g2p_kernel
+    from skfem_mpm.kernels.records import grid_record, particle_record
     from skfem_mpm.kernels.scatter import g2p2g_kernel, p2g_kernel, reduce_fields
-    from skfem_mpm.kernels.stencil import grid_record
-    from skfem_mpm.kernels.transfer import Transfers, particle_record
+    from skfem_mpm.kernels.transfer import Transfers
     HAVE_NEW = True
 except ImportError:  # before the generated kernels exist
     HAVE_NEW = False
@@ -153,8 +153,8 @@ def new_calls(grid, p, ga, gv, dt, lame, window=None):
     p2g = p2g_kernel(dim, deg, window)
     g2p2g = g2p2g_kernel(dim, deg, window)
     g2p = g2p_kernel(dim, deg)
-    fused = Update(dt, 1.0, True, True, float(lame[0]), float(lame[1]), False)
-    stored = Update(dt, 1.0, True, False, 0.0, 0.0, False)
+    fused = (dt, 1.0, True, True, float(lame[0]), float(lame[1]), False)  # records.Update
+    stored = (dt, 1.0, True, False, 0.0, 0.0, False)
     return {
         "p2g": lambda: p2g(parts, record, no_force, False, copies, touched),
         "g2p2g": lambda: g2p2g(parts, record, ga, dt, vnew, copies2, touched2),

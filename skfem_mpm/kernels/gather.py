@@ -27,27 +27,22 @@ compiled.
 """
 import functools
 import itertools
-from collections import namedtuple
 
 from . import stencil as st
 from .generated import indent, load, module_header, times
+from .records import ParticleArrays, Update, unpack
 
-__all__ = ["Update", "g2p_kernel", "g2p_source"]
-
-# The scalars of one g2p call: time step, FLIP factor c, whether v_p^new is
-# computed here (else read from the output), whether linear elasticity is
-# fused (with its Lame parameters), whether a_p is stored.
-Update = namedtuple("Update", "dt vfactor flip fused lam mu store_acc")
+__all__ = ["g2p_kernel", "g2p_source"]
 
 G2P = '''
 @njit(cache=True, parallel={parallel}, error_model="numpy", fastmath=FAST)
 def {name}(particles, grid, grid_a, grid_v, update, new, L_out, acc_out, flags):
     """g2p, dim = {dim}, p = {p}: see skfem_mpm.kernels.gather."""
-    x, v, u, stress, V = particles.x, particles.v, particles.u, particles.stress, particles.V
-    x_new, v_new, u_new, stress_new, V_new = new.x, new.v, new.u, new.stress, new.V
+    {unpack_particles}
+    {unpack_new}
     a_flat = grid_a.reshape(grid_a.size)
     v_flat = grid_v.reshape(grid_v.size)
-    dt, vfactor, flip, fused, lam, mu, store_acc = update
+    {unpack_update}
     lam2mu = lam + 2.0 * mu
     mu2 = 2.0 * mu
 {strides}
@@ -161,6 +156,8 @@ def g2p_source(dim, p, parallel=True):
     outside = " or ".join(f"xn{d} < lo{d} or xn{d} > hi{d}" for d in range(dim))
     body = G2P.format(
         parallel=parallel, name=name, dim=dim, p=p, strides=indent(st.stride_names(dim), 1),
+        unpack_particles=unpack(ParticleArrays, "particles"), unpack_update=unpack(Update, "update"),
+        unpack_new=unpack(ParticleArrays, "new", [f + "_new" for f in ParticleArrays._fields]),
         bounds=indent(bounds + st.row_starts(dim, p, dim), 1), weights=indent(st.axis_calls(dim, p, i="ip"), 3),
         base=st.base_index(dim), sums=indent(sums, 3),
         store_acc=indent([f"acc_out[ip, {c}] = A{c}" for c in range(dim)], 4),

@@ -42,6 +42,7 @@ from numba import njit, prange
 
 from . import stencil as st
 from .generated import indent, load, module_header, times
+from .records import ParticleArrays, unpack
 from .weights import FAST
 
 __all__ = [
@@ -59,7 +60,7 @@ P2G = '''
 @njit(cache=True, parallel={parallel}, error_model="numpy", fastmath=FAST)
 def {name}(particles, grid, fext, has_fext, copies, touched):
     """p2g, dim = {dim}, p = {p}: see skfem_mpm.kernels.scatter."""
-    x, v, m, V, stress = particles.x, particles.v, particles.m, particles.V, particles.stress
+    {unpack}
 {grid}
     n = x.shape[0]
     nt, nk, nf = copies.shape
@@ -86,7 +87,7 @@ G2P2G = '''
 @njit(cache=True, parallel={parallel}, error_model="numpy", fastmath=FAST)
 def {name}(particles, grid, grid_a, dt, v_new, copies, touched):
     """g2p2g, dim = {dim}, p = {p}: see skfem_mpm.kernels.scatter."""
-    x, v, m = particles.x, particles.v, particles.m
+    {unpack}
     a_flat = grid_a.reshape(grid_a.size)
 {grid}
     n = x.shape[0]
@@ -209,6 +210,7 @@ def p2g_source(dim, p, window, parallel=True):
     start, before, finish = _window(dim, p, nf, window)
     body = P2G.format(
         parallel=parallel, name=name, dim=dim, p=p, grid=indent(_grid_lines(dim, p, nf), 1),
+        unpack=unpack(ParticleArrays, "particles"),
         start=indent(start, 2), particle=indent(particle, 3),
         weights=indent(st.axis_calls(dim, p, i="ip"), 3), base=st.base_index(dim),
         scatter=indent(before + _scatter(dim, p, nf, terms, window), 3),
@@ -249,6 +251,7 @@ def g2p2g_source(dim, p, window, parallel=True):
     start, before, finish = _window(dim, p, dim, window)
     body = G2P2G.format(
         parallel=parallel, name=name, dim=dim, p=p, grid=indent(_grid_lines(dim, p, dim), 1),
+        unpack=unpack(ParticleArrays, "particles"),
         start=indent(start, 2), weights=indent(st.axis_calls(dim, p, i="ip"), 3),
         base=st.base_index(dim), gather=indent(gather, 3), particle=indent(particle, 3),
         scatter=indent(before + _scatter(dim, p, dim, terms, window), 3),

@@ -25,42 +25,17 @@ loops over the (p + 1)^dim nodes for the kernels generated per dimension
 and degree (:mod:`skfem_mpm.kernels.generated`).
 """
 import itertools
-from collections import namedtuple
 
-import numpy as np
 from numba import njit
 
 from .weights import FAST, bernstein4, locate_axis_point
 
-__all__ = ["Axis", "Grid", "axis_functions", "grid_record", "row_products", "stencil_rows"]
-
-# One axis of the grid: breakpoints u_0 < ... < u_cells, whether they are
-# uniform, cells / (u_cells - u_0), and the extraction matrices (cells, p+1, p+1).
-Axis = namedtuple("Axis", "breaks uniform inv_h extraction")
-
-# The grid as the kernels see it: a tuple of ``Axis`` (one per dimension)
-# and the flat node strides s_d.
-Grid = namedtuple("Grid", "axes strides")
-
-
-def grid_record(grid):
-    """The ``Grid`` record of a :class:`skfem_mpm.SplineGrid` (or any object
-    with ``breakpoints``, ``_uniform``, ``extraction`` and ``basis_per_axis``)."""
-    axes = []
-    for d, u in enumerate(grid.breakpoints):
-        u = np.ascontiguousarray(u, dtype=np.float64)
-        axes.append(Axis(u, bool(grid._uniform[d]), float((u.size - 1) / (u[-1] - u[0])),
-                         np.ascontiguousarray(grid.extraction[d], dtype=np.float64)))
-    strides = [1]
-    for n in grid.basis_per_axis[:-1]:
-        strides.append(strides[-1] * int(n))
-    return Grid(tuple(axes), tuple(strides))
-
+__all__ = ["axis_functions", "row_products", "stencil_rows"]
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def axis_functions(x, breaks, uniform, inv_h, C, p):
     """(e, w_0..w_3, g_0..g_3): the cell of coordinate x on an axis (the
-    fields of ``Axis``) and the values and d/dx of its p + 1 B-splines
+    fields of :data:`skfem_mpm.kernels.records.Axis`) and the values and d/dx of its p + 1 B-splines
     (entries beyond p are 0).
 
     Uniform interior cells, t = (x - u_0) / h, xi = t - e, r = 1 - xi:
@@ -136,7 +111,7 @@ def weight_names(d, p):
 def axis_fields(dim):
     """Lines unpacking the grid record's axes (before a parallel loop, which
     takes arrays and scalars only)."""
-    return [f"b{d}, u{d}, ih{d}, C{d} = grid.axes[{d}]" for d in range(dim)]
+    return [f"b{d}, u{d}, ih{d}, C{d} = grid[0][{d}]" for d in range(dim)]
 
 
 def axis_calls(dim, p, x="x", i="i"):
@@ -190,7 +165,7 @@ def stride_names(dim):
     lines = axis_fields(dim)
     if dim > 1:
         names = ", ".join(["_"] + [f"s{d}" for d in range(1, dim)])
-        lines.append(f"{names} = grid.strides")
+        lines.append(f"{names} = grid[1]")
     return lines
 
 

@@ -2,30 +2,17 @@
 
 :class:`Transfers` binds the generated kernels of
 :mod:`skfem_mpm.kernels.scatter` and :mod:`skfem_mpm.kernels.gather` to a
-grid (its :class:`~skfem_mpm.kernels.stencil.Grid` record), the thread
+grid (its :data:`~skfem_mpm.kernels.records.Grid` record), the thread
 count and the per-thread grid copies, and returns NumPy arrays.
 """
-from collections import namedtuple
-
 import numpy as np
 from numba import get_num_threads
 
-from .gather import Update, g2p_kernel
+from .gather import g2p_kernel
+from .records import grid_record, particle_record
 from .scatter import g2p2g_kernel, p2g_kernel, reduce_copies, reduce_fields
-from .stencil import grid_record
 
-__all__ = ["ParticleArrays", "Transfers", "particle_record"]
-
-# The particle arrays the kernels read (and g2p writes): positions x (n, dim),
-# velocities v (n, dim), displacements u (n, dim), masses m (n,), volumes
-# V (n,), stresses (n, dim, dim).
-ParticleArrays = namedtuple("ParticleArrays", "x v u m V stress")
-
-
-def particle_record(particles):
-    """The ``ParticleArrays`` of an object with those attributes."""
-    p = particles
-    return ParticleArrays(p.x, p.v, p.u, p.m, p.V, p.stress)
+__all__ = ["Transfers"]
 
 
 class Transfers:
@@ -35,7 +22,9 @@ class Transfers:
     ``dim``, ``degree``, ``ndofs``, ``breakpoints``, ``_uniform``,
     ``extraction`` and ``basis_per_axis`` (one entry per axis, in any
     dimension). ``window``: the run window of the scatter kernels (None:
-    where it pays, see :func:`skfem_mpm.kernels.scatter.p2g_kernel`)."""
+    where it pays, see :func:`skfem_mpm.kernels.scatter.p2g_kernel`).
+    ``mass`` and ``mass_range`` hold the lumped mass of the last p2g call
+    and each reduction chunk's (smallest positive, largest) entry."""
 
     def __init__(self, grid, nthreads=None, window=None):
         self.dim = grid.dim
@@ -46,7 +35,7 @@ class Transfers:
         self.window = window
         self._copies = {}
         nd, dim = self.ndofs, self.dim
-        self._mass = np.empty(nd)
+        self.mass = np.empty(nd)
         self._momentum = np.empty((nd, dim))
         self._force = np.empty((nd, dim))
         self._projected = np.empty((nd, dim))
@@ -71,14 +60,14 @@ class Transfers:
         p2g_kernel(self.dim, self.p, self.window)(
             particle_record(particles), self.record, fext if has else self._no_force, has,
             copies, touched)
-        reduce_fields(copies, touched, self._mass, self._momentum, self._force, self.mass_range)
-        return self._mass, self._momentum, self._force
+        reduce_fields(copies, touched, self.mass, self._momentum, self._force, self.mass_range)
+        return self.mass, self._momentum, self._force
 
     def g2p2g(self, particles, grid_a, dt, v_new):
         """MUSL: v_new = v + dt N a; returns the grid momentum of m v_new."""
         copies, touched = self.copies(self.dim)
         g2p2g_kernel(self.dim, self.p, self.window)(
-            particle_record(particles), self.record, grid_a, dt, v_new, copies, touched)
+            particle_record(particles), self.record, grid_a, float(dt), v_new, copies, touched)
         reduce_copies(copies, touched, self._projected)
         return self._projected
 
@@ -91,13 +80,13 @@ class Transfers:
         fused = lame is not None
         lam, mu = (float(lame[0]), float(lame[1])) if fused else (0.0, 0.0)
         store = acc_out is not None
-        update = Update(float(dt), float(vfactor), bool(flip), fused, lam, mu, store)
+        update = (float(dt), float(vfactor), bool(flip), fused, lam, mu, store)  # Update
         g2p_kernel(self.dim, self.p)(
             particle_record(particles), self.record, grid_a, grid_v, update,
             particle_record(new), L_out, acc_out if store else self._no_acc, self.flags)
-        found = []
-        for j in range(3):
-            column = self.flags[:, j]
-            hits = column[column >= 0]
-            found.append(int(hits.min()) if hits.size else -1)
+        found = [-1, -1, -1]
+        for row in self.flags.tolist():  # first hit over the threads' blocks
+            for j, first in enumerate(row):
+                if first >= 0 and (found[j] < 0 or first < found[j]):
+                    found[j] = first
         return found
