@@ -10,26 +10,39 @@ The problems (as in the project's performance issue):
 
 Each figure is the median of ``repeat`` runs of the project's own
 ``simulate`` (USL, and MUSL beside it), with JIT compilation excluded and
-reported separately. Peak memory per particle is measured in a child
-process: its peak resident memory during ``simulate`` minus its resident
-memory just before, with the scene (the user's particles) already built
-(tracemalloc does not see numba's arrays).
-The scaling series keeps 4 x 4 particles per cell and grows the grid with
-the particles.
+reported separately.
+
+The USL rows are compared with a plain C loop of the same step
+(:mod:`skfem_mpm.reference_c`), compiled now with the system's C compiler
+(``$CC``, else ``cc``/``gcc``; ``-O3 -march=native -fopenmp``) and run on
+the same problem in turn with ours, on as many OpenMP threads as numba uses
+and on one. A ratio is printed only when the C run ended in the same final
+particle state (to round-off); with no compiler the bench says why the
+ratio is unavailable.
+
+Peak memory per particle is measured in a child process: its peak resident
+memory during ``simulate`` minus its resident memory just before, with the
+scene (the user's particles) already built (tracemalloc does not see
+numba's arrays). The scaling series keeps 4 x 4 particles per cell and
+grows the grid with the particles.
 
     python -m skfem_mpm.bench [--quick] [--repeat 5] [--json] [--reference] [--consistent]
 """
 import argparse
 import json
 import os
+import platform
 import statistics
 import subprocess
 import sys
-import time
+import tempfile
+from pathlib import Path
 
 import numpy as np
 
-__all__ = ["scene_2d", "scene_1d", "run", "main"]
+__all__ = ["consistent_scene", "main", "run", "run_with_c", "scene_1d", "scene_2d"]
+
+C_TARGET = 0.9  # the issue's target: our USL throughput >= 0.9x the C loop's
 
 
 def scene_2d(cells=128, ppc=4, degree=2, steps=200):
@@ -58,14 +71,41 @@ def scene_1d(cells=250_000, ppc=4, degree=2, steps=200):
                   effects=[Gravity(-9.81), Fixed("left"), Fixed("right")]), dt)
 
 
-def run(scene, dt, scheme="usl", mass="lumped", backend=None, repeat=3):
+def consistent_scene(cells, steps, problem="falling block"):
+    """The 2D problem at the consistent mass's time step (cfl 0.5 of its
+    critical step): ``"falling block"`` (stress free: its grid acceleration
+    is g, which the CG warm start already meets) or ``"expanding block"``
+    (initial v = 0.4 (x - 0.5), which sends stress waves through it).
+    Returns (scene, dt)."""
+    from .solve.timestep import critical_time_step
+    from .validation import check_choice
+
+    check_choice("problem", problem, ("falling block", "expanding block"))
+    scene, _ = scene_2d(cells=cells, steps=steps)
+    body = scene.bodies[0]
+    if problem == "expanding block":
+        body.particles.v = 0.4 * (body.particles.x - 0.5)
+    dt = 0.5 * critical_time_step(scene.grid, np.sqrt(body.material.modulus(2)), "consistent")
+    return type(scene)(scene.grid, scene.bodies, steps * dt, effects=scene.effects), dt
+
+
+def _rates(results):
+    return [r.counts["particles"] * r.counts["steps"] / r.wall_time for r in results]
+
+
+def run(scene, dt, scheme="usl", mass="lumped", backend=None, repeat=3, alongside=None):
     """Median particle-steps per second, JIT seconds, and the phase split of
-    the median run (a dict)."""
+    the median run (a dict). ``alongside(result)``, if given, is called
+    after each run (what it times alternates with ours)."""
     from .solve import Method, simulate
 
     method = Method(scheme=scheme, mass=mass, dt=dt * (1 - 1e-9), backend=backend)
-    results = [simulate(scene, method) for _ in range(repeat)]
-    rates = [r.counts["particles"] * r.counts["steps"] / r.wall_time for r in results]
+    results = []
+    for _ in range(repeat):
+        results.append(simulate(scene, method))
+        if alongside is not None:
+            alongside(results[-1])
+    rates = _rates(results)
     median = sorted(range(repeat), key=lambda i: rates[i])[repeat // 2]
     r = results[median]
     return {"particle_steps_per_s": float(statistics.median(rates)),
@@ -74,6 +114,50 @@ def run(scene, dt, scheme="usl", mass="lumped", backend=None, repeat=3):
             "particles": int(r.counts["particles"]), "path": r.path,
             "phases": {k: float(v) for k, v in r.timings.items() if v > 0},
             "fused": {k: list(v) for k, v in r.fused.items()}}
+
+
+def run_with_c(scene, dt, reference, directory, repeat=3, threads=None):
+    """Our USL row (as :func:`run`) and the C reference's on the same
+    problem, run in turn: after each of our runs, one C run on ``threads``
+    OpenMP threads (numba's count by default) and one on a single thread.
+    Returns (our row, the C figures: per thread count the median
+    particle-steps per second and the runs, whether every C run ended in
+    our final state, the largest scaled differences, and our ratios to
+    the C figures, None when the states differ)."""
+    from numba import get_num_threads
+
+    from .reference_c import compare, run_reference, write_problem
+    from .solve import Method
+
+    threads = get_num_threads() if threads is None else int(threads)
+    counts = sorted({threads, 1}, reverse=True)
+    directory = Path(directory)
+    problem_path, output_path = directory / "problem.bin", directory / "final.bin"
+    problem = write_problem(problem_path, scene, Method(scheme="usl", dt=dt * (1 - 1e-9)))
+    seconds = {t: [] for t in counts}
+    checks = []
+
+    def alongside(result):
+        for t in counts:
+            out = run_reference(reference, problem_path, output_path, t)
+            seconds[t] += out["seconds"]
+            agrees, differences = compare(result.particles, out["final"], problem)
+            checks.append((agrees and out["invalid"] == 0, differences, out["invalid"]))
+
+    ours = run(scene, dt, "usl", repeat=repeat, alongside=alongside)
+    work = problem["particles"] * problem["steps"]
+    agrees = all(ok for ok, _, _ in checks)
+    c = {"threads": threads, "agrees": agrees,
+         "differences": {k: max(d[k] for _, d, _ in checks) for k in checks[0][1]},
+         "invalid_particles": max(i for _, _, i in checks)}
+    for t in counts:
+        rates = [work / s for s in seconds[t]]
+        key = "single_thread" if t == 1 else "threaded"
+        c[key] = {"threads": t, "particle_steps_per_s": float(statistics.median(rates)),
+                  "runs": [float(x) for x in rates]}
+        c[f"ratio_{key}"] = ours["particle_steps_per_s"] / c[key]["particle_steps_per_s"] \
+            if agrees else None
+    return ours, c
 
 
 def _rss_kb(field):
@@ -106,54 +190,42 @@ print(json.dumps({{"bytes_per_particle": (peak - base) * 1024 / r.counts["partic
     return json.loads(out.stdout.strip().splitlines()[-1])["bytes_per_particle"]
 
 
+CONSISTENT_VARIANTS = (
+    ("lumped", {"mass": "lumped"}, None),
+    ("consistent, CG + Kronecker + fringe", {"mass": "consistent", "mass_solver": "cg"},
+     "kronecker+fringe"),
+    ("consistent, CG + Kronecker", {"mass": "consistent", "mass_solver": "cg"}, "kronecker"),
+    ("consistent, CG + lumped (Jacobi)", {"mass": "consistent", "mass_solver": "cg"},
+     "lumped"),
+    ("consistent, sparse LU", {"mass": "consistent", "mass_solver": "direct"}, None),
+)
+"""(label, Method options, stencil CG preconditioner or None)."""
+
+
 def consistent_comparison(cells=(64, 128), steps=20, repeat=3):
     """Step time of consistent against lumped mass on the 2D problem (USL),
-    all at the consistent mass's default time step (cfl 0.5 of its critical
-    step): lumped; consistent with the stencil CG and its Kronecker
-    preconditioner with the fringe correction (the default), without it,
-    and with the lumped-mass (Jacobi) preconditioner; a fresh sparse LU
-    factorisation each step. The 2D problem's block falls freely (it is
-    stress free: its grid acceleration is g, which the CG warm start
-    already meets), so lumped and the default consistent solver are also
-    run on the same block expanding (initial v = 0.4 (x - 0.5)), which
-    sends stress waves through it. Returns rows with ms per step, the phase
+    all at the consistent mass's time step, on both problems of
+    :func:`consistent_scene`: lumped; consistent with the stencil CG and
+    each of its preconditioners (Kronecker with the fringe correction, the
+    default; Kronecker alone; the lumped mass, i.e. Jacobi); a fresh sparse
+    LU factorisation each step. Returns rows with ms per step, the phase
     split of the median run and the mean CG iterations per solve."""
     from .solve import Method, simulate
-    from .solve import stencil_system as fast_module
-    from .solve.timestep import critical_time_step
+    from .solve.stencil_system import preconditioned_with
 
-    cg = dict(mass="consistent", mass_solver="cg")
-    layers = fast_module.StencilSystem.FRINGE_LAYERS
-    variants = (("lumped", dict(mass="lumped"), None, layers),
-                ("consistent, CG + Kronecker + fringe", cg, "kronecker", layers),
-                ("consistent, CG + Kronecker", cg, "kronecker", 0),
-                ("consistent, CG + lumped", cg, "lumped", layers),
-                ("consistent, sparse LU", dict(mass="consistent", mass_solver="direct"), None,
-                 layers))
     rows = []
     for n in cells:
         for problem in ("falling block", "expanding block"):
-            scene, _ = scene_2d(cells=n, steps=steps)
-            body = scene.bodies[0]
-            if problem == "expanding block":
-                body.particles.v = 0.4 * (body.particles.x - 0.5)
-            dt = 0.5 * critical_time_step(scene.grid, np.sqrt(body.material.modulus(2)),
-                                          "consistent")
-            scene = type(scene)(scene.grid, scene.bodies, steps * dt, effects=scene.effects)
-            chosen = variants if problem == "falling block" else variants[:2]
-            for label, options, preconditioner, fringe_layers in chosen:
-                saved = fast_module.StencilSystem.preconditioner
-                if preconditioner:
-                    fast_module.StencilSystem.preconditioner = preconditioner
-                fast_module.StencilSystem.FRINGE_LAYERS = fringe_layers
-                counted = fast_module.StencilSystem.iteration_log = []
-                try:
+            scene, dt = consistent_scene(n, steps, problem)
+            for label, options, preconditioner in CONSISTENT_VARIANTS:
+                counted = None
+                if preconditioner is None:
                     results = [simulate(scene, Method(scheme="usl", dt=dt, **options))
                                for _ in range(repeat)]
-                finally:
-                    fast_module.StencilSystem.iteration_log = None
-                    fast_module.StencilSystem.preconditioner = saved
-                    fast_module.StencilSystem.FRINGE_LAYERS = layers
+                else:
+                    with preconditioned_with(preconditioner) as counted:
+                        results = [simulate(scene, Method(scheme="usl", dt=dt, **options))
+                                   for _ in range(repeat)]
                 results.sort(key=lambda r: r.wall_time / r.counts["steps"])
                 r = results[repeat // 2]  # the median run, its phases too
                 rows.append({"cells": n, "problem": problem, "variant": label,
@@ -161,20 +233,52 @@ def consistent_comparison(cells=(64, 128), steps=20, repeat=3):
                              "phases_ms_per_step": {k: v / r.counts["steps"] * 1e3
                                                     for k, v in r.timings.items() if v > 0},
                              "cg_iterations_per_solve": (float(np.mean(counted))
-                                                         if preconditioner else None)})
-            base = rows[-len(chosen)]["ms_per_step"]
-            for row in rows[-len(chosen):]:
-                row["ratio_to_lumped"] = row["ms_per_step"] / base
+                                                         if counted else None)})
+            chosen = rows[-len(CONSISTENT_VARIANTS):]
+            for row in chosen:
+                row["ratio_to_lumped"] = row["ms_per_step"] / chosen[0]["ms_per_step"]
     return rows
 
 
-TARGETS = {"2d_usl": 25e6, "1d_usl": 100e6}
-REFERENCE = {"2d": {"C -O3 OpenMP 2 threads": 28e6, "C single thread": 15e6,
-                    "numba parallel 2 threads": 23e6, "NVIDIA Warp CPU": 12e6,
-                    "Taichi CPU 2 threads": 8.5e6, "best pure NumPy": 3.0e6,
-                    "SciPy CSR transfers": 2.3e6},
-             "1d": {"numba 2 threads": 125e6, "C OpenMP": 113e6, "C single thread": 64e6,
-                    "Taichi": 57e6, "Warp": 47e6, "NumPy": 14e6}}
+def machine():
+    """What the figures were measured on: CPU model, cores, system."""
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    model = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return {"cpu": model, "cores": os.cpu_count(), "system": platform.platform(),
+            "python": platform.python_version()}
+
+
+def _usl_rows(report, rows, repeat):
+    """Our USL rows ``rows`` = [(key, scene, dt)] into ``report``, each with
+    the C reference beside it in report["c_reference"][key] (or, when it
+    cannot run here, report["c_reference"]["reason"])."""
+    from .reference_c import ReferenceUnavailable, compile_reference
+
+    with tempfile.TemporaryDirectory(prefix="skfem-mpm-bench-") as directory:
+        try:
+            reference = compile_reference(directory)
+            report["c_reference"] = {"available": True, "compiler": reference.description}
+        except ReferenceUnavailable as exc:
+            reference = None
+            report["c_reference"] = {"available": False, "reason": str(exc)}
+        for key, scene, dt in rows:
+            if reference is None:
+                report[key] = run(scene, dt, "usl", repeat=repeat)
+                continue
+            try:
+                report[key], report["c_reference"][key] = run_with_c(
+                    scene, dt, reference, directory, repeat=repeat)
+            except RuntimeError as exc:  # the C program itself failed
+                report["c_reference"] = {"available": False, "reason": str(exc)}
+                reference = None
+                report[key] = run(scene, dt, "usl", repeat=repeat)
 
 
 def main(argv=None):
@@ -189,14 +293,14 @@ def main(argv=None):
     args = parser.parse_args(argv)
     repeat = args.repeat or (1 if args.quick else 5)
     steps = 20 if args.quick else 200
-    report = {"threads": int(__import__("numba").get_num_threads()), "repeat": repeat}
+    report = {"machine": machine(), "threads": int(__import__("numba").get_num_threads()),
+              "repeat": repeat}
     s2, dt2 = scene_2d(cells=64 if args.quick else 128, steps=steps)
-    report["2d_usl"] = run(s2, dt2, "usl", repeat=repeat)
+    s1, dt1 = scene_1d(cells=25_000 if args.quick else 250_000, steps=steps)
+    _usl_rows(report, [("2d_usl", s2, dt2), ("1d_usl", s1, dt1)], repeat)
     report["2d_musl"] = run(s2, dt2, "musl", repeat=repeat)
     if args.reference:
         report["2d_usl_reference"] = run(s2, dt2, "usl", backend="numpy", repeat=1)
-    s1, dt1 = scene_1d(cells=25_000 if args.quick else 250_000, steps=steps)
-    report["1d_usl"] = run(s1, dt1, "usl", repeat=repeat)
     report["1d_musl"] = run(s1, dt1, "musl", repeat=repeat)
     if not args.quick:
         report["memory_2d_bytes_per_particle"] = memory_child(2, 128, 20)
@@ -217,22 +321,55 @@ def main(argv=None):
     if args.json:
         print(json.dumps(report, indent=2))
         return 0
+    _print_report(report, repeat)
+    return 0
+
+
+def _print_c_reference(report):
+    c = report["c_reference"]
+    if not c["available"]:
+        print(f"C reference unavailable: {c['reason']}")
+        return
+    print(f"C reference ({c['compiler']}, usl_step.c of skfem_mpm.reference_c), compiled and "
+          f"run now on the same problems, in turn with ours:")
+    for key in ("2d_usl", "1d_usl"):
+        row = c.get(key)
+        if row is None:
+            continue
+        figures = "; ".join(
+            f"C {row[k]['threads']} thread{'s' if row[k]['threads'] > 1 else ''} "
+            f"{row[k]['particle_steps_per_s'] / 1e6:.2f} M"
+            for k in ("threaded", "single_thread") if k in row)
+        differences = ", ".join(f"{k} {v:.1e}" for k, v in row["differences"].items())
+        if not row["agrees"]:
+            print(f"{key:18s} {figures}")
+            print(f"{'':18s} WARNING: the C reference did not end in our final state "
+                  f"(largest differences, scaled: {differences}; invalid particles "
+                  f"{row['invalid_particles']}): no ratio")
+            continue
+        ratios = "; ".join(
+            f"{row[f'ratio_{k}']:.2f}x C on {row[k]['threads']} thread"
+            f"{'s' if row[k]['threads'] > 1 else ''}"
+            for k in ("threaded", "single_thread") if k in row)
+        print(f"{key:18s} {figures} particle-steps/s; ours {ratios} "
+              f"(target >= {C_TARGET}x the threaded C); same final state "
+              f"(scaled differences {differences})")
+
+
+def _print_report(report, repeat):
+    m = report["machine"]
+    print(f"machine: {m['cpu']}, {m['cores']} cores, {m['system']}")
     print(f"threads: {report['threads']}, median of {repeat} run(s), JIT excluded")
     for key in ("2d_usl", "2d_musl", "2d_usl_reference", "1d_usl", "1d_musl"):
         if key not in report:
             continue
         r = report[key]
-        target = TARGETS.get(key)
-        note = f" (target {target / 1e6:.0f} M)" if target else ""
-        print(f"{key:18s} {r['particle_steps_per_s'] / 1e6:8.2f} M particle-steps/s{note}, "
+        print(f"{key:18s} {r['particle_steps_per_s'] / 1e6:8.2f} M particle-steps/s, "
               f"{r['particles']} particles x {r['steps']} steps, JIT {r['jit_time_s']:.2f} s, "
               f"path {r['path']}")
         split = ", ".join(f"{k} {v / r['wall_time_s'] * 100:.0f}%" for k, v in r["phases"].items())
         print(f"{'':18s} phases: {split}")
-    for dim in ("2d", "1d"):
-        ours = report[f"{dim}_usl"]["particle_steps_per_s"]
-        ratios = ", ".join(f"{name} {ours / rate:.2f}x" for name, rate in REFERENCE[dim].items())
-        print(f"{dim} USL against the reference implementations: {ratios}")
+    _print_c_reference(report)
     if "memory_2d_bytes_per_particle" in report:
         print(f"2D peak memory: {report['memory_2d_bytes_per_particle']:.0f} bytes per particle "
               f"(target <= 300)")
@@ -240,7 +377,7 @@ def main(argv=None):
         split = ", ".join(f"{k} {v:.2f}" for k, v in row["phases_ms_per_step"].items())
         its = row["cg_iterations_per_solve"]
         extra = f", CG iterations per solve {its:.1f}" if its is not None else ""
-        print(f"consistent {row['cells']:>4d}^2 {row['problem']:15s} {row['variant']:28s} "
+        print(f"consistent {row['cells']:>4d}^2 {row['problem']:15s} {row['variant']:36s} "
               f"{row['ms_per_step']:8.2f} ms/step (x{row['ratio_to_lumped']:.1f} lumped){extra}; "
               f"ms/step: {split}")
     for row in report.get("scaling_2d", []):
@@ -248,7 +385,6 @@ def main(argv=None):
         extra = f", time x{ratio:.2f} for 4x particles" if ratio else ""
         print(f"scaling: {row['particles']:>8d} particles "
               f"{row['particle_steps_per_s'] / 1e6:7.2f} M/s{extra}")
-    return 0
 
 
 if __name__ == "__main__":

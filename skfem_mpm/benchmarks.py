@@ -180,7 +180,7 @@ class VibratingString(Benchmark):
         grid = SplineGrid.line(0.0, self.L, cells, degree)
         particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0,
                                    velocity=lambda X: self.velocity(X, 0.0))
-        return Scene(grid, Body(particles, LinearElastic(self.E)), t_end or self.t_end,
+        return Scene(grid, Body(particles, LinearElastic(self.E)), self.t_end if t_end is None else t_end,
                      effects=[Fixed("left"), Fixed("right")])
 
 
@@ -256,7 +256,7 @@ class SoilColumn(Benchmark):
         effects = [Fixed("left"), Gravity(-self.g)]
         if self.p0:
             effects.append(Traction("right", self.p0))
-        return Scene(grid, Body(particles, LinearElastic(self.E)), t_end or self.t_end,
+        return Scene(grid, Body(particles, LinearElastic(self.E)), self.t_end if t_end is None else t_end,
                      effects=effects)
 
 
@@ -314,7 +314,7 @@ class TractionBar(Benchmark):
                                    region=((0.0, self.L),),
                                    velocity=lambda X: self.velocity(X, 0.0))
         effects = [Fixed("left"), Traction("right", self.traction)]
-        return Scene(grid, Body(particles, LinearElastic(self.E)), t_end or self.t_end,
+        return Scene(grid, Body(particles, LinearElastic(self.E)), self.t_end if t_end is None else t_end,
                      effects=effects)
 
 
@@ -372,7 +372,7 @@ class NeoHookeanBar(Benchmark):
         grid = SplineGrid.line(0.0, 1.0, cells, degree)
         particles = Particles.seed(grid, ppc, self.rho0, layout=layout, seed=0,
                                    velocity=lambda X: self.velocity(X, 0.0))
-        return Scene(grid, Body(particles, NeoHookean(self.E)), t_end or self.t_end,
+        return Scene(grid, Body(particles, NeoHookean(self.E)), self.t_end if t_end is None else t_end,
                      effects=[Fixed("left"), Fixed("right"), BodyForce(self.body_force)])
 
 
@@ -449,7 +449,7 @@ class AxisAligned2D(Benchmark):
         grid = SplineGrid.rectangle((0, 1), (0, 1), cells, degree)
         particles = Particles.seed(grid, ppc, self.rho0, layout=layout, seed=0,
                                    velocity=lambda X: self.velocity(X, 0.0))
-        return Scene(grid, Body(particles, NeoHookean(self.E, self.nu)), t_end or self.t_end,
+        return Scene(grid, Body(particles, NeoHookean(self.E, self.nu)), self.t_end if t_end is None else t_end,
                      effects=_sliding_walls() + [BodyForce(self.body_force)])
 
 
@@ -511,7 +511,7 @@ class VibratingPlate2D(Benchmark):
         grid = SplineGrid.rectangle((0, 1), (0, 1), cells, degree)
         particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0,
                                    velocity=lambda X: self.velocity(X, 0.0))
-        return Scene(grid, Body(particles, LinearElastic(self.E, self.nu)), t_end or self.t_end,
+        return Scene(grid, Body(particles, LinearElastic(self.E, self.nu)), self.t_end if t_end is None else t_end,
                      effects=_sliding_walls())
 
 
@@ -543,7 +543,7 @@ class CollidingDisks(Benchmark):
             p = Particles.seed(grid, ppc, self.rho, layout=layout, region=disk, seed=0,
                                velocity=np.array([sign * self.speed, sign * self.speed]))
             bodies.append(Body(p, LinearElastic(self.E, self.nu)))
-        return Scene(grid, bodies, t_end or self.t_end)
+        return Scene(grid, bodies, self.t_end if t_end is None else t_end)
 
     def checks(self, result):
         """Energy growth, momentum and symmetry figures of a run."""

@@ -43,19 +43,40 @@ def _parse_set(items):
     return params
 
 
+def _method_default(name):
+    """The default of ``Method(name=...)``: the command line and the API agree."""
+    import inspect
+
+    from .solve.method import Method
+
+    return inspect.signature(Method).parameters[name].default
+
+
 def _run_options(p):
-    p.add_argument("benchmark")
-    p.add_argument("--variant", default=None)
-    p.add_argument("--set", action="append", metavar="NAME=VALUE", dest="params")
-    p.add_argument("--degree", type=int, default=2)
-    p.add_argument("--cells", type=int, default=16)
-    p.add_argument("--ppc", type=int, default=2)
-    p.add_argument("--mass", default="consistent")
-    p.add_argument("--reconstruction", default="none")
-    p.add_argument("--scheme", default="musl")
-    p.add_argument("--cfl", type=float, default=0.5)
-    p.add_argument("--dt", type=float, default=None)
-    p.add_argument("--t-end", type=float, default=None, dest="t_end")
+    from .solve.method import MASSES, RECONSTRUCTIONS, SCHEMES
+
+    p.add_argument("benchmark", help="a benchmark name (see 'skfem-mpm list')")
+    p.add_argument("--variant", default=None, help="the benchmark's variant (default: its first)")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", dest="params",
+                   help="override a benchmark parameter (repeatable)")
+    p.add_argument("--degree", type=int, default=2, choices=(1, 2, 3),
+                   help="B-spline degree (default: %(default)s)")
+    p.add_argument("--cells", type=int, default=16, help="cells per axis (default: %(default)s)")
+    p.add_argument("--ppc", type=int, default=2,
+                   help="particles per cell and axis (default: %(default)s)")
+    p.add_argument("--mass", default=_method_default("mass"), choices=MASSES,
+                   help="mass matrix (default: %(default)s, as Method())")
+    p.add_argument("--reconstruction", default=_method_default("reconstruction"),
+                   choices=RECONSTRUCTIONS, help="particle data reconstruction before Gauss "
+                   "integration (default: %(default)s)")
+    p.add_argument("--scheme", default=_method_default("scheme"), choices=SCHEMES,
+                   help="time-stepping scheme (default: %(default)s)")
+    p.add_argument("--cfl", type=float, default=_method_default("cfl"),
+                   help="time step as a fraction of the critical one (default: %(default)s)")
+    p.add_argument("--dt", type=float, default=None,
+                   help="a fixed time step instead of --cfl (default: cfl * dt_crit)")
+    p.add_argument("--t-end", type=float, default=None, dest="t_end",
+                   help="end time (default: the benchmark's)")
     p.add_argument("--out", default=None, help="write a ParaView series and PNG pictures here")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
@@ -109,6 +130,9 @@ def _cmd_list(args):
 def _check_run_args(args):
     if args.degree not in (1, 2, 3):
         raise _UsageError(f"--degree must be 1, 2 or 3, got {args.degree}")
+    for flag, value in (("--t-end", args.t_end), ("--dt", args.dt), ("--cfl", args.cfl)):
+        if value is not None and not value > 0:
+            raise _UsageError(f"{flag} must be a positive number, got {value}")
     if args.cells < 1:
         raise _UsageError(f"--cells must be a positive integer, got {args.cells}")
     if args.ppc < 1:
@@ -120,6 +144,7 @@ def _cmd_run(args, kind):
     from .solve import Method, fem, prepare, simulate
 
     _check_run_args(args)
+    _check_out(args.out)
     bench = get_benchmark(args.benchmark, args.variant, **_parse_set(args.params))
     method = Method(scheme=args.scheme, mass=args.mass, reconstruction=args.reconstruction,
                     cfl=args.cfl, dt=args.dt)
@@ -189,9 +214,14 @@ def _cmd_study(args):
         cells = [4, 8, 16] if args.quick else [4, 8, 16, 32]
     if any(c < 1 for c in cells):
         raise _UsageError(f"--cells must be positive integers, got {cells}")
-    ppc = args.ppc or (QUICK["ppc"] if bench.dim == 1 else 2)
+    if args.ppc is not None and args.ppc < 1:
+        raise _UsageError(f"--ppc must be a positive integer, got {args.ppc}")
+    if args.cfl is not None and not args.cfl > 0:
+        raise _UsageError(f"--cfl must be a positive number, got {args.cfl}")
+    _check_out(args.out)
+    ppc = args.ppc if args.ppc is not None else (QUICK["ppc"] if bench.dim == 1 else 2)
     scheme = args.scheme or QUICK["scheme"]
-    cfl = args.cfl or QUICK["cfl"]
+    cfl = args.cfl if args.cfl is not None else QUICK["cfl"]
     executor = None
     note = (f"Timed runs: a local process pool with {os.cpu_count()} workers, one thread each, "
             f"so runs never share a core; JIT compilation is excluded (column jit_time_s).")
@@ -225,8 +255,26 @@ def _cmd_study(args):
     return 0
 
 
+def _check_out(out):
+    """--out must be a folder that exists or can be made (checked before a
+    run, so that a run is not lost when its output cannot be written)."""
+    if out is None:
+        return
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise _UsageError(f"--out {out!r} is a file, not a folder")
+    parent = os.path.dirname(os.path.abspath(out))
+    while not os.path.exists(parent):
+        parent = os.path.dirname(parent)
+    target = out if os.path.isdir(out) else parent
+    if not os.access(target, os.W_OK):
+        raise _UsageError(f"--out {out!r}: {target!r} is not writable")
+
+
 def _cmd_bench(args):
     from .bench import main as bench_main
+
+    if args.repeat is not None and args.repeat < 1:
+        raise _UsageError(f"--repeat must be a positive integer, got {args.repeat}")
 
     argv = [f"--{flag}" for flag in ("quick", "json", "reference", "consistent")
             if getattr(args, flag)]

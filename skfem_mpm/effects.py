@@ -242,8 +242,14 @@ class Traction(Effect):
                 raise ValueError(f"the traction's body {self.body} has no particles")
             outer = coord + 0.5 * size
             edge = outer[candidates].max()
-            mask = candidates & (outer > edge - 0.5 * size)
-            index = np.flatnonzero(mask)
+            if dim == 1:
+                # the body's end is one point, carried by the particle whose
+                # face it is: a particle of a cut cell (smaller than its
+                # neighbours) ends the body within half the size of its
+                # neighbour, which must not carry the load a second time
+                index = np.flatnonzero(candidates & (outer == edge))[:1]
+            else:
+                index = np.flatnonzero(candidates & (outer > edge - 0.5 * size))
             return [SurfaceTraction(self, index, particles.V0[index] / size[index],
                                     size[index], axis, sign)]
         mask = self.where

@@ -3,15 +3,18 @@
 A checkpoint is a plain NumPy ``.npz`` (no pickle) holding everything the
 next step depends on: the particle arrays, time, step count, dt, the
 accumulated external work, the conjugate-gradient warm starts, the central
-difference half-step data, the bound traction layers and the saves recorded
-so far. ``simulate(scene, method, restart=path)`` continues from it and
-ends bit-for-bit equal to an uninterrupted run.
+difference half-step data, the bound traction layers, the materials'
+per-particle state (``state.<name>``) and the saves recorded so far.
+``simulate(scene, method, restart=path)`` continues from it and ends
+bit-for-bit equal to an uninterrupted run.
 """
 import json
 import os
 from pathlib import Path
 
 import numpy as np
+
+from .solve.result import HISTORY_FIELDS
 
 __all__ = ["save_result", "write_checkpoint", "read_checkpoint", "restore_state"]
 
@@ -37,10 +40,23 @@ def _tensor9(s):
     return out
 
 
+def _state_names(history):
+    return [k for k in history if k not in HISTORY_FIELDS]
+
+
+def _components(a):
+    """A state field as VTU point data: (n,) for a scalar, else (n, comps)."""
+    a = np.asarray(a, dtype=np.float64)
+    return a.reshape(a.shape[0]) if a[0].size == 1 else a.reshape(a.shape[0], -1)
+
+
 def save_result(result, path, grid=True):
     """Write ``path/particles_XXXX.vtu`` for every save and
     ``path/particles.pvd`` (open it in ParaView), plus ``path/grid.vtu``
-    with the background mesh. Returns the .pvd path."""
+    with the background mesh. Point data: displacement, velocity, stress
+    (9 components), reference_position, index, and each material state
+    field under its own name (a scalar per particle, or its values
+    flattened as components). Returns the .pvd path."""
     import meshio
 
     out = Path(path)
@@ -58,6 +74,7 @@ def save_result(result, path, grid=True):
                 "stress": _tensor9(h["stress"][k]),
                 "reference_position": _vector3(h["X"][k]),
                 "index": h["index"][k].astype(np.float64),
+                **{name: _components(h[name][k]) for name in _state_names(h)},
             },
         )
         name = f"particles_{k:04d}.vtu"
@@ -103,7 +120,10 @@ def write_checkpoint(path, state, recorder):
             [{k: v.tolist() for k, v in r.items()} for r in recorder.reactions])),
         "timer": np.array(json.dumps(state.timer.state())),
         "small_dofs_max": np.array(getattr(state, "small_dofs_max", 0)),
+        "state_names": np.array(json.dumps(list(p.state))),
     }
+    for name, values in p.state.items():  # a dot: no other key has one
+        arrays[f"state.{name}"] = values
     for key, value in state.warm.items():
         arrays[f"warm_{key}"] = value
     for i, f in enumerate(state.forces):
@@ -112,8 +132,12 @@ def write_checkpoint(path, state, recorder):
     arrays.update(recorder.state_arrays())
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+    try:
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+    except BaseException:  # a full disk, an interrupt: no half-written file stays
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 
@@ -149,6 +173,17 @@ def restore_state(state, data):
     for k in ("x", "X", "u", "v", "m", "V", "V0", "stress", "body"):
         setattr(p, k, data[k].copy())
     p.F = None if F is None else F.copy()
+    names = json.loads(str(data["state_names"])) if "state_names" in data else []
+    p.state = {name: data[f"state.{name}"].copy() for name in names}
+    for b, body in enumerate(state.scene.bodies):
+        layout = body.state_layout()
+        rows = int(np.count_nonzero(p.body == b))
+        missing = [name for name in layout.names if name not in p.state]
+        if missing:
+            raise ValueError(f"the checkpoint holds no state field {missing[0]!r}, which the "
+                             f"material of body {b} declares: it was written for another scene")
+        layout.check({k: v[p.body == b] for k, v in p.state.items()}, rows,
+                     where="the checkpoint's state")
     p.info = {}
     state.particles = p
     state.index = data["index"].copy()

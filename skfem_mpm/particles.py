@@ -13,6 +13,13 @@ Names and shapes (the project's conventions):
     stress (n, dim, dim)   Cauchy stress, symmetric
     F      (n, dim, dim)   deformation gradient, only for finite strain (else None)
     body   (n,)            integer body id
+    state  {name: (n, ...)} the materials' per-particle state (plastic strain,
+                           sigma_zz, ...): a dict of float64 arrays, one row
+                           per particle, empty for materials without state
+
+A material declares its state fields (``Material.state_fields``); a scene
+adds the declared fields a body's particles lack at their initial values and
+keeps the ones a user supplied (``Particles(..., state={...})``).
 """
 import numbers
 
@@ -23,6 +30,41 @@ from .validation import check_choice, check_finite_array, check_positive
 __all__ = ["Particles"]
 
 LAYOUTS = ("uniform", "gauss", "random")
+
+# names a state field cannot take: the particle arrays, and the names the
+# history, checkpoints and ParaView output already use
+RESERVED_STATE_NAMES = frozenset(("x", "X", "u", "v", "m", "V", "V0", "stress", "F", "body",
+                                  "state", "index", "displacement", "velocity",
+                                  "reference_position"))
+
+
+def check_state_name(name, where="particles.state"):
+    """A state field name: an identifier not used by another particle array."""
+    if not isinstance(name, str) or not name.isidentifier():
+        raise ValueError(f"{where}: a state field name must be a Python identifier "
+                         f"(e.g. 'plastic_strain'), got {name!r}")
+    if name in RESERVED_STATE_NAMES:
+        raise ValueError(f"{where}: {name!r} cannot name a state field (reserved names: "
+                         f"{', '.join(sorted(RESERVED_STATE_NAMES))})")
+    return name
+
+
+def _check_state(state, n):
+    """A new dict of float64 arrays (n, ...) from a mapping of state fields."""
+    if state is None:
+        return {}
+    if not isinstance(state, dict):
+        raise ValueError(f"state must be a dict {{name: array (n, ...)}}, "
+                         f"got {type(state).__name__}")
+    out = {}
+    for name, values in state.items():
+        check_state_name(name)
+        a = check_finite_array(f"state[{name!r}]", values)
+        if a.ndim < 1 or a.shape[0] != n:
+            raise ValueError(f"state[{name!r}] must have shape (n, ...) with one row per "
+                             f"particle (n = {n}), got {a.shape}")
+        out[name] = a.copy()
+    return out
 
 
 def _positive_array(name, values, n):
@@ -38,14 +80,15 @@ class Particles:
 
     ``Particles(x, m, V)`` validates shapes, finiteness and positivity;
     optional arrays default to: ``X = x``, ``u = x - X``, ``v = 0``, ``V0 = V``,
-    ``stress = 0``, ``F = None`` (small strain), ``body = 0``.
+    ``stress = 0``, ``F = None`` (small strain), ``body = 0``, ``state = {}``
+    (``state`` is a dict {name: array (n, ...)}; see the module docstring).
     Build them with :meth:`seed`, :meth:`from_mesh` or :meth:`from_meshio`.
     """
 
     FIELDS = ("x", "X", "u", "v", "m", "V", "V0", "stress", "F", "body")
 
     def __init__(self, x, m, V, v=None, X=None, stress=None, F=None, body=None, V0=None,
-                 u=None):
+                 u=None, state=None):
         x = np.asarray(x, dtype=np.float64)
         if x.ndim == 1:
             x = x[:, None]
@@ -78,6 +121,7 @@ class Particles:
                 raise ValueError(f"body must be an integer array of shape ({n},), got "
                                  f"{body.dtype} {body.shape}")
             self.body = body.astype(np.int64).copy()
+        self.state = _check_state(state, n)
         self.info = {}
 
     # ----------------------------------------------------------------- basics
@@ -95,7 +139,8 @@ class Particles:
 
     def __repr__(self):
         strain = "finite strain" if self.F is not None else "small strain"
-        return f"Particles(n={self.n}, dim={self.dim}, mass={self.m.sum():.6g}, {strain})"
+        state = f", state={sorted(self.state)}" if self.state else ""
+        return f"Particles(n={self.n}, dim={self.dim}, mass={self.m.sum():.6g}, {strain}{state})"
 
     def _arrays(self):
         return {k: getattr(self, k) for k in self.FIELDS}
@@ -105,18 +150,25 @@ class Particles:
         out = Particles.__new__(Particles)
         for k, a in self._arrays().items():
             setattr(out, k, None if a is None else a.copy())
+        out.state = {k: a.copy() for k, a in self.state.items()}
         out.info = dict(self.info)
         return out
 
     def replaced(self, **arrays):
         """A new Particles object with some arrays replaced (the others are
-        shared, not copied: the solver never edits arrays in place)."""
+        shared, not copied: the solver never edits arrays in place);
+        ``state=`` replaces the whole state dict (its arrays are not checked:
+        see :meth:`validate`)."""
         out = Particles.__new__(Particles)
         for k, a in self._arrays().items():
             setattr(out, k, a)
+        out.state = dict(self.state)
         for k, a in arrays.items():
+            if k == "state":
+                out.state = dict(a)
+                continue
             if k not in self.FIELDS:
-                raise ValueError(f"unknown particle array {k!r}; valid: {self.FIELDS}")
+                raise ValueError(f"unknown particle array {k!r}; valid: {self.FIELDS + ('state',)}")
             setattr(out, k, a)
         out.info = self.info
         return out
@@ -128,6 +180,7 @@ class Particles:
             out = Particles.__new__(Particles)
             for k, a in self._arrays().items():
                 setattr(out, k, None if a is None else a[which])
+            out.state = {k: a[which] for k, a in self.state.items()}
             out.info = dict(self.info)
             return out
         which = np.asarray(which)
@@ -136,13 +189,21 @@ class Particles:
         out = Particles.__new__(Particles)
         for k, a in self._arrays().items():
             setattr(out, k, None if a is None else a[which].copy())
+        out.state = {k: a[which].copy() for k, a in self.state.items()}
         out.info = dict(self.info)
         return out
 
     @classmethod
-    def concatenate(cls, parts, bodies=None):
+    def concatenate(cls, parts, bodies=None, fill=None):
         """Join particle sets (same dim; all or none with F). ``bodies``
-        optionally gives each part's body id."""
+        optionally gives each part's body id.
+
+        The state of the result has every field of any part (the union; a
+        field must have the same per-particle shape in every part that has
+        it). A part without a field gets ``fill[name]`` there (a number or
+        an array of the field's per-particle shape), 0 when ``fill`` does not
+        name it. A scene joins its bodies with each field's declared
+        initial value as ``fill``."""
         parts = list(parts)
         if not parts:
             raise ValueError("concatenate needs at least one Particles object")
@@ -160,13 +221,15 @@ class Particles:
             if len(bodies) != len(parts):
                 raise ValueError(f"bodies must give one id per part ({len(parts)}), got {len(bodies)}")
             out.body = np.concatenate([np.full(p.n, int(b)) for p, b in zip(parts, bodies)])
+        out.state = _concatenate_state(parts, {} if fill is None else fill)
         out.info = {}
         return out
 
     def validate(self):
-        """Check every array again (after user edits); raises ValueError."""
+        """Check every array again (after user edits), the state fields
+        included; raises ValueError."""
         Particles(self.x, self.m, self.V, v=self.v, X=self.X, stress=self.stress,
-                  F=self.F, body=self.body, V0=self.V0, u=self.u)
+                  F=self.F, body=self.body, V0=self.V0, u=self.u, state=self.state)
         return self
 
     @property
@@ -272,6 +335,29 @@ class Particles:
         v = _field("velocity", velocity, x, (n, dim))
         s = _field("stress", stress, x, (n, dim, dim))
         return cls(x, rho * V, V, v=v, stress=s)
+
+
+def _concatenate_state(parts, fill):
+    shapes = {}
+    for i, p in enumerate(parts):
+        for name, a in p.state.items():
+            shape = a.shape[1:]
+            if shapes.setdefault(name, shape) != shape:
+                raise ValueError(f"state[{name!r}] has per-particle shape {shapes[name]} in one "
+                                 f"part and {shape} in part {i}: concatenate needs one shape "
+                                 f"per field")
+    out = {}
+    for name, shape in shapes.items():
+        value = fill.get(name, 0.0)
+        try:
+            value = np.broadcast_to(np.asarray(value, dtype=np.float64), shape)
+        except ValueError:
+            raise ValueError(f"fill[{name!r}] must be a number or an array of shape {shape}, "
+                             f"got {np.shape(value)}") from None
+        out[name] = np.concatenate([
+            p.state[name] if name in p.state else np.broadcast_to(value, (p.n,) + shape)
+            for p in parts])
+    return out
 
 
 def _check_ppc(ppc, dim):

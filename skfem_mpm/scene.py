@@ -3,6 +3,7 @@ import numpy as np
 
 from .effects import Effect
 from .materials import Material
+from .materials.state import state_layout
 from .particles import Particles
 from .validation import check_positive
 
@@ -10,7 +11,12 @@ __all__ = ["Body", "Scene"]
 
 
 class Body:
-    """Particles of one material."""
+    """Particles of one material.
+
+    The material's declared state fields (``material.state_fields``) that
+    ``particles.state`` lacks are created at their initial values when a
+    run starts; fields the particles carry are kept (an initial plastic
+    strain, say) and must have the declared shapes."""
 
     def __init__(self, particles, material):
         if not isinstance(particles, Particles):
@@ -18,8 +24,21 @@ class Body:
         if not isinstance(material, Material):
             raise ValueError(f"material must be a Material (e.g. LinearElastic), got {material!r}")
         material.check_dim(particles.dim)
+        state_layout(material, particles.dim).check(particles.state, particles.n)
         self.particles = particles
         self.material = material
+
+    def state_layout(self):
+        """The material's declared state (:class:`~skfem_mpm.materials.StateLayout`)."""
+        return state_layout(self.material, self.particles.dim)
+
+    def bound_particles(self):
+        """The particles with every declared state field (missing ones at
+        their initial values; the body's own arrays are shared, not copied)."""
+        p = self.particles
+        layout = self.state_layout()
+        state = layout.with_initial(p.state, p.n)
+        return p if state is p.state else p.replaced(state=state)
 
     def __repr__(self):
         return f"Body({self.particles!r}, {self.material!r})"
@@ -45,6 +64,16 @@ class Scene:
                     f"body {i} has {b.particles.dim}D particles on a {grid.dim}D grid"
                 )
             grid.locate(b.particles.x)  # raises for particles outside the grid
+        declared = {}
+        for i, b in enumerate(bodies):
+            layout = b.state_layout()
+            for name, shape in zip(layout.names, layout.shapes):
+                seen = declared.setdefault(name, (shape, i))
+                if seen[0] != shape:
+                    raise ValueError(
+                        f"the materials of bodies {seen[1]} and {i} both declare the state field "
+                        f"{name!r}, with per-particle shapes {seen[0]} and {shape}: one name, "
+                        f"one shape")
         self.grid = grid
         self.bodies = bodies
         self.t_end = check_positive("t_end", t_end)
@@ -61,10 +90,12 @@ class Scene:
 
     def particles(self):
         """All bodies' particles in one set, ``body`` = body index, with F = I
-        when some material needs finite strain. A single body that needs
-        nothing added is shared, not copied: the solvers never write into the
-        scene's arrays."""
-        parts = [b.particles for b in self.bodies]
+        when some material needs finite strain, and every state field any
+        material declares (:meth:`Body.bound_particles`; a body whose
+        material does not declare a field gets that field's declared initial
+        value). A single body that needs nothing added is shared, not copied:
+        the solvers never write into the scene's arrays."""
+        parts = [b.bound_particles() for b in self.bodies]
         only = parts[0]
         if len(parts) == 1 and not np.any(only.body) and \
                 (only.F is not None or not self.finite_strain):
@@ -74,7 +105,12 @@ class Scene:
             for p in parts:
                 if p.F is None:
                     p.F = np.broadcast_to(np.eye(p.dim), (p.n, p.dim, p.dim)).copy()
-        out = Particles.concatenate(parts, bodies=range(len(parts)))
+        fill = {}
+        for b in self.bodies:
+            layout = b.state_layout()
+            for name, value in zip(layout.names, layout.initial):
+                fill.setdefault(name, value)
+        out = Particles.concatenate(parts, bodies=range(len(parts)), fill=fill)
         return out
 
     def __repr__(self):

@@ -17,7 +17,8 @@ def test_list(capsys):
 
 
 def test_run_json_has_the_documented_fields(capsys):
-    assert main(["run", "vibrating-string", "--cells", "8", "--set", "L=1", "--json"]) == 0
+    assert main(["run", "vibrating-string", "--cells", "8", "--set", "L=1", "--mass", "consistent",
+                 "--json"]) == 0
     record = json.loads(capsys.readouterr().out)
     for key in ("benchmark", "variant", "scheme", "mass", "reconstruction", "cells", "ppc",
                 "dofs", "particles", "steps", "dt", "error_rms", "error_max", "error_rms_abs",
@@ -41,11 +42,40 @@ def test_run_writes_paraview_and_pictures(tmp_path, capsys):
         assert (out / name).exists(), name
 
 
+def test_run_help_lists_choices_and_defaults_as_the_api(capsys):
+    from skfem_mpm import Method
+
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "{lumped,consistent}" in text and "{musl,usl,usf,cd}" in text
+    assert f"mass matrix (default: {Method().mass}, as Method())" in text
+    assert f"time-stepping scheme (default: {Method().scheme})" in text
+
+
+def test_an_explicit_end_time_is_used():
+    from skfem_mpm.benchmarks import get_benchmark
+
+    b = get_benchmark("vibrating-string", "small")
+    assert b.scene(4, 2, 2, t_end=1e-3).t_end == 1e-3
+    with pytest.raises(ValueError, match="t_end"):
+        b.scene(4, 2, 2, t_end=0.0)
+
+
 @pytest.mark.parametrize("argv, fragment", [
     (["run", "nope"], "unknown benchmark"),
-    (["run", "vibrating-string", "--degree", "7"], "--degree must be 1, 2 or 3"),
+    (["run", "vibrating-string", "--degree", "7"], "--degree: invalid choice"),
+    (["run", "vibrating-string", "--t-end", "0"], "--t-end must be a positive number, got 0"),
+    (["fem", "vibrating-string", "--dt", "-0.001"], "--dt must be a positive number"),
+    (["run", "vibrating-string", "--scheme", "rk9"], "--scheme: invalid choice"),
+    (["run", "vibrating-string", "--cfl", "3"], "cfl = 3 puts the time step above"),
+    (["run", "vibrating-string", "--out", __file__], "is a file, not a folder"),
+    (["study", "vibrating-string", "--cfl", "0"], "--cfl must be a positive number, got 0"),
+    (["study", "vibrating-string", "--ppc", "0"], "--ppc must be a positive integer, got 0"),
+    (["bench", "--repeat", "0"], "--repeat must be a positive integer, got 0"),
+    (["bench", "--repeat", "-1"], "--repeat must be a positive integer, got -1"),
     (["run", "vibrating-string", "--cells", "0"], "--cells must be a positive integer"),
-    (["run", "vibrating-string", "--mass", "heavy"], "mass must be one of"),
+    (["run", "vibrating-string", "--mass", "heavy"], "--mass: invalid choice"),
     (["run", "vibrating-string", "--set", "E=abc"], "value must be a number"),
     (["study", "vibrating-string", "--methods", "mpm-p9-lumped"], "degree"),
     (["frobnicate"], "invalid choice"),

@@ -36,9 +36,10 @@ def test_study_script(tmp_path):
 
 
 def test_custom_material_yields_and_dissipates():
-    peak, energy = load("custom_material").main(cells=8, yield_stress=0.05)
+    peak, energy, plastic = load("custom_material").main(cells=8, yield_stress=0.05)
     assert peak <= 0.05 + 1e-15
     assert energy[-1] < 0.9 * energy[0]
+    assert plastic.min() >= 0.0 and plastic.max() > 1e-4  # the ends yield
 
 
 def test_particle_forms_match_gauss_at_gauss_points():

@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
-from skfem_mpm import (Body, Fixed, Gravity, LinearElastic, Method, NeoHookean, Particles,
-                       Prescribed, Scene, SimulationError, SplineGrid, Traction, simulate)
+from skfem_mpm import (Body, BodyForce, Damping, Fixed, Gravity, LinearElastic, Method,
+                       NeoHookean, Particles, Prescribed, Scene, SimulationError, SplineGrid,
+                       Traction, simulate)
 from skfem_mpm.benchmarks import get_benchmark
 
 
@@ -28,6 +29,9 @@ def test_forced_instability_raises_with_last_good_state():
     p = err.result.particles
     assert all(np.all(np.isfinite(a)) for a in (p.x, p.v, p.stress, p.V))
     assert "step" in str(err)
+    # the result's time is its particles' time (only t = 0 was saved)
+    assert err.result.counts["steps"] == err.step - 1 > 0
+    assert err.result.final_time == pytest.approx(err.time) and err.time > 0
 
 
 def test_inverted_element_raises_naming_the_particle():
@@ -171,3 +175,160 @@ def test_removal_with_two_bodies_rebinds_to_the_survivors(backend):
     assert r.counts["removed"] > 0
     assert r.particles.n == stay.n + leave.n - r.counts["removed"]
     assert np.all(np.isfinite(r.particles.stress)) and np.all(r.particles.V > 0)
+
+
+# --------------------------------------------------------------- restart, every field
+MEASURED = {"wall_time", "jit_time"}  # seconds: differ between any two runs
+KEYS_ONLY = {"timings"}               # seconds per phase: compare which phases ran
+
+
+def assert_same(a, b, where):
+    """a and b equal bit for bit, recursively; an unknown type fails (so a
+    new recorded quantity cannot slip past the comparison unexamined)."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.shape == b.shape and a.dtype == b.dtype, \
+            f"{where}: {a.shape} {a.dtype} vs {b.shape} {b.dtype}"
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), \
+            f"{where}: differs by up to {np.max(np.abs(a - b)) if a.dtype.kind in 'fiu' else '?'}"
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and set(a) == set(b), f"{where}: keys {sorted(a)} vs {sorted(b)}"
+        for k in a:
+            assert_same(a[k], b[k], f"{where}[{k!r}]")  # History stacks on __getitem__
+    elif isinstance(a, (list, tuple)):
+        assert type(a) is type(b) and len(a) == len(b), f"{where}: lengths {len(a)} vs {len(b)}"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{where}[{i}]")
+    elif isinstance(a, Particles):
+        assert isinstance(b, Particles)
+        assert_same(vars(a), vars(b), f"{where}.")
+    elif isinstance(a, SplineGrid):
+        assert a is b, f"{where}: another grid"
+    elif a is None or isinstance(a, (bool, int, float, str, np.number, np.bool_)):
+        assert type(a) is type(b) and a == b, f"{where}: {a!r} vs {b!r}"
+    else:
+        raise AssertionError(f"{where}: no comparison for {type(a).__name__}; extend assert_same")
+
+
+def assert_same_result(full, resumed):
+    fields = set(vars(full))
+    assert fields == set(vars(resumed)), fields ^ set(vars(resumed))
+    for name in sorted(fields - MEASURED):
+        a, b = getattr(full, name), getattr(resumed, name)
+        if name in KEYS_ONLY:
+            a, b = sorted(a), sorted(b)
+        assert_same(a, b, name)
+
+
+def loaded_plate():
+    """A neo-Hookean plate (adaptive dt), clamped on the left, pulled on its
+    right side by a traction, under a body force, with local damping: every
+    kind of recorded quantity moves (external work of two forces,
+    reactions, damping's sign of velocity)."""
+    grid = SplineGrid.rectangle((0.0, 1.5), (0.0, 1.5), (6, 6), 2)
+    parts = Particles.seed(grid, 2, 1.0, region=((0.0, 1.0), (0.25, 1.25)),
+                           velocity=lambda X: np.column_stack((0.05 * X[:, 0], 0.02 * X[:, 0])))
+    effects = [Fixed("left"), Traction("right", lambda t: (0.2 * min(t / 0.3, 1.0), 0.02)),
+               BodyForce(lambda X, t: np.column_stack((0.0 * X[:, 0], -0.5 - 0.5 * X[:, 0]))),
+               Damping(0.05)]
+    return Scene(grid, Body(parts, NeoHookean(10.0, 0.3)), 0.6, effects=effects)
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+@pytest.mark.parametrize("scheme, mass", [("cd", "lumped"), ("cd", "consistent"),
+                                          ("musl", "lumped"), ("musl", "consistent")])
+def test_restart_reproduces_every_recorded_quantity(tmp_path, backend, scheme, mass):
+    """A run stopped after its checkpoint at step 10 and restarted from it
+    gives the Result of the uninterrupted run: every attribute of the
+    Result (enumerated, so a new one is compared too), bit for bit, except
+    measured seconds (wall and compile time; the phases timed must agree).
+
+    So does a restart from the checkpoint of the last step, which runs no
+    step: its final save (when the last step was not a save step) reports
+    the velocities from the kept state (CD: v^(n+1/2) + dt/2 N a^n, so the
+    kept acceleration must come back), and a save made before that
+    checkpoint is not recorded twice."""
+    scene = loaded_plate()
+    method = Method(scheme=scheme, mass=mass, backend=backend)
+    full = simulate(scene, method, save_every=3)
+    assert full.counts["steps"] > 20 and full.energies["external_work"][-1] != 0.0
+    assert any(np.any(f != 0) for r in full.reactions for f in r.values())
+    path = tmp_path / "run.npz"
+    stopped = simulate(scene, method, save_every=3, checkpoint=(path, 10),
+                       callback=lambda step, state: step < 10)
+    assert stopped.counts["steps"] == 10
+    resumed = simulate(scene, method, save_every=3, restart=path)
+    assert_same_result(full, resumed)
+    for save_every in (None, 1):  # the last step unsaved / saved before its checkpoint
+        full = simulate(scene, method, save_every=save_every)
+        last = tmp_path / f"last_{save_every}.npz"
+        simulate(scene, method, save_every=save_every, checkpoint=(last, 1))
+        assert_same_result(full, simulate(scene, method, save_every=save_every, restart=last))
+@pytest.mark.parametrize("run", ["simulate", "fem"])
+def test_cfl_above_one_is_refused_like_a_dt_above_dt_crit(run):
+    from skfem_mpm import fem
+    from skfem_mpm.benchmarks import get_benchmark
+
+    b = get_benchmark("vibrating-string", "small")
+    scene = b.scene(8, 2, 2, fem=run == "fem")
+    go = simulate if run == "simulate" else fem
+    with pytest.raises(ValueError, match=r"cfl = 1\.5 .*cfl <= 1.*allow_unstable=True"):
+        go(scene, Method(cfl=1.5))
+    r = go(scene, Method(cfl=1.5, allow_unstable=True))
+    assert r.counts["steps"] > 0
+
+
+def test_a_singular_consistent_mass_is_an_invalid_state_not_a_bare_error():
+    import scipy.sparse as sp
+
+    from skfem_mpm.errors import InvalidState
+    from skfem_mpm.solve.grid_system import Constraints, GridSystem
+
+    grid = SplineGrid.line(0.0, 1.0, 4, 2)
+    n = grid.ndofs
+    M = sp.csr_matrix(np.ones((n, n)))  # rank one: singular
+    system = GridSystem(np.ones(n), Constraints(grid, []), M, None, 0.0, "direct")
+    with pytest.raises(InvalidState, match="singular"):
+        system.solve(np.ones((n, 1)), np.zeros((n, 1)), "velocity")
+
+
+def test_a_checkpoint_folder_that_does_not_exist_is_refused_before_the_first_step(tmp_path):
+    from skfem_mpm.benchmarks import get_benchmark
+
+    scene = get_benchmark("vibrating-string", "small").scene(8, 2, 2)
+    with pytest.raises(ValueError, match="checkpoint path .*does not exist or is not writable"):
+        simulate(scene, Method(), checkpoint=(tmp_path / "missing" / "run.npz", 5))
+    with pytest.raises(ValueError, match="checkpoint path must be a str or os.PathLike"):
+        simulate(scene, Method(), checkpoint=(None, 1))
+
+
+def test_a_failed_checkpoint_write_keeps_the_run_and_leaves_no_temporary_file(tmp_path,
+                                                                              monkeypatch):
+    from skfem_mpm import SimulationError
+    from skfem_mpm.benchmarks import get_benchmark
+
+    def full_disk(file, **arrays):
+        with open(file, "wb") as f:
+            f.write(b"half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", full_disk)
+    scene = get_benchmark("vibrating-string", "small").scene(8, 2, 2)
+    with pytest.raises(SimulationError, match="checkpoint after step 3 failed") as info:
+        simulate(scene, Method(), checkpoint=(tmp_path / "run.npz", 3))
+    assert info.value.step == 3 and info.value.result.counts["steps"] == 3
+    assert np.isfinite(info.value.result.particles.x).all()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_fixed_and_prescribed_on_the_same_dofs_are_refused():
+    grid = SplineGrid.line(0.0, 1.0, 4, 2)
+    p = Particles.seed(grid, 2, 1.0)
+    body = Body(p, LinearElastic(1.0))
+    for effects in ([Fixed("left"), Prescribed("left", 0, lambda t: 1.0)],
+                    [Prescribed("left", 0, lambda t: 1.0), Fixed("left")],
+                    [Prescribed("left", 0, lambda t: 1.0), Prescribed("left", 0, lambda t: 2.0)]):
+        with pytest.raises(ValueError, match="constrains component 0 of dofs that another"):
+            simulate(Scene(grid, body, 0.01, effects=effects), Method())
+    # the same constraint twice is harmless
+    simulate(Scene(grid, body, 0.01, effects=[Fixed("left"), Fixed("left")]), Method())

@@ -215,3 +215,29 @@ def test_fem_follows_a_users_small_strain_material():
     assert np.abs(elastic).max() > 1.05 * yield_stress  # the plastic branch is reached
     assert np.abs(stress - np.clip(elastic, -yield_stress, yield_stress)).max() \
         <= 1e-12 * yield_stress
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+@pytest.mark.parametrize("finite", [False, True])
+def test_particles_a_callback_keeps_are_never_written_again(backend, finite):
+    """A callback may keep the state's particles; later steps must not
+    write into their arrays (the compiled executor double-buffers its
+    particle arrays and used to reuse the ones handed out)."""
+    from skfem_mpm.benchmarks import get_benchmark
+
+    b = get_benchmark("neo-hookean-bar" if finite else "vibrating-string",
+                      None if finite else "small")
+    scene = b.scene(8, 2, 2)
+    kept = []
+
+    def keep(step, state):
+        p = state.particles
+        kept.append((p, {k: getattr(p, k).copy() for k in ("x", "v", "u", "stress", "V", "F")
+                         if getattr(p, k) is not None}))
+        return step < 8
+
+    simulate(scene, Method(scheme="musl", backend=backend), callback=keep)
+    assert len(kept) == 8
+    changed = [i for i, (p, values) in enumerate(kept)
+               if any(not np.array_equal(getattr(p, k), v) for k, v in values.items())]
+    assert changed == []

@@ -6,9 +6,14 @@ For each particle i of a body (``index``, or every particle):
     A = I + dt L_i                          the step's deformation increment
     finite strain:  F_i <- A F_i,  V_i = V0_i det F_i
     small strain:   V_i <- V_i det A
-    stress_i <- law(params, L_i, F, dt, stress_i, ...)     F = F_i or A
+    state_out_k <- state_k                  the state carried over ...
+    stress_i, state_out_k <- law(params, L_i, F, dt, stress_i, state_k, ...)
+                                            ... and updated by the law; F = F_i or A
 
-The law is a C callback of the signature
+``state`` and ``state_out`` (rows, n_state) hold the packed per-particle
+state of the body's particles, row k for the k-th particle of the body (the
+particle itself when ``every``); a material without state passes arrays of
+n_state = 0 (nothing is copied). The law is a C callback of the signature
 :data:`skfem_mpm.materials.compiled.POINT_SIGNATURE`, passed by its address
 (so this kernel is compiled and cached once for all materials). Returns the first particle with
 det <= 0 (-1 for none); the NumPy reference is each material's ``update``.
@@ -71,6 +76,7 @@ def material_update(law, params, index, every, L, dt, finite, stress, F, V, V0, 
     block's first particle with det <= 0 (or -1)."""
     n = L.shape[0] if every else index.shape[0]
     dim = L.shape[1]
+    n_state = state.shape[1]
     nt = first_bad.shape[0]
     for t in prange(nt):
         A = np.empty((dim, dim))
@@ -78,6 +84,8 @@ def material_update(law, params, index, every, L, dt, finite, stress, F, V, V0, 
         bad = -1
         for k in range(t * n // nt, (t + 1) * n // nt):
             i = k if every else index[k]
+            for c in range(n_state):
+                state_out[k, c] = state[k, c]
             for a in range(dim):
                 for b in range(dim):
                     A[a, b] = dt * L[i, a, b] + (1.0 if a == b else 0.0)
@@ -91,13 +99,13 @@ def material_update(law, params, index, every, L, dt, finite, stress, F, V, V0, 
                         G[a, b] = s
                 J = _det(G, dim)
                 V_out[i] = V0[i] * J
-                _call_law(law, params, L[i], G, dim, dt, stress[i], state[i], stress_out[i],
-                          state_out[i])
+                _call_law(law, params, L[i], G, dim, dt, stress[i], state[k], stress_out[i],
+                          state_out[k])
             else:
                 J = _det(A, dim)
                 V_out[i] = V[i] * J
-                _call_law(law, params, L[i], A, dim, dt, stress[i], state[i], stress_out[i],
-                          state_out[i])
+                _call_law(law, params, L[i], A, dim, dt, stress[i], state[k], stress_out[i],
+                          state_out[k])
             if not J > 0.0 and bad < 0:
                 bad = i
         first_bad[t] = bad

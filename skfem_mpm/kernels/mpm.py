@@ -29,6 +29,7 @@ from numba import get_num_threads, njit, prange
 
 from .fringe import apply_corrected
 from .kronecker import apply_kronecker
+from .tiny_mass import merged_lumped_solve
 from .weights import FAST, extracted_functions, locate_axis_point
 
 __all__ = ["Kernels"]
@@ -982,6 +983,16 @@ def small_mass_2d(mass, nbx, nby, p, tol, small):
     return count
 
 
+def _first_flags(rows):
+    """Per flag column, the smallest particle index >= 0 over the threads'
+    rows, or -1 (a few threads: plain Python beats array calls here)."""
+    found = []
+    for j in range(3):
+        hits = [row[j] for row in rows if row[j] >= 0]
+        found.append(min(hits) if hits else -1)
+    return found
+
+
 class Kernels:
     """The compiled kernels bound to one spline grid (and its thread count)."""
 
@@ -1074,12 +1085,7 @@ class Kernels:
                    ux, uy, ihx, ihy, Cx, Cy, self.p, self.nbx, bounds[0][0], bounds[0][1],
                    bounds[1][0], bounds[1][1], fused, lam, mu, new.x, new.v, new.u, new.stress,
                    new.V, L_out, acc_out, store_acc, flags)
-        found = []
-        for j in range(3):
-            column = flags[:, j]
-            hits = column[column >= 0]
-            found.append(int(hits.min()) if hits.size else -1)
-        return found
+        return _first_flags(flags.tolist())
 
     def _stencil_pattern(self):
         """CSR pattern of the stencil (rows, valid stencil slots, columns)."""
@@ -1193,9 +1199,11 @@ class Kernels:
         (m_k < tol max of its neighbours) if the smallest positive mass is
         below tol times the largest; otherwise the scan is skipped."""
         small = self._small
-        if lumped is self._mass and self._mass_range[:, 0].min() >= tol * self._mass_range[:, 1].max():
-            small[:] = False
-            return small, 0
+        if lumped is self._mass:
+            ranges = self._mass_range.tolist()
+            if min(r[0] for r in ranges) >= tol * max(r[1] for r in ranges):
+                small[:] = False
+                return small, 0
         if self.dim == 2:
             count = small_mass_2d(lumped, self.nbx, self.grid.basis_per_axis[1], self.p, tol,
                                   small)
@@ -1209,6 +1217,15 @@ class Kernels:
         has = v_values is not None
         usl_grid(mass, momentum, force, gravity, constrained, v_values if has else force,
                  a_values if has else force, has, vdt, a, v_new)
+
+    def merged_solve(self, mass, rhs, gravity, constrained, values, tol, out):
+        """Lumped solve with the tiny-mass merge into ``out``; returns the
+        number of small dofs, or -1 when the reference merge must be used
+        (see :mod:`skfem_mpm.kernels.tiny_mass`)."""
+        has = values is not None
+        nbx, nby = (self.ndofs, 1) if self.dim == 1 else self.grid.basis_per_axis
+        return merged_lumped_solve(mass, rhs, gravity, constrained, values if has else rhs, has,
+                                   nbx, nby, self.p, tol, out)
 
     def solve(self, mass, rhs, gravity, constrained, values, out):
         """Lumped solve into ``out`` (see lumped_solve)."""

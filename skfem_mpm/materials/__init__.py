@@ -3,12 +3,14 @@
 
 Write your own by following the same shape (see examples/custom_material.py);
 give it a compiled ``point_update`` (:func:`point_update`) and the compiled
-executor runs it without leaving compiled code.
+executor runs it without leaving compiled code; declare per-particle state
+(``particles.state[name]``) with ``state_fields`` (:mod:`.state`).
 """
 from .base import Material, det, incremental_deformation, lame_parameters
 from .compiled import point_update
 from .linear_elastic import LinearElastic
 from .neo_hookean import NeoHookean
+from .state import StateLayout, state_layout
 
 __all__ = ["Material", "LinearElastic", "NeoHookean", "lame_parameters", "det",
-           "incremental_deformation", "point_update"]
+           "incremental_deformation", "point_update", "state_layout", "StateLayout"]

@@ -7,7 +7,15 @@ A material has
 
     finite_strain           True if it needs the deformation gradient F
     update(p, L, dt)        new (stress, V, F) from the velocity gradient
-                            L[p, i, j] = dv_i/dx_j over the step dt
+                            L[p, i, j] = dv_i/dx_j over the step dt; a
+                            material with state returns (stress, V, F, state)
+                            with ``state`` a dict of the new values of its
+                            fields (those it leaves out keep their values);
+                            new arrays: never write into the particles'
+                            arrays (the last good state must survive)
+    state_fields(dim)       the per-particle state it keeps (default none):
+                            {name: (shape, initial)}, read in ``update`` as
+                            ``p.state[name]``, shape (n, *shape)
     wave_speed(p)           the largest P-wave speed of the particles, for
                             the critical time step
     strain_energy(p)        total stored energy sum_p W_p V0_p (or V_p)
@@ -18,6 +26,16 @@ A material has
 
 Write your own by following the same shape (see examples/custom_material.py).
 2D is plane strain throughout; 1D is uniaxial strain.
+
+Per-particle state (accumulated plastic strain, sigma_zz in plane strain,
+back stresses, damage, ...): declare it with ``state_fields`` and it lives in
+``particles.state[name]``; the scene creates each declared field at its
+initial value (keeping any a user supplied), every executor carries it
+through particle removal, checkpoints and restarts, and it is recorded in
+``Result.history[name]`` at every save and written to ParaView as point data.
+The compiled point law sees a particle's fields flattened into ``state``
+(n_state values, the fields in declared order, each in C order) and writes
+``state_out`` (see :mod:`skfem_mpm.materials.compiled`).
 """
 import numpy as np
 
@@ -60,6 +78,20 @@ class Material:
     def point_parameters(self, dim):
         """The parameters of ``point_update`` (a float64 array)."""
         return np.zeros(0)
+
+    def state_fields(self, dim):
+        """The per-particle state this material keeps in ``dim`` dimensions:
+        ``{name: (shape, initial)}`` with ``shape`` the shape of one
+        particle's value (``()`` a scalar, ``(3,)``, ``(dim, dim)``) and
+        ``initial`` its starting value (a number or an array of that shape).
+        ``particles.state[name]`` then has shape ``(n, *shape)`` (float64).
+        Names are identifiers other than the particle arrays' names. None
+        by default (LinearElastic, NeoHookean); e.g. ::
+
+            def state_fields(self, dim):
+                return {"plastic_strain": ((), 0.0), "sigma_zz": ((), 0.0)}
+        """
+        return {}
 
     def check_dim(self, dim):
         if dim not in (1, 2):

@@ -14,8 +14,11 @@ it::
         #               materials), else the step's increment I + dt L
         # stress (dim, dim): the stress before the step; write the new Cauchy
         #               stress into stress_out (every entry)
-        # state, state_out: the particle's material state (reserved: empty
-        #               until materials can declare per-particle state)
+        # state (n_state,): the particle's material state, the fields of
+        #               state_fields(dim) flattened in declared order (each
+        #               in C order); state_out arrives holding the same
+        #               values: write the entries that change (the new
+        #               state). Both are empty for a material without state.
         ...
 
 and set ``point_update = my_law`` and ``point_parameters(dim)`` on the

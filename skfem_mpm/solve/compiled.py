@@ -37,6 +37,7 @@ from ..errors import InvalidState
 from ..kernels.constitutive import material_update
 from ..kernels.mpm import Kernels, fast_row_fractions
 from ..materials import LinearElastic
+from ..materials.state import PackedState, state_layout
 from ..spline import SplineGrid
 from . import steps
 from .grid_system import GridSystem
@@ -118,6 +119,7 @@ class CompiledExecutor:
         self._no_gravity = np.zeros(dim)
         self._no_index = np.zeros(0, dtype=np.int64)
         self._first_bad = np.full(self.kernels.nthreads, -1, dtype=np.int64)
+        self._state = {}  # id(material) -> its PackedState (None: no state)
 
     # ---------------------------------------------------------------- buffers
     WRITTEN = ("x", "v", "u", "stress", "V")
@@ -135,7 +137,7 @@ class CompiledExecutor:
                 a = np.empty_like(getattr(p, k))
                 setattr(spare, k, a)
                 self._owned.add(id(a))
-        for name in ("m", "X", "V0", "body", "F"):
+        for name in ("m", "X", "V0", "body", "F", "state"):
             setattr(spare, name, getattr(p, name))
         if self.point_laws and self.finite:  # F is written by the constitutive kernel
             free = [F for F in self._owned_F if F is not p.F and F.shape == p.F.shape]
@@ -146,6 +148,15 @@ class CompiledExecutor:
         if not (self.fused or self.point_laws):
             spare.stress, spare.V = p.stress, p.V  # replaced by the material update
         return spare
+
+    def hand_out(self, particles):
+        """The user may keep ``particles`` (a callback receives them): their
+        arrays are never written again (the kernels take fresh ones)."""
+        for k in self.WRITTEN:
+            self._owned.discard(id(getattr(particles, k)))
+        self._owned_F = [F for F in self._owned_F if F is not particles.F]
+        if self._spare is particles:
+            self._spare = None
 
     # ------------------------------------------------------------------- step
     def external(self, state):
@@ -182,11 +193,14 @@ class CompiledExecutor:
 
     def solve(self, state, mass, rhs, values, kind, out, small, gravity=None):
         """Lumped M x = rhs (+ gravity as an acceleration on free dofs) with
-        the constraints, into ``out``."""
-        if small:
-            out[:] = self._reference_solve(state, mass, rhs, values, kind, gravity)
-            return out
+        the constraints, into ``out``; with tiny-mass dofs, the compiled
+        merge (the reference merge when a merged row outgrows the kernel's)."""
         g = self._no_gravity if gravity is None else gravity
+        if small:
+            if self.kernels.merged_solve(mass, rhs, g, state.constraints.mask, values,
+                                         state.method.small_mass, out) < 0:
+                out[:] = self._reference_solve(state, mass, rhs, values, kind, gravity)
+            return out
         return self.kernels.solve(mass, rhs, g, state.constraints.mask, values, out)
 
     # "auto" is conjugate gradients on the stencil (deterministic: the
@@ -391,7 +405,10 @@ class CompiledExecutor:
             return
         p, new = state.particles, grid.new
         if not self.point_laws:
-            new.stress, new.V, new.F = steps.update_stress(state, grid.L, particles=p)
+            with state.timer("constitutive"):
+                new.stress, new.V, new.F, new_state = steps.material_updates(state, grid.L, p)
+            if new_state is not None:
+                new.state = new_state
             return
         with state.timer("constitutive"):
             flags = self._first_bad
@@ -399,18 +416,62 @@ class CompiledExecutor:
             no_state = self.kernels.scratch("no_state", (p.n, 0))
             F = p.F if self.finite else grid.L  # not read for small strain
             F_out = new.F if self.finite else grid.L
+            written = []
             for material, index in state.bodies:
                 every = isinstance(index, slice)
+                packed = self._packed_state(material, p.dim)
+                if packed is None:
+                    state_in = state_out = no_state
+                elif every:
+                    state_in, state_out = packed.arrays(p.state)
+                else:
+                    state_in = packed.layout.pack(p.state, index)
+                    state_out = np.empty_like(state_in)
                 material_update(material.point_update.address(),
                                 material.point_parameters(p.dim),
                                 self._no_index if every else index, every, grid.L, state.dt,
-                                self.finite, p.stress, F, p.V, p.V0, no_state, new.stress,
-                                F_out, new.V, no_state, flags)
+                                self.finite, p.stress, F, p.V, p.V0, state_in, new.stress,
+                                F_out, new.V, state_out, flags)
                 hits = flags[flags >= 0]
                 if hits.size:
                     bad = int(hits.min()) if bad < 0 else min(bad, int(hits.min()))
+                if packed is not None:
+                    written.append((packed, index, state_out))
+            if written and bad < 0:
+                new.state = self._written_state(p, written)
         if bad >= 0:
             raise InvalidState(f"J = det(I + dt L) <= 0 at particle {bad}", particle=bad)
+
+    def _packed_state(self, material, dim):
+        """The material's packed state buffers, or None without state."""
+        key = id(material)
+        if key not in self._state:
+            layout = state_layout(material, dim)
+            self._state[key] = PackedState(layout) if layout else None
+        return self._state[key]
+
+    @staticmethod
+    def _written_state(p, written):
+        """The new state dict from the bodies' packed outputs (views of the
+        double-buffered output when one body holds every particle, else
+        copies of the fields with each body's rows); raises for a
+        non-finite value."""
+        bad = [int(rows[0] if isinstance(index, slice) else index[rows[0]])
+               for _, index, out in written if not np.isfinite(out).all()
+               for rows in [np.flatnonzero(~np.isfinite(out).all(axis=1))]]
+        if bad:
+            raise InvalidState(f"non-finite material state (NaN or Inf) at particle {min(bad)}",
+                               particle=min(bad))
+        new_state = dict(p.state)
+        for packed, index, out in written:
+            if isinstance(index, slice):
+                new_state.update(packed.written(out))
+                continue
+            for name, values in packed.layout.views(out).items():
+                if new_state[name] is p.state[name]:
+                    new_state[name] = p.state[name].copy()
+                new_state[name][index] = values
+        return new_state
 
     def internal_force(self, state, grid):
         raise NotImplementedError("the compiled executor has no USF step")

@@ -16,7 +16,10 @@ Small strain: the stress at each Gauss point comes from the material's own
 update (``material.update``, the same law MPM calls) with the velocity
 gradient L_g = grad v^(n+1)(X_g) of the step, so a user's material (plastic,
 path dependent) is honoured; for linear elasticity the sum of increments
-equals sigma_0 + C : eps(u) to round-off. Finite strain: the first Piola
+equals sigma_0 + C : eps(u) to round-off. A material's per-particle state
+(``state_fields``) is carried at the Gauss points (each starting from the
+nearest particle's value) and at the particles, and updated by the same
+``update``. Finite strain: the first Piola
 stress of the material's hyperelastic law at F = I + grad_X u.
 
 Gauss points are particles that do not move, so the same transfer matrices
@@ -37,12 +40,13 @@ from scipy.spatial import cKDTree
 
 from ..errors import SimulationError
 from ..kernels import resolve_backend
+from ..materials.state import split_update, state_layout
 from ..particles import Particles
 from ..quadrature import transfer_matrices
 from .grid_system import Constraints, GridSystem
 from .method import Method
 from .result import Recorder
-from .timestep import critical_time_step
+from .timestep import critical_time_step, stable_time_step
 from .timing import PhaseTimer
 
 __all__ = ["fem"]
@@ -96,13 +100,21 @@ class _FemModel:
         nearest = cKDTree(particles.X).query(xg)[1]
         rho = (particles.m / particles.V0)[nearest]
         body = particles.body[nearest]
-        self.gauss = Particles(xg, rho * wg, wg.copy(), body=body)
+        self.gauss = Particles(xg, rho * wg, wg.copy(), body=body,
+                               state={k: a[nearest] for k, a in particles.state.items()})
         self.wg, self.rho = wg, rho
         self.materials = [b.material for b in scene.bodies]
         self.groups = [(m, np.flatnonzero(body == i)) for i, m in enumerate(self.materials)]
         self.groups = [(m, idx) for m, idx in self.groups if idx.size]
         self.finite = scene.finite_strain
         dim = grid.dim
+        stateful = [type(m).__name__ for m in self.materials
+                    if m.finite_strain and state_layout(m, dim)]
+        if stateful:
+            raise ValueError(
+                f"fem integrates finite strain with the hyperelastic first Piola stress, "
+                f"which has no place for the per-particle state that {stateful[0]} declares; "
+                f"use simulate, or fem with small-strain materials")
         if self.finite:
             self.gauss.F = np.broadcast_to(np.eye(dim), (xg.shape[0], dim, dim)).copy()
         with timer("p2g"):
@@ -169,12 +181,22 @@ class _FemModel:
 
     @staticmethod
     def _material_update(points, groups, L, dt):
-        """Each body's material update of ``points``' stress with L."""
+        """Each body's material update of ``points``' stress (and state)
+        with L."""
         stress = points.stress.copy()
+        new_state = {}
         for material, idx in groups:
             if idx.size:
-                stress[idx] = material.update(points.subset(idx), L[idx], dt)[0]
+                s, _, _, st = split_update(material, material.update(points.subset(idx), L[idx],
+                                                                     dt), idx.size)
+                stress[idx] = s
+                for name, values in st.items():
+                    if name not in new_state:
+                        new_state[name] = points.state[name].copy()
+                    new_state[name][idx] = values
         points.stress = stress
+        if new_state:
+            points.state = {**points.state, **new_state}
 
     def update_stress(self, v, dt):
         """Small strain: the materials' update at the Gauss points and at the
@@ -257,7 +279,8 @@ class _FemState:
             else:
                 stress, F = m.points.stress, None
             self.particles = ref.replaced(x=ref.X + u_p, u=u_p, v=m.Np @ self.v, stress=stress,
-                                          F=F if m.finite else ref.F)
+                                          F=F if m.finite else ref.F,
+                                          state=ref.state if m.finite else m.points.state)
         g = m.gauss
         energy = 0.0
         for mat, idx in m.groups:
@@ -296,10 +319,7 @@ def fem(scene, method=None, save_every=None, progress=False):
         return max(mat.wave_speed(g.subset(idx) if len(model.groups) > 1 else g)
                    for mat, idx in model.groups)
     dt_crit = critical_time_step(scene.grid, wave_speed(), method.mass)
-    if method.dt is not None and method.dt > dt_crit and not method.allow_unstable:
-        raise ValueError(f"dt = {method.dt:.6g} exceeds the critical time step dt_crit = "
-                         f"{dt_crit:.6g}; use a smaller dt or allow_unstable=True")
-    dt = method.dt if method.dt is not None else method.cfl * dt_crit
+    dt = stable_time_step(method, dt_crit)
     n_steps = max(1, int(np.ceil(scene.t_end / dt * (1 - 1e-12))))
     dt = scene.t_end / n_steps
     state.dt, state.dt_crit = dt, dt_crit

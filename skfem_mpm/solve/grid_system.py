@@ -56,6 +56,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ..errors import InvalidState
+
 __all__ = ["Constraints", "GridSystem", "dof_adjacency"]
 
 
@@ -83,8 +85,17 @@ class Constraints:
             for c, dofs, fn in e.constraints(grid):
                 self.items.append((e, c, np.asarray(dofs), fn))
         self.mask = np.zeros((grid.ndofs, dim), dtype=bool)
-        for _, c, dofs, _ in self.items:
+        prescribed = np.zeros((grid.ndofs, dim), dtype=bool)
+        for e, c, dofs, fn in self.items:
+            if fn is not None and self.mask[dofs, c].any() or \
+                    fn is None and prescribed[dofs, c].any():
+                raise ValueError(f"effects: {e!r} constrains component {c} of dofs that "
+                                 f"another effect already prescribes or fixes; a dof "
+                                 f"component takes one constraint (which one wins is not "
+                                 f"defined)")
             self.mask[dofs, c] = True
+            if fn is not None:
+                prescribed[dofs, c] = True
         self.prescribed = [(c, dofs, fn) for _, c, dofs, fn in self.items if fn is not None]
 
     @property
@@ -237,7 +248,11 @@ class GridSystem:
             M_r = (red.T.T @ self.consistent @ red.T).tocsr()
             M_ff = M_r[red.free][:, red.free].tocsc()
             M_fc = M_r[red.free][:, red.fixed]
-            lu = spla.splu(M_ff) if self.mass_solver == "direct" else None
+            try:
+                lu = spla.splu(M_ff) if self.mass_solver == "direct" else None
+            except RuntimeError as exc:  # "Factor is exactly singular"
+                raise InvalidState(f"the consistent mass is singular on the free dofs "
+                                   f"({exc})") from exc
             self._factors[key] = (M_ff, M_fc, lu)
         return self._factors[key]
 
@@ -282,7 +297,7 @@ class GridSystem:
             sol, info = spla.cg(M_ff, bf[:, j], x0=x0, rtol=self.cg_rtol, atol=0.0,
                                 M=precond, maxiter=10 * M_ff.shape[0] + 100, callback=count)
             if info != 0:
-                raise ArithmeticError(f"CG on the consistent mass did not converge ({info})")
+                raise InvalidState(f"CG on the consistent mass did not converge ({info})")
             self.cg_iterations += iters[0]
             out[:, j] = sol
         return out

@@ -36,7 +36,8 @@ class Method:
         Time step; None means ``cfl * dt_crit``. A dt above dt_crit raises
         ``ValueError`` unless ``allow_unstable``.
     cfl
-        Fraction of the critical time step used when ``dt`` is None. With a
+        Fraction of the critical time step used when ``dt`` is None; above 1
+        it raises ``ValueError`` unless ``allow_unstable``. With a
         reconstruction on a 2D grid dt_crit itself is 0.6 of the Gauss-FEM
         one (see :mod:`skfem_mpm.solve.timestep`).
     on_exit

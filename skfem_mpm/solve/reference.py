@@ -18,6 +18,9 @@ class ReferenceExecutor:
     def __init__(self, state, why=""):
         self.path = f"reference ({why})" if why else "reference"
 
+    def hand_out(self, particles):
+        """Nothing to do: the reference steps write new arrays every step."""
+
     def particles_to_grid(self, state):
         return steps.particles_to_grid(state)
 

@@ -1,4 +1,6 @@
 """``Result`` of a run (MPM or FEM) and the recorder that fills it."""
+import json
+
 import numpy as np
 
 from .timing import PHASES
@@ -21,9 +23,10 @@ class Result:
     history
         Per save: ``X`` reference positions, ``x`` positions, ``u``
         displacements, ``v`` velocities, ``stress``, ``index`` (each
-        particle's index in the initial set; differs only after removals).
-        Stacked into arrays of shape (saves, n, ...) when no particle was
-        removed, otherwise lists.
+        particle's index in the initial set; differs only after removals),
+        and each material state field by its name (``particles.state``,
+        e.g. ``history["plastic_strain"]``). Stacked into arrays of shape
+        (saves, n, ...) when no particle was removed, otherwise lists.
     energies
         Per save: ``kinetic``, ``strain``, ``external_work`` (work done by
         the declared forces since t = 0) and ``total`` = kinetic + strain.
@@ -34,6 +37,8 @@ class Result:
         reconstruct, effects); ``phase_counts`` how often each ran.
     counts
         particles, cells, dofs, steps, removed, small_dofs_max.
+    time, final_time
+        The time of ``particles``.
     dt, dt_crit, wall_time, jit_time, method, kind ('mpm' or 'fem').
     """
 
@@ -43,7 +48,10 @@ class Result:
 
     @property
     def final_time(self):
-        return float(self.times[-1])
+        """The time of ``particles``: the end time, or the last good state's
+        time after a failure (which need not be a saved time)."""
+        time = getattr(self, "time", None)
+        return float(self.times[-1]) if time is None else float(time)
 
     def phase_table(self):
         return {p: float(self.timings.get(p, 0.0)) for p in PHASES}
@@ -111,6 +119,8 @@ class Recorder:
         self.history["u"].append(keep(p.u))
         self.history["v"].append(keep(v))
         self.history["stress"].append(keep(p.stress))
+        for name, values in p.state.items():  # the material state, by field name
+            self.history.setdefault(name, []).append(keep(values))
         kinetic, strain = state.energies()
         self.energies["kinetic"].append(kinetic)
         self.energies["strain"].append(strain)
@@ -135,18 +145,31 @@ class Recorder:
             phase_counts=dict(timer.counts), fused=dict(timer.fused), counts=counts,
             dt=float(state.dt), dt_crit=float(state.dt_crit), wall_time=float(wall_time),
             jit_time=float(jit_time), method=state.method.as_dict(), kind=kind,
-            grid=state.grid,
+            grid=state.grid, time=float(state.t),
         )
         if extra:
             fields.update(extra)
         return Result(**fields)
 
     # checkpoint support ------------------------------------------------------
+    @staticmethod
+    def _keys(name):
+        """The checkpoint keys of a history entry: (sizes, values); a
+        material state field's keys hold a dot, which no other key has."""
+        if name in HISTORY_FIELDS:
+            return f"rec_n_{name}", f"rec_{name}"
+        return f"rec_state_n.{name}", f"rec_state.{name}"
+
     def state_arrays(self):
-        out = {"rec_times": np.array(self.times)}
+        last = self.last_step_saved
+        state_names = [k for k in self.history if k not in HISTORY_FIELDS]
+        out = {"rec_times": np.array(self.times),
+               "rec_last_step": np.array(-1 if last is None else last, dtype=np.int64),
+               "rec_state_names": np.array(json.dumps(state_names))}
         for k, v in self.history.items():
-            out[f"rec_n_{k}"] = np.array([a.shape[0] for a in v], dtype=np.int64)
-            out[f"rec_{k}"] = np.concatenate(v) if v else np.zeros(0)
+            sizes, values = self._keys(k)
+            out[sizes] = np.array([a.shape[0] for a in v], dtype=np.int64)
+            out[values] = np.concatenate(v) if v else np.zeros(0)
         for k, v in self.energies.items():
             out[f"rec_e_{k}"] = np.array(v)
         return out
@@ -155,9 +178,15 @@ class Recorder:
     def from_arrays(cls, data, reactions):
         rec = cls()
         rec.times = [float(t) for t in data["rec_times"]]
-        for k in HISTORY_FIELDS:
-            sizes = data[f"rec_n_{k}"]
-            flat = data[f"rec_{k}"]
+        # the step of the last save: a run resumed at its last step (from a
+        # checkpoint written after that step's save) must not record it twice
+        last = int(data["rec_last_step"]) if "rec_last_step" in data else -1
+        rec.last_step_saved = None if last < 0 else last
+        names = json.loads(str(data["rec_state_names"])) if "rec_state_names" in data else []
+        for k in HISTORY_FIELDS + tuple(names):
+            sizes_key, values_key = cls._keys(k)
+            sizes = data[sizes_key]
+            flat = data[values_key]
             rec.history[k] = [a.copy() for a in np.split(flat, np.cumsum(sizes)[:-1])] \
                 if sizes.size else []
         for k in ENERGY_FIELDS:

@@ -1,5 +1,6 @@
 """``simulate``: the MPM time loop over the named step functions."""
 import numbers
+import os
 import sys
 import time
 
@@ -10,6 +11,7 @@ from .compiled import CompiledExecutor, compiled_executor_applies
 from .reference import ReferenceExecutor
 from .schemes import SCHEME_STEPS
 from .state import prepare
+from .threads import ThreadPolicy
 
 __all__ = ["simulate"]
 
@@ -30,6 +32,12 @@ def _check_checkpoint(checkpoint):
     except (TypeError, ValueError):
         raise ValueError(f"checkpoint must be a pair (path, every_steps), got {checkpoint!r}") \
             from None
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"checkpoint path must be a str or os.PathLike, got {path!r}")
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+        raise ValueError(f"checkpoint path {os.fspath(path)!r}: folder {folder!r} does not "
+                         f"exist or is not writable (it is checked before the first step)")
     return path, _check_every("checkpoint every_steps", every)
 
 
@@ -48,7 +56,7 @@ def warm_up(state, fast):
     from .warmup import warm_up_kernels
 
     t0 = time.perf_counter()
-    warm_up_kernels(state.grid, fast=fast, materials=state.materials)
+    warm_up_kernels(state.grid, fast=fast, materials=state.materials, method=state.method)
     return time.perf_counter() - t0
 
 
@@ -97,9 +105,12 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
     path = ops.path
     jit_time = warm_up(state, fast)
     bar = _progress_bar(progress, state.n_steps)
+    threads = ThreadPolicy(ops.kernels.nthreads) if fast else None
     t0 = time.perf_counter()
     try:
         while not state.done:
+            if threads is not None:
+                threads.update()
             state.next_step_size()
             last_good = state.particles
             try:
@@ -121,10 +132,21 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
             if checkpoint is not None and state.step % checkpoint[1] == 0:
                 from ..io import write_checkpoint
 
-                write_checkpoint(checkpoint[0], state, recorder)
-            if callback is not None and callback(state.step, state) is False:
-                break
+                try:
+                    write_checkpoint(checkpoint[0], state, recorder)
+                except OSError as exc:  # e.g. a full disk: the run itself is good
+                    result = recorder.result(state, time.perf_counter() - t0, jit_time,
+                                             extra={"path": path})
+                    raise SimulationError(
+                        f"writing the checkpoint after step {state.step} failed: {exc}",
+                        result=result, step=state.step, time=state.t) from exc
+            if callback is not None:
+                ops.hand_out(state.particles)
+                if callback(state.step, state) is False:
+                    break
     finally:
+        if threads is not None:
+            threads.restore()
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - t0

@@ -7,7 +7,7 @@ import numpy as np
 from ..errors import InvalidState
 from ..kernels import resolve_backend
 from .grid_system import Constraints, dof_adjacency
-from .timestep import critical_time_step
+from .timestep import critical_time_step, stable_time_step
 from .timing import PhaseTimer
 
 __all__ = ["State", "prepare"]
@@ -47,6 +47,7 @@ class State:
         self._bind_forces()
         self._bind_bodies()
         self._adjacency = None
+        self._adaptive = None
         solver = method.mass_solver
         if solver == "auto":
             solver = "direct" if self.grid.ndofs < 20000 else "cg"
@@ -111,7 +112,11 @@ class State:
     # ------------------------------------------------------------ time step
     @property
     def adaptive(self):
-        return self.method.dt is None and self.scene.finite_strain
+        """The step size follows the current wave speed (finite strain, no
+        fixed dt); fixed for the run."""
+        if self._adaptive is None:
+            self._adaptive = self.method.dt is None and self.scene.finite_strain
+        return self._adaptive
 
     def wave_speed(self):
         p = self.particles
@@ -125,15 +130,8 @@ class State:
         self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, m.mass,
                                           m.reconstruction)
         t_end = self.scene.t_end
-        if m.dt is not None:
-            if m.dt > self.dt_crit and not m.allow_unstable:
-                raise ValueError(
-                    f"dt = {m.dt:.6g} exceeds the critical time step dt_crit = "
-                    f"{self.dt_crit:.6g} (degree {self.grid.degree}, {m.mass} mass); use a "
-                    f"smaller dt, dt=None (cfl * dt_crit) or allow_unstable=True")
-            dt = m.dt
-        else:
-            dt = m.cfl * self.dt_crit
+        dt = stable_time_step(m, self.dt_crit,
+                              f" (degree {self.grid.degree}, {m.mass} mass)")
         if self.adaptive:
             self.dt = min(dt, t_end)
             self.n_steps = None

@@ -1,17 +1,27 @@
 """Consistent-mass solves on the spline grid's fixed stencil, compiled
 (the compiled executor's mass system; :mod:`skfem_mpm.solve.compiled`).
+
+The preconditioner of its conjugate gradients is chosen for a block of
+code by :func:`preconditioned_with` (benchmarks compare the variants);
+outside such a block it is the default, the Kronecker preconditioner with
+the fringe correction.
 """
+from contextlib import contextmanager
+
 import numpy as np
-from numba import get_num_threads
 
 from ..errors import InvalidState
 from ..kernels.fringe import FringeFactor, FringePattern
 from ..kernels.kronecker import KroneckerData
 from ..kernels.mpm import (compact_problem, compact_system, ell_pcg, expand_problem,
                            stencil_rows_product)
+from ..validation import check_choice
 from .grid_system import shift_guess
 
-__all__ = ["StencilSystem"]
+__all__ = ["PRECONDITIONERS", "StencilSystem", "preconditioned_with"]
+
+PRECONDITIONERS = ("kronecker+fringe", "kronecker", "lumped")
+"""The stencil CG's preconditioners (see :func:`preconditioned_with`)."""
 
 
 class StencilSystem:
@@ -194,7 +204,7 @@ class StencilSystem:
                                 F, fcols, b, x)
             if rows.size:
                 before = self.iterations
-                nt = get_num_threads()
+                nt = self.k.nthreads  # the run's fixed blocks (solve/threads.py)
                 mode = 0 if kron is None else 1 if fringe is None else 2
                 pre = kron.args(b.shape[1], nt) if kron is not None else self._no_kronecker
                 extra = fringe.args(b.shape[1]) if fringe is not None else FringeFactor.no_args()
@@ -242,3 +252,43 @@ class StencilSystem:
         out = np.zeros_like(rhs)
         out[rows] = y - rhs[rows]
         return out
+
+
+_DEFAULT_FRINGE_LAYERS = StencilSystem.FRINGE_LAYERS
+
+
+@contextmanager
+def preconditioned_with(preconditioner):
+    """Within the ``with`` block, the stencil CG of consistent mass on the
+    compiled executor uses ``preconditioner``:
+
+    ``"kronecker+fringe"``
+        the default: the Kronecker product of the axes' mass matrices
+        (:mod:`skfem_mpm.kernels.kronecker`), with the fringe correction
+        (:mod:`skfem_mpm.kernels.fringe`) once the Kronecker step alone has
+        needed ``StencilSystem.FRINGE_FROM`` iterations;
+    ``"kronecker"``
+        the Kronecker preconditioner alone (no fringe layers);
+    ``"lumped"``
+        the inverse lumped mass (a Jacobi step with the row sums).
+
+    Yields a list to which every CG run in the block appends its number of
+    iterations. The choice changes the iterations, not the solution (each
+    run stops at the same relative residual). Leaving the block, also by an
+    exception, restores the previous settings; the block sets class
+    attributes, so it is not meant for simulations running in other threads
+    meanwhile.
+
+        with preconditioned_with("lumped") as iterations:
+            simulate(scene, Method(mass="consistent", mass_solver="cg"))
+    """
+    check_choice("preconditioner", preconditioner, PRECONDITIONERS)
+    cls = StencilSystem
+    saved = (cls.preconditioner, cls.FRINGE_LAYERS, cls.iteration_log)
+    cls.preconditioner = "lumped" if preconditioner == "lumped" else "kronecker"
+    cls.FRINGE_LAYERS = _DEFAULT_FRINGE_LAYERS if preconditioner == "kronecker+fringe" else 0
+    log = cls.iteration_log = []
+    try:
+        yield log
+    finally:
+        cls.preconditioner, cls.FRINGE_LAYERS, cls.iteration_log = saved

@@ -29,14 +29,15 @@ state intact.
 import numpy as np
 
 from ..errors import InvalidState
+from ..materials.state import split_update
 from ..quadrature import _csr, _csr_pattern, transfer_matrices
 from ..reconstruct import RECONSTRUCTORS, integration_rule
 from .timestep import fast_dof_limit, lumping_fraction
 
 __all__ = ["Transfer", "GridData", "particles_to_grid", "solve_velocity", "solve_grid",
            "update_particle_velocities", "project_velocity", "move_particles",
-           "grid_to_particles", "update_stress", "external_work", "commit", "particle_forces",
-           "internal_force"]
+           "grid_to_particles", "update_stress", "material_updates", "external_work", "commit",
+           "particle_forces", "internal_force"]
 
 
 class Transfer:
@@ -368,29 +369,53 @@ def grid_to_particles(state, data, velocity_factor=1.0):
     return move_particles(state, data)
 
 
-def update_stress(state, L, data=None, particles=None):
-    """Stress, volume (and F) of every body from its material and L."""
+def material_updates(state, L, particles=None):
+    """Each body's material ``update`` of ``particles`` (default: the
+    current ones) with L: (stress, V, F, new state dict or None when no
+    material returned state)."""
     p = state.particles if particles is None else particles
+    new_state = None
+    if len(state.bodies) == 1:
+        material = state.bodies[0][0]
+        stress, V, F, st = split_update(material, material.update(p, L, state.dt), p.n)
+        if st:
+            new_state = {**p.state, **st}
+    else:
+        stress, V = p.stress.copy(), p.V.copy()
+        F = None if p.F is None else p.F.copy()
+        for material, index in state.bodies:
+            sub = p.subset(index)
+            s_b, V_b, F_b, st = split_update(material, material.update(sub, L[index], state.dt),
+                                             sub.n)
+            stress[index], V[index] = s_b, V_b
+            if F_b is not None:
+                F[index] = F_b
+            if st:
+                if new_state is None:
+                    new_state, copied = dict(p.state), set()
+                for name, values in st.items():
+                    if name not in copied:
+                        new_state[name] = new_state[name].copy()
+                        copied.add(name)
+                    new_state[name][index] = values
+    if F is None:
+        F = p.F
+    return stress, V, F, new_state
+
+
+def update_stress(state, L, data=None, particles=None):
+    """Stress, volume (and F, and the material state) of every body from
+    its material and L."""
     with state.timer("constitutive"):
-        if len(state.bodies) == 1:
-            stress, V, F = state.bodies[0][0].update(p, L, state.dt)
-        else:
-            stress, V = p.stress.copy(), p.V.copy()
-            F = None if p.F is None else p.F.copy()
-            for material, index in state.bodies:
-                sub = p.subset(index)
-                s_b, V_b, F_b = material.update(sub, L[index], state.dt)
-                stress[index], V[index] = s_b, V_b
-                if F_b is not None:
-                    F[index] = F_b
-        if F is None:
-            F = p.F
+        stress, V, F, new_state = material_updates(state, L, particles)
         bad = ~(V > 0)
         if bad.any():
             k = int(np.flatnonzero(bad)[0])
             raise InvalidState(f"volume {V[k]:.3g} <= 0 (J <= 0) at particle {k}", particle=k)
     if data is not None:
         data.new.update(stress=stress, V=V, F=F)
+        if new_state is not None:
+            data.new["state"] = new_state
     return stress, V, F
 
 
@@ -419,7 +444,8 @@ def commit(state, data):
     new = dict(data.new)
     p = state.particles
     with state.timer("g2p"):
-        bad = _first_bad(new.get("x"), new.get("v"), new.get("stress"), new.get("F"))
+        bad = _first_bad(new.get("x"), new.get("v"), new.get("stress"), new.get("F"),
+                         *new.get("state", {}).values())
         if bad is not None:
             raise InvalidState(
                 f"non-finite state (NaN or Inf) at particle {bad}", particle=bad)

@@ -35,6 +35,7 @@ from skfem import BilinearForm, asm
 from skfem.helpers import dot, grad
 
 __all__ = ["spectral_radius", "interior_rayleigh_quotient", "critical_time_step",
+           "stable_time_step",
            "fast_dof_limit", "lumping_fraction"]
 
 
@@ -98,3 +99,21 @@ def critical_time_step(grid, wave_speed, mass="lumped", reconstruction="none"):
     h = np.asarray(grid.h, dtype=np.float64)
     factor = RECONSTRUCTION_2D if (grid.dim == 2 and reconstruction != "none") else 1.0
     return float(factor * 2.0 / (wave_speed * np.sqrt(np.sum(lam / h ** 2))))
+
+
+def stable_time_step(method, dt_crit, what=""):
+    """The step a method asks for, ``method.dt`` or ``cfl * dt_crit``;
+    ValueError when it exceeds dt_crit (dt > dt_crit or cfl > 1) unless
+    ``method.allow_unstable``. ``what`` describes dt_crit in the message."""
+    if method.dt is not None:
+        if method.dt > dt_crit and not method.allow_unstable:
+            raise ValueError(
+                f"dt = {method.dt:.6g} exceeds the critical time step dt_crit = "
+                f"{dt_crit:.6g}{what}; use a smaller dt, dt=None (cfl * dt_crit) or "
+                f"allow_unstable=True")
+        return method.dt
+    if method.cfl > 1.0 and not method.allow_unstable:
+        raise ValueError(f"cfl = {method.cfl:.6g} puts the time step above the critical time "
+                         f"step dt_crit = {dt_crit:.6g}{what} (cfl <= 1 is stable); use "
+                         f"cfl <= 1 or allow_unstable=True")
+    return method.cfl * dt_crit

@@ -5,11 +5,15 @@ import numpy as np
 __all__ = ["warm_up_kernels"]
 
 
-def warm_up_kernels(grid, fast=False, materials=()):
+def warm_up_kernels(grid, fast=False, materials=(), method=None):
     """Compile on a small grid of the same dimension and degree (the machine
     code does not depend on the grid's size, and no grid-sized buffer is
     allocated); with ``fast``, also the constitutive kernel and the point
-    laws of ``materials`` that have one."""
+    laws of ``materials`` that have one. With a ``method``, only what its
+    run calls: the consistent-mass assembly and CG (the largest share of
+    the compile time) only for consistent mass, the MUSL re-projection only
+    for MUSL, the one-pass USL grid step only for USL and CD, the tiny-mass
+    scan only when the merge is on."""
     if not hasattr(grid, "breakpoints"):
         return
     from ..spline import SplineGrid
@@ -32,33 +36,57 @@ def warm_up_kernels(grid, fast=False, materials=()):
     dim = grid.dim
     zeros = np.zeros((grid.ndofs, dim))
     material = LinearElastic(1.0, 0.0)
+    def needs(what):
+        if method is None:
+            return True
+        return {"consistent": method.mass == "consistent",
+                "musl": method.scheme == "musl",
+                "usl_grid": method.scheme in ("usl", "cd"),
+                "small_mass": method.small_mass > 0}[what]
+
     for fext in (None, np.zeros((1, dim))):
         k.p2g(p, fext)
-    k.g2p2g(p, zeros, 0.0, new.v)
+    if needs("musl"):
+        k.g2p2g(p, zeros, 0.0, new.v)
     for fused in (True, False):
         L = np.empty((1, dim, dim)) if not fused else np.empty((1, 1, 1))
         for flip in (True, False):
             for acc in (None, np.empty((1, dim))):
                 k.g2p(p, zeros, zeros, 0.0, 1.0, flip, fused, material, new, L, acc)
-    k.small_mass(np.ones(grid.ndofs), 1e-3)
-    stencil, K = k.consistent_mass(p)[0], None
+    if needs("small_mass"):
+        k.small_mass(np.ones(grid.ndofs), 1e-3)
+        for values in (None, zeros):
+            k.merged_solve(np.ones(grid.ndofs), zeros, np.zeros(dim),
+                           np.zeros((grid.ndofs, dim), dtype=bool), values, 1e-3,
+                           np.empty((grid.ndofs, dim)))
+    k.mass_times_displacement(np.ones(grid.ndofs), zeros, 0.0)
+    if needs("consistent"):
+        _warm_up_consistent(k, p, grid)
+    mask = np.zeros((grid.ndofs, dim), dtype=bool)
+    out = np.empty((grid.ndofs, dim))
+    for values in (None, zeros):
+        k.solve(np.ones(grid.ndofs), zeros, np.zeros(dim), mask, values, out)
+        if needs("usl_grid"):
+            k.usl_grid(np.ones(grid.ndofs), zeros, zeros, np.zeros(dim), mask, values, values,
+                       0.0, out, zeros.copy())
+    _warm_up_point_laws(grid.dim, materials)
+
+
+def _warm_up_consistent(k, p, grid):
+    """The consistent-mass assembly, the stencil CG and its residual."""
+    from ..kernels.mpm import fast_row_fractions
     from .grid_system import Constraints
     from .stencil_system import StencilSystem
 
+    dim = grid.dim
+    k.stencil_csr(k.consistent_stencil(p)[0])
     st, K = k.consistent_stencil(p)
     system = StencilSystem(k, st + np.eye(1, st.shape[1], (st.shape[1] - 1) // 2),
                            np.ones(grid.ndofs), Constraints(grid, []),
                            np.zeros(grid.ndofs), {})
     system.solve(np.ones((grid.ndofs, dim)), np.zeros((grid.ndofs, dim)), "velocity")
     system.residual(np.ones((grid.ndofs, dim)), np.ones((grid.ndofs, dim)))
-    del stencil
-    mask = np.zeros((grid.ndofs, dim), dtype=bool)
-    out = np.empty((grid.ndofs, dim))
-    for values in (None, zeros):
-        k.solve(np.ones(grid.ndofs), zeros, np.zeros(dim), mask, values, out)
-        k.usl_grid(np.ones(grid.ndofs), zeros, zeros, np.zeros(dim), mask, values, values, 0.0,
-                   out, zeros.copy())
-    _warm_up_point_laws(grid.dim, materials)
+    fast_row_fractions(K, st, np.ones(grid.ndofs), 1.0, np.empty(grid.ndofs))
 
 
 def _warm_up_point_laws(dim, materials):
@@ -67,6 +95,7 @@ def _warm_up_point_laws(dim, materials):
     from numba import get_num_threads
 
     from ..kernels.constitutive import material_update
+    from ..materials.state import state_layout
 
     one = np.zeros((1, dim, dim))
     for material in materials:
@@ -74,8 +103,9 @@ def _warm_up_point_laws(dim, materials):
             continue
         finite = bool(material.finite_strain)
         F = np.broadcast_to(np.eye(dim), (1, dim, dim)).copy()
-        state = np.zeros((1, 0))
+        layout = state_layout(material, dim)
+        state = layout.pack(layout.initial_arrays(1)) if layout else np.zeros((1, 0))
         material_update(material.point_update.address(), material.point_parameters(dim),
                         np.zeros(0, dtype=np.int64), True, one, 0.0, finite, one.copy(), F,
-                        np.ones(1), np.ones(1), state, one.copy(), F.copy(), np.ones(1), state,
-                        np.full(get_num_threads(), -1, dtype=np.int64))
+                        np.ones(1), np.ones(1), state, one.copy(), F.copy(), np.ones(1),
+                        state.copy(), np.full(get_num_threads(), -1, dtype=np.int64))

@@ -1,0 +1,115 @@
+"""The C reference of ``skfem-mpm bench``: it computes the step that
+``simulate`` computes, and the bench prints a ratio to it only when it was
+compiled and run in the same run."""
+import json
+
+import numpy as np
+import pytest
+
+from skfem_mpm import Body, Fixed, Gravity, LinearElastic, Particles, Scene, SplineGrid
+from skfem_mpm.bench import _print_c_reference, scene_1d, scene_2d
+from skfem_mpm.cli import main
+from skfem_mpm.reference_c import (ReferenceUnavailable, compare, compile_reference,
+                                   find_compiler, run_reference, write_problem)
+from skfem_mpm.solve import Method, simulate
+from skfem_mpm.solve.timestep import critical_time_step
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    try:
+        find_compiler()
+    except ReferenceUnavailable as exc:
+        pytest.skip(f"no C compiler to build the C reference: {exc}")
+    return compile_reference(tmp_path_factory.mktemp("c"))
+
+
+def _expanding_block(scene):
+    body = scene.bodies[0]
+    body.particles.v = 0.4 * (body.particles.x - 0.5)
+    return scene
+
+
+def _filled_square(cells=6, steps=8):
+    """Particles in every cell (the clamped boundary B-splines too), moving
+    apart, walls fixed, gravity."""
+    grid = SplineGrid.rectangle((0, 1), (0, 1), cells, 2)
+    particles = Particles.seed(grid, 2, 1.0)
+    particles.v = 0.1 * (particles.x - 0.5)
+    material = LinearElastic(1e4, 0.3)
+    effects = [Gravity((0.0, -9.81))] + [Fixed(s) for s in ("left", "right", "bottom", "top")]
+    dt = 0.5 * critical_time_step(grid, np.sqrt(material.modulus(2)), "lumped")
+    return Scene(grid, Body(particles, material), steps * dt, effects=effects), dt
+
+
+CASES = {
+    "2d expanding block": lambda: (_expanding_block(scene_2d(cells=8, steps=10)[0]),
+                                   scene_2d(cells=8, steps=10)[1]),
+    "2d filled square": _filled_square,
+    "1d bar": lambda: scene_1d(cells=12, steps=15),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_c_reference_ends_in_the_state_simulate_computes(reference, tmp_path, case):
+    """usl_step.c run on the problem file of a run ends in the final
+    particle state of simulate (USL, lumped) to round-off, on 2 threads
+    and on 1; a state that differs in the 7th digit is not accepted."""
+    scene, dt = CASES[case]()
+    method = Method(scheme="usl", dt=dt * (1 - 1e-9))
+    result = simulate(scene, method)
+    problem = write_problem(tmp_path / "in.bin", scene, method)
+    assert problem["steps"] == result.counts["steps"] and problem["dt"] == result.dt
+    for threads in (2, 1):
+        out = run_reference(reference, tmp_path / "in.bin", tmp_path / "out.bin", threads)
+        assert out["threads"] == threads and out["invalid"] == 0
+        agrees, differences = compare(result.particles, out["final"], problem)
+        print(case, threads, differences)
+        assert agrees and max(differences.values()) < 1e-12, differences
+    strain = np.abs(result.particles.stress).max() / problem["modulus"]
+    print(case, "largest stress / modulus", strain)
+    assert strain > 1e-6  # the comparison sees the stress update, not round-off
+    wrong = dict(out["final"], u=out["final"]["u"] * (1 + 1e-7))
+    assert not compare(result.particles, wrong, problem)[0]
+
+
+def test_c_reference_refuses_runs_it_does_not_compute(tmp_path):
+    scene, dt = scene_2d(cells=8, steps=2)
+    with pytest.raises(ValueError, match="scheme musl"):
+        write_problem(tmp_path / "in.bin", scene, Method(scheme="musl", dt=dt))
+
+
+def test_compiler_from_cc_must_exist():
+    with pytest.raises(ReferenceUnavailable, match="CC='/nonexistent' was not found"):
+        find_compiler({"CC": "/nonexistent", "PATH": "/usr/bin:/bin"})
+    with pytest.raises(ReferenceUnavailable, match="no C compiler found"):
+        find_compiler({"PATH": ""})
+
+
+def test_bench_without_a_compiler_prints_no_ratio(monkeypatch, capsys):
+    """With CC pointing nowhere the bench says why the C reference is
+    unavailable and prints no ratio (text and JSON)."""
+    monkeypatch.setenv("CC", "/nonexistent")
+    assert main(["bench", "--quick"]) == 0
+    out = capsys.readouterr().out
+    assert "C reference unavailable: the compiler CC='/nonexistent' was not found" in out
+    assert "x C" not in out and "ratio" not in out
+    assert main(["bench", "--quick", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["c_reference"] == {"available": False, "reason":
+                                     "the compiler CC='/nonexistent' was not found"}
+    assert "ratio" not in json.dumps(report)
+    assert report["2d_usl"]["particle_steps_per_s"] > 0
+
+
+def test_a_c_run_that_computed_something_else_gets_no_ratio(capsys):
+    row = {"threads": 2, "agrees": False, "invalid_particles": 0,
+           "differences": {"u": 1e-3, "v": 2e-3, "V": 0.0, "stress": 5e-2},
+           "threaded": {"threads": 2, "particle_steps_per_s": 3e7, "runs": [3e7]},
+           "single_thread": {"threads": 1, "particle_steps_per_s": 2e7, "runs": [2e7]},
+           "ratio_threaded": None, "ratio_single_thread": None}
+    _print_c_reference({"c_reference": {"available": True, "compiler": "cc -O3",
+                                        "2d_usl": row}})
+    out = capsys.readouterr().out
+    assert "WARNING: the C reference did not end in our final state" in out
+    assert "no ratio" in out and "x C" not in out

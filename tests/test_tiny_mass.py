@@ -1,0 +1,96 @@
+"""The compiled tiny-mass merge against the reference one (grid_system)."""
+import numpy as np
+import pytest
+
+from skfem_mpm import Fixed, Gravity, LinearElastic, Method, Particles, Scene, SplineGrid, simulate
+from skfem_mpm.kernels.mpm import Kernels
+from skfem_mpm.solve.grid_system import Constraints, GridSystem, dof_adjacency
+
+
+def _masses(grid, rng, ties):
+    """Lumped masses with empty dofs, tiny dofs at the edge of the mass and,
+    with ``ties``, tiny dofs whose heaviest neighbours tie."""
+    m = rng.uniform(0.5, 1.5, grid.ndofs)
+    m[rng.random(grid.ndofs) < 0.15] = 0.0
+    tiny = rng.random(grid.ndofs) < 0.25
+    m[tiny] = rng.uniform(1e-9, 5e-4, tiny.sum()) * (rng.random(tiny.sum()) < 0.5) + \
+        rng.uniform(1e-12, 1e-10, tiny.sum())  # chains: tiny next to tinier
+    if ties:
+        m[m > 0.1] = 1.0
+    return m
+
+
+@pytest.mark.parametrize("dim", [1, 2])
+@pytest.mark.parametrize("degree", [1, 2, 3])
+@pytest.mark.parametrize("ties", [False, True])
+def test_compiled_merge_equals_the_reference_merge(dim, degree, ties):
+    rng = np.random.default_rng(7 * dim + degree + 100 * ties)
+    grid = (SplineGrid.line(0.0, 1.0, 12, degree) if dim == 1
+            else SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (7, 5), degree))
+    effects = [Fixed("left")] if dim == 1 else [Fixed("left"), Fixed("bottom", component=1)]
+    constraints = Constraints(grid, effects)
+    adjacency = dof_adjacency(grid)
+    k = Kernels(grid)
+    checked = 0
+    for trial in range(50):
+        if checked == 5:
+            break
+        m = _masses(grid, rng, ties)
+        rhs = rng.normal(size=(grid.ndofs, dim))
+        g = rng.normal(size=dim)
+        values = rng.normal(size=(grid.ndofs, dim))
+        reference = GridSystem(m, constraints, None, adjacency, 1e-3)
+        if reference.small_dofs == 0:
+            continue
+        checked += 1
+        expected = reference.solve(rhs + m[:, None] * g[None, :], values, "acceleration")
+        out = np.full((grid.ndofs, dim), np.nan)
+        count = k.merged_solve(m, rhs, g, constraints.mask, values, 1e-3, out)
+        assert count == reference.small_dofs
+        assert np.allclose(out, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    assert checked == 5
+
+
+def test_a_body_with_tiny_masses_runs_without_the_reference_solve(monkeypatch):
+    """A block sliding into cells it barely touches makes tiny-mass dofs;
+    the compiled executor no longer calls the SciPy merge for them."""
+    from skfem_mpm.solve import compiled
+
+    grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), 10, 2)
+    p = Particles.seed(grid, 2, 1.0, region=((0.2, 0.615), (0.0, 0.4)),
+                       velocity=lambda x: np.stack([0.3 + 0 * x[:, 0], 0 * x[:, 0]], axis=1))
+    from skfem_mpm import Body
+
+    scene = Scene(grid, [Body(p, LinearElastic(1e3, 0.3))], 0.05,
+                  effects=[Gravity((0.0, -1.0)), Fixed("bottom")])
+    calls = []
+    original = compiled.CompiledExecutor._reference_solve
+    monkeypatch.setattr(compiled.CompiledExecutor, "_reference_solve",
+                        lambda *a, **kw: calls.append(1) or original(*a, **kw))
+    r = simulate(scene, Method(scheme="musl"))
+    assert r.path == "fast"
+    assert r.counts["small_dofs_max"] > 0
+    assert calls == []
+
+
+@pytest.mark.parametrize("degree", [1, 2])
+def test_a_tiny_dof_whose_heaviest_neighbour_is_tiny_follows_it_to_a_kept_dof(degree):
+    """m = (1, 1, ..., 1e-4, 1e-9, 0, ...): the 1e-9 dof's heaviest
+    neighbour (1e-4) is itself small, so both move with the last heavy dof,
+    and both right-hand sides reach it (a merge that stops at the first
+    master loses the second one's)."""
+    grid = SplineGrid.line(0.0, 1.0, 10, degree)
+    nd = grid.ndofs
+    m = np.zeros(nd)
+    m[:5] = 1.0
+    m[5], m[5 + degree] = 1e-4, 1e-9
+    rhs = np.arange(1.0, nd + 1.0)[:, None]
+    constraints = Constraints(grid, [])
+    reference = GridSystem(m, constraints, None, dof_adjacency(grid), 1e-3)
+    assert reference.small_dofs == 2
+    expected = reference.solve(rhs, np.zeros_like(rhs), "acceleration")
+    out = np.empty_like(rhs)
+    assert Kernels(grid).merged_solve(m, rhs, np.zeros(1), constraints.mask, None, 1e-3,
+                                      out) == 2
+    assert np.allclose(out, expected, rtol=1e-13)
+    assert out[5, 0] == out[5 + degree, 0]
