@@ -1,5 +1,10 @@
 """Per-dimension hand-written against generated particle-grid kernels.
 
+(The hand-written kernels are gone from the package; on a checkout that
+still has them the old/new pairs are timed, otherwise the generated
+kernels alone, and ``--small`` pairs the executor's binding
+``kernels.mpm.Kernels`` with ``kernels.transfer.Transfers``.)
+
 Times the transfer kernels of ``skfem_mpm.kernels.mpm`` (``p2g_1d/2d``,
 ``g2p2g_1d/2d``, ``g2p_1d/2d``, and the p2g reduction) and the kernels
 generated per dimension and degree from one source
@@ -84,7 +89,10 @@ def new_state(p):
 
 
 def old_calls(grid, p, ga, gv, dt, lame):
-    """The old kernels' calls (as skfem_mpm.kernels.mpm.Kernels makes them)."""
+    """The old kernels' calls (as skfem_mpm.kernels.mpm.Kernels made them);
+    none once the generated kernels replaced them."""
+    if not hasattr(mpm, "p2g_1d"):
+        return {}
     k = mpm.Kernels(grid)
     dim, deg = grid.dim, grid.degree
     no_force = np.zeros((1, dim))
@@ -215,6 +223,9 @@ def compare(dim, degree, rounds, window=None):
     old = old_calls(grid, p, ga, gv, dt, lame)
     new = new_calls(grid, p, ga, gv, dt, lame, window) if HAVE_NEW else {}
     rows = []
+    if not old:  # the generated kernels alone
+        return [{"dim": dim, "p": degree, "kernel": kernel, "particles": p.n,
+                 "new": summary(alone(call, rounds), p.n)} for kernel, call in new.items()]
     for kernel, call in old.items():
         if kernel in new:
             to, tn = paired(call, new[kernel], rounds)

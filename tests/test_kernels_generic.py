@@ -1,6 +1,6 @@
 """The particle-grid kernels generated from one source for 1D, 2D and 3D
-(skfem_mpm.kernels.scatter / gather) against the transfer-matrix reference
-and, in 1D and 2D, against the hand-written kernels of kernels.mpm."""
+(skfem_mpm.kernels.scatter / gather) against the transfer-matrix reference,
+directly and through the compiled executor's binding (kernels.mpm.Kernels)."""
 from types import SimpleNamespace
 
 import numpy as np
@@ -233,44 +233,32 @@ def test_flags_name_the_first_bad_particle_of_each_kind(dim):
     assert seen == {0, 1, 2}
 
 
-# ------------------------------------------------ the hand-written kernels
-OLD = [(dim, p, kind) for dim in (1, 2) for p in (1, 2, 3) for kind in ("uniform", "nonuniform")]
-
-
-@pytest.mark.parametrize("dim,p,kind", OLD)
-def test_transfers_match_the_per_dimension_kernels(dim, p, kind):
-    rng = np.random.default_rng(7 + 10 * dim + p)
-    cells = 11
-    axes = breakpoints(kind, dim, cells, rng)
-    grid = SplineGrid(axes[0] if dim == 1 else tuple(axes), p)
-    old, new = mpm.Kernels(grid), Transfers(grid)
-    from skfem_mpm import LinearElastic
-    material = LinearElastic(3.0, 0.0 if dim == 1 else 0.25)
+# ------------------------------------------------ the executor's binding
+@pytest.mark.parametrize("dim", (1, 2, 3))
+def test_executor_kernels_run_the_generated_transfers(dim):
+    """kernels.mpm.Kernels (what the compiled executor calls) on the
+    generated transfers: p2g, g2p2g and g2p with the fused linear elastic
+    update (1D: sigma += E dt L; else the Lame parameters) and the kept
+    acceleration, against the transfer matrices, in 1D, 2D and 3D."""
+    grid, rng = make(dim, 2, "nonuniform", seed=5)
+    k = mpm.Kernels(grid)
+    n = 300
+    p_ = particles(grid, n, rng, "cells")
+    fext = rng.standard_normal((n, dim))
+    for a, b in zip(reference_p2g(grid, p_, fext), k.p2g(p_, fext)):
+        assert close(a, b)
+    ga = rng.standard_normal((grid.ndofs, dim))
+    gv = rng.standard_normal((grid.ndofs, dim))
+    v_new = np.empty_like(p_.v)
+    N, _ = reference_matrices(grid, p_.x)
+    momentum = k.g2p2g(p_, ga, 1e-3, v_new)
+    assert close(N.T @ (p_.m[:, None] * (p_.v + 1e-3 * (N @ ga))), momentum)
+    material = SimpleNamespace(E=3.0, lam=1.5, mu=0.7)
     lame = (material.E, 0.0) if dim == 1 else (material.lam, material.mu)
-    for order in ("cells", "random"):
-        p_ = particles(grid, 500, rng, order)
-        fext = rng.standard_normal((500, dim))
-        for forces in (fext, None):
-            a = [x.copy() for x in old.p2g(p_, forces)]
-            for x, y in zip(a, new.p2g(p_, forces)):
-                assert close(x, y)
-        ga = rng.standard_normal((grid.ndofs, dim))
-        gv = rng.standard_normal((grid.ndofs, dim))
-        va, vb = np.empty_like(p_.v), np.empty_like(p_.v)
-        assert close(old.g2p2g(p_, ga, 1e-3, va).copy(), new.g2p2g(p_, ga, 1e-3, vb))
-        assert close(va, vb)
-        for fused in (True, False):
-            for flip in (True, False):
-                A, B = new_state(p_), new_state(p_)
-                A.v[:] = B.v[:] = 3.0
-                La, Lb = np.empty((500, dim, dim)), np.empty((500, dim, dim))
-                acc_a, acc_b = np.empty((500, dim)), np.empty((500, dim))
-                fa = old.g2p(p_, ga, gv, 1e-3, 0.5, flip, fused, material, A, La, acc_a)
-                fb = new.g2p(p_, ga, gv, 1e-3, 0.5, flip, B, Lb, acc_b,
-                             lame=lame if fused else None)
-                assert fa == fb
-                for k in ("x", "v", "u") + (("stress", "V") if fused else ()):
-                    assert close(getattr(A, k), getattr(B, k)), k
-                if not fused:
-                    assert close(La, Lb)
-                assert close(acc_a, acc_b)
+    ref = reference_g2p(grid, p_, ga, gv, 1e-3, 0.5, lame)
+    new, acc = new_state(p_), np.empty((n, dim))
+    flags = k.g2p(p_, ga, gv, 1e-3, 0.5, True, True, material, new, np.empty((1, 1, 1)), acc)
+    assert flags == expected_flags(grid, ref)
+    for name in ("x", "v", "u", "stress", "V"):
+        assert close(ref[name], getattr(new, name)), name
+    assert close(ref["acc"], acc)
