@@ -6,7 +6,9 @@ close to the arithmetic on small problems. This probe measures one answer:
 ``numba.njit(schemes.step_musl)`` - the very function the reference and
 compiled executors run - typed against a ``structref`` whose methods
 (``particles_to_grid``, ``solve_grid``, ...) are ``overload_method``\\ s that
-call the package's existing kernels. A compiled loop then runs the steps.
+call the package's kernels (the transfers generated per dimension and degree,
+:mod:`skfem_mpm.kernels.scatter` / ``gather``). A compiled loop then runs the
+steps.
 
 It covers only the S1 vibrating string (1D, quadratic, 32 cells, 128
 particles), lumped mass, MUSL, linear elasticity fused into g2p, fixed
@@ -29,7 +31,9 @@ from numba.experimental import structref
 
 from skfem_mpm import Method, simulate
 from skfem_mpm.benchmarks import get_benchmark
-from skfem_mpm.kernels import mpm
+from skfem_mpm.kernels import mpm, scatter
+from skfem_mpm.kernels.gather import g2p_kernel
+from skfem_mpm.kernels.records import grid_record
 from skfem_mpm.solve import schemes
 from skfem_mpm.solve.compiled import CompiledExecutor
 from skfem_mpm.solve.state import prepare
@@ -43,7 +47,6 @@ def _serial_copy(dispatcher):
     return njit(error_model="numpy", fastmath=True)(copy)
 
 
-USED = ("p2g_1d", "_reduce_fields", "lumped_solve", "g2p2g_1d", "_reduce", "g2p_1d")
 K = pytypes.ModuleType("kernels")  # the kernels the operations call (set in main)
 
 
@@ -54,7 +57,7 @@ class RunType(types.StructRef):
 
 
 FIELDS = ("x", "v", "u", "stress", "V", "m", "x2", "v2", "u2", "stress2", "V2", "L", "acc",
-          "bx", "ux", "ihx", "Cx", "p", "lo", "hi", "E", "mass", "momentum", "force",
+          "grid", "E", "mass", "momentum", "force",
           "copies", "touched", "copies1", "touched1", "mass_range", "a", "v_grid", "p_new",
           "mask", "gravity", "flags", "dt", "t", "step", "vfactor", "stopped")
 
@@ -71,10 +74,10 @@ structref.define_proxy(Run, RunType, list(FIELDS))
 @overload_method(RunType, "particles_to_grid")
 def _particles_to_grid(run, state):
     def impl(run, state):
-        K.p2g_1d(run.x, run.v, run.m, run.V, run.stress, run.force, False, run.bx, run.ux,
-                 run.ihx, run.Cx, run.p, run.copies, run.touched)
-        K._reduce_fields(run.copies, run.touched, run.mass, run.momentum, run.force,
-                         run.mass_range)
+        particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
+        K.p2g(particles, run.grid, run.force, False, run.copies, run.touched)
+        K.reduce_fields(run.copies, run.touched, run.mass, run.momentum, run.force,
+                        run.mass_range)
         return run
     return impl
 
@@ -96,9 +99,10 @@ def _update_particle_velocities(run, state, grid, velocity_factor=1.0, keep_acce
 @overload_method(RunType, "project_velocity")
 def _project_velocity(run, state, grid):
     def impl(run, state, grid):
-        K.g2p2g_1d(run.x, run.v, run.m, run.a, run.vfactor * run.dt, run.bx, run.ux, run.ihx,
-                   run.Cx, run.p, run.v2, run.copies1, run.touched1)
-        K._reduce(run.copies1, run.touched1, run.p_new)
+        particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
+        K.g2p2g(particles, run.grid, run.a, run.vfactor * run.dt, run.v2, run.copies1,
+                run.touched1)
+        K.reduce_copies(run.copies1, run.touched1, run.p_new)
         K.lumped_solve(run.mass, run.p_new, run.gravity, run.mask, run.p_new, False,
                        run.v_grid)
     return impl
@@ -107,10 +111,10 @@ def _project_velocity(run, state, grid):
 @overload_method(RunType, "move_particles")
 def _move_particles(run, state, grid):
     def impl(run, state, grid):
-        K.g2p_1d(run.x, run.v, run.u, run.stress, run.V, run.a, run.v_grid, run.dt,
-                 run.vfactor, False, run.bx, run.ux, run.ihx, run.Cx, run.p, run.lo, run.hi,
-                 True, run.E, run.x2, run.v2, run.u2, run.stress2, run.V2, run.L, run.acc,
-                 False, run.flags)
+        particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
+        new = (run.x2, run.v2, run.u2, run.m, run.V2, run.stress2)
+        update = (run.dt, run.vfactor, False, True, run.E, 0.0, False)  # records.Update
+        K.g2p(particles, run.grid, run.a, run.v_grid, update, new, run.L, run.acc, run.flags)
         for t in range(run.flags.shape[0]):
             for j in range(3):
                 if run.flags[t, j] >= 0:
@@ -162,8 +166,13 @@ def main(argv=None):
     ap.add_argument("--serial", action="store_true", help="serial copies of the kernels")
     ap.add_argument("--repeat", type=int, default=7)
     args = ap.parse_args(argv)
-    for name in USED:
-        kernel = getattr(mpm, name)
+    parallel = not args.serial
+    K.p2g = scatter.p2g_kernel(1, 2, None, parallel)
+    K.g2p2g = scatter.g2p2g_kernel(1, 2, None, parallel)
+    K.g2p = g2p_kernel(1, 2, parallel)
+    for name, kernel in (("reduce_fields", scatter.reduce_fields),
+                         ("reduce_copies", scatter.reduce_copies),
+                         ("lumped_solve", mpm.lumped_solve)):
         setattr(K, name, _serial_copy(kernel) if args.serial else kernel)
 
     b = get_benchmark("vibrating-string", "small")
@@ -174,16 +183,14 @@ def main(argv=None):
     state = prepare(scene, method)
     k = CompiledExecutor(state).kernels
     p, nd = state.particles, scene.grid.ndofs
-    (bx, ux, ihx, Cx), = k.args
-    copies, touched = k._buffer(3)
-    copies1, touched1 = k._buffer(1)
+    copies, touched = k.transfers.copies(3)
+    copies1, touched1 = k.transfers.copies(1)
 
     def new_run():
         return Run(p.x.copy(), p.v.copy(), p.u.copy(), p.stress.copy(), p.V.copy(), p.m.copy(),
                    np.empty_like(p.x), np.empty_like(p.v), np.empty_like(p.u),
                    np.empty_like(p.stress), np.empty_like(p.V), np.empty((1, 1, 1)),
-                   np.zeros((1, 1)), bx, ux, ihx, Cx, scene.grid.degree,
-                   scene.grid.bounds[0][0], scene.grid.bounds[0][1], state.bodies[0][0].E,
+                   np.zeros((1, 1)), grid_record(scene.grid), state.bodies[0][0].E,
                    np.empty(nd), np.empty((nd, 1)), np.empty((nd, 1)), copies, touched,
                    copies1, touched1, np.zeros((k.nthreads, 2)), np.empty((nd, 1)),
                    np.empty((nd, 1)), np.empty((nd, 1)), state.constraints.mask, np.zeros(1),

@@ -1,35 +1,28 @@
-"""Fused particle-grid kernels for tensor B-spline grids (1D and 2D).
+"""Consistent mass and grid solves on tensor B-spline grids (1D and 2D),
+and :class:`Kernels`, the compiled kernels bound to one grid.
 
-The NumPy reference of every kernel is the transfer-matrix code of
-:mod:`skfem_mpm.solve.steps`; the tests compare the two to 1e-12. The
-kernels recompute the B-spline weights of each particle in each pass instead
-of storing N (cheaper than the memory traffic of a stored N), and scatter
-race-free: the particles are split into one contiguous block per thread, each
-thread adds into its own copy of the grid over the node range its block
-touches, and the copies are summed over those ranges (deterministic for a
-fixed thread count).
+The particle-grid transfers (p2g, g2p2g, g2p) are generated per dimension
+and degree from one template (:mod:`skfem_mpm.kernels.scatter`,
+:mod:`skfem_mpm.kernels.gather`); :class:`Kernels` binds them through
+:class:`skfem_mpm.kernels.transfer.Transfers`.
 
-Grid arrays are node-major, all fields of a node adjacent:
-
-    p2g    out[k] = (m_k, P_k (dim), f_k (dim))   lumped mass, momentum, force
-           m_k = sum m_p N_kp,  P_k = sum m_p v_p N_kp,
-           f_k = sum (-V_p sigma_p . grad N_k(x_p) + f_p N_kp)
-    g2p    v_p += c dt sum_k a_k N_kp            (FLIP, c = 1 or 1/2)
-           dx_p = dt sum_k v_k N_kp,  x_p += dx_p,  u_p += dx_p
-           L_p  = sum_k v_k (x) grad N_k(x_p)
-           and for linear elasticity, fused: sigma_p += dt (lambda tr D I + 2 mu D),
-           V_p *= det(I + dt L_p), D = sym(L_p)
-    g2p2g  (MUSL) v_p^new = v_p + dt sum_k a_k N_kp, and P'_k = sum m_p v_p^new N_kp
-
-Status flags returned by g2p: the first particle with a non-finite value,
-outside the grid, or with det(I + dt L) <= 0 (or -1 for none).
+The consistent mass kernels recompute the B-spline weights of each particle
+instead of storing N (cheaper than the memory traffic of a stored N), and
+scatter race-free: the particles are split into one contiguous block per
+thread, each thread adds into its own copy of the stencil over the node
+range its block touches, and the copies are summed over those ranges
+(deterministic for a fixed thread count). The NumPy reference of every
+kernel is the transfer-matrix code of :mod:`skfem_mpm.solve.steps`; the
+tests compare the two to 1e-12.
 """
 import numpy as np
 from numba import get_num_threads, njit, prange
 
 from .fringe import apply_corrected
 from .kronecker import apply_kronecker
+from .scatter import holders
 from .tiny_mass import merged_lumped_solve
+from .transfer import Transfers
 from .weights import FAST, extracted_functions, locate_axis_point
 
 __all__ = ["Kernels"]
@@ -93,73 +86,6 @@ def _quadratic_interior(x, breaks, inv_h):
             -r * inv_h, (1.0 - 2.0 * xi) * inv_h, xi * inv_h)
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _p2g_node(g, k, N, gx, gy, mi, px, py, fx, fy, sxx, sxy, syy):
-    """Scatter one node's share of a particle (2D p2g)."""
-    g[k, 0] += N * mi
-    g[k, 1] += N * px
-    g[k, 2] += N * py
-    g[k, 3] += N * fx - (sxx * gx + sxy * gy)
-    g[k, 4] += N * fy - (sxy * gx + syy * gy)
-
-
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _p2g_row(g, row, wy, dy, wx0, wx1, wx2, dx0, dx1, dx2, mi, px, py, fx, fy, sxx, sxy, syy):
-    """The three nodes of one row of a quadratic interior stencil."""
-    _p2g_node(g, row, wx0 * wy, dx0 * wy, wx0 * dy, mi, px, py, fx, fy, sxx, sxy, syy)
-    _p2g_node(g, row + 1, wx1 * wy, dx1 * wy, wx1 * dy, mi, px, py, fx, fy, sxx, sxy, syy)
-    _p2g_node(g, row + 2, wx2 * wy, dx2 * wy, wx2 * dy, mi, px, py, fx, fy, sxx, sxy, syy)
-
-
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _g2p_row(grid_a, grid_v, row, wy, dy, wx0, wx1, wx2, dx0, dx1, dx2):
-    """Sums over one row of a quadratic interior stencil: (a_x, a_y, v_x,
-    v_y, L_xx, L_xy, L_yx, L_yy) contributions."""
-    ax = ay = vx = vy = lxx = lxy = lyx = lyy = 0.0
-    for a in range(3):
-        if a == 0:
-            wa, da = wx0, dx0
-        elif a == 1:
-            wa, da = wx1, dx1
-        else:
-            wa, da = wx2, dx2
-        k = row + a
-        N = wa * wy
-        gx = da * wy
-        gy = wa * dy
-        ax += N * grid_a[k, 0]
-        ay += N * grid_a[k, 1]
-        gvx = grid_v[k, 0]
-        gvy = grid_v[k, 1]
-        vx += N * gvx
-        vy += N * gvy
-        lxx += gvx * gx
-        lxy += gvx * gy
-        lyx += gvy * gx
-        lyy += gvy * gy
-    return ax, ay, vx, vy, lxx, lxy, lyx, lyy
-
-
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _gather_row(grid, row, wy, wx0, wx1, wx2):
-    """sum_a N_a grid[row + a] over one row of a quadratic stencil (2 comps)."""
-    n0, n1, n2 = wx0 * wy, wx1 * wy, wx2 * wy
-    return (n0 * grid[row, 0] + n1 * grid[row + 1, 0] + n2 * grid[row + 2, 0],
-            n0 * grid[row, 1] + n1 * grid[row + 1, 1] + n2 * grid[row + 2, 1])
-
-
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _scatter_row(g, row, wy, wx0, wx1, wx2, px, py):
-    """g[row + a] += N_a (px, py) over one row of a quadratic stencil."""
-    n0, n1, n2 = wx0 * wy, wx1 * wy, wx2 * wy
-    g[row, 0] += n0 * px
-    g[row, 1] += n0 * py
-    g[row + 1, 0] += n1 * px
-    g[row + 1, 1] += n1 * py
-    g[row + 2, 0] += n2 * px
-    g[row + 2, 1] += n2 * py
-
-
 # A scatter kernel adds into its thread's copy of the grid and records the
 # node range it touched (touched[t] = first, last + 1); the copy is zero
 # outside that range. The next call zeros only that range before adding,
@@ -172,29 +98,6 @@ def _clear_touched(g, touched, t):
     g[touched[t, 0]:touched[t, 1], :] = 0.0
 
 
-@njit(cache=True, error_model="numpy")
-def _segments(touched, lo, hi):
-    """Split nodes lo..hi-1 where the set of threads whose touched range
-    holds them changes: (cuts, members, counts); segment j is
-    cuts[j]..cuts[j + 1] - 1 and its threads are members[j, :counts[j]]."""
-    nt = touched.shape[0]
-    cuts = np.empty(2 * nt + 2, dtype=np.int64)
-    cuts[0] = lo
-    cuts[1] = hi
-    for t in range(nt):
-        cuts[2 + 2 * t] = min(max(touched[t, 0], lo), hi)
-        cuts[3 + 2 * t] = min(max(touched[t, 1], lo), hi)
-    cuts = np.unique(cuts)
-    members = np.empty((cuts.shape[0], nt), dtype=np.int64)
-    counts = np.zeros(cuts.shape[0], dtype=np.int64)
-    for j in range(cuts.shape[0] - 1):
-        for t in range(nt):
-            if touched[t, 0] <= cuts[j] and cuts[j + 1] <= touched[t, 1]:
-                members[j, counts[j]] = t
-                counts[j] += 1
-    return cuts, members, counts
-
-
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _take(copies, threads, count, k, c):
     """sum of copies[t, k, c] over the given threads."""
@@ -204,490 +107,7 @@ def _take(copies, threads, count, k, c):
     return s
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _reduce_fields(copies, touched, mass, momentum, force, mass_range):
-    """Sum the per-thread copies of (m, P, f) into three contiguous arrays;
-    mass_range[r] = (smallest positive, largest) mass of chunk r's nodes."""
-    nt, nk, nc = copies.shape
-    dim = momentum.shape[1]
-    nr = mass_range.shape[0]
-    for r in prange(nr):
-        smallest = np.inf
-        largest = 0.0
-        cuts, members, counts = _segments(touched, r * nk // nr, (r + 1) * nk // nr)
-        for j in range(cuts.shape[0] - 1):
-            threads = members[j]
-            count = counts[j]
-            for k in range(cuts[j], cuts[j + 1]):
-                s = _take(copies, threads, count, k, 0)
-                mass[k] = s
-                if s > 0.0:
-                    smallest = min(smallest, s)
-                    largest = max(largest, s)
-                for c in range(dim):
-                    momentum[k, c] = _take(copies, threads, count, k, 1 + c)
-                    force[k, c] = _take(copies, threads, count, k, 1 + dim + c)
-        mass_range[r, 0] = smallest
-        mass_range[r, 1] = largest
-
-
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _reduce(copies, touched, out):
-    """out = sum over threads of the per-thread grid copies."""
-    nt, nk, nc = copies.shape
-    for r in prange(nt):
-        cuts, members, counts = _segments(touched, r * nk // nt, (r + 1) * nk // nt)
-        for j in range(cuts.shape[0] - 1):
-            for k in range(cuts[j], cuts[j + 1]):
-                for c in range(nc):
-                    out[k, c] = _take(copies, members[j], counts[j], k, c)
-
-
-# ----------------------------------------------------------------------- 1D
-# Sorted particles come in runs sharing a cell. The quadratic 1D kernels add
-# a run's contributions to its three nodes in registers (a "window") and
-# write them to the grid once per run: adding into memory particle after
-# particle makes every particle wait for the previous one's store to the
-# same nodes (measured, kernel alone: 5.1 ms -> 3.7 ms per 1e6 particles). Any order
-# gives the same sums; unsorted particles only flush more often.
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _flush_window(g, e, c, s0, s1, s2):
-    """g[e + a, c] += s_a for the three nodes of a quadratic window."""
-    if e >= 0:
-        g[e, c] += s0
-        g[e + 1, c] += s1
-        g[e + 2, c] += s2
-
-
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def p2g_1d(x, v, m, V, stress, fext, has_fext, bx, ux, ihx, Cx, p, copies, touched):
-    n = x.shape[0]
-    nt = copies.shape[0]
-    for t in prange(nt):
-        g = copies[t]
-        _clear_touched(g, touched, t)
-        first = g.shape[0]
-        last = 0
-        w = np.empty(4)
-        dw = np.empty(4)
-        lo = t * n // nt
-        hi = (t + 1) * n // nt
-        quadratic = p == 2 and ux
-        run = -1  # the window's cell; its sums of (m, m v, f) per node:
-        m0 = m1 = m2 = p0 = p1 = p2 = f0 = f1 = f2 = 0.0
-        for i in range(lo, hi):
-            mi = m[i]
-            pv = mi * v[i, 0]
-            s = V[i] * stress[i, 0, 0]
-            f = fext[i, 0] if has_fext else 0.0
-            if quadratic:
-                e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
-                if e >= 0:
-                    if e != run:
-                        _flush_window(g, run, 0, m0, m1, m2)
-                        _flush_window(g, run, 1, p0, p1, p2)
-                        _flush_window(g, run, 2, f0, f1, f2)
-                        run = e
-                        first = min(first, e)
-                        last = max(last, e + 3)
-                        m0 = m1 = m2 = p0 = p1 = p2 = f0 = f1 = f2 = 0.0
-                    m0 += w0 * mi
-                    m1 += w1 * mi
-                    m2 += w2 * mi
-                    p0 += w0 * pv
-                    p1 += w1 * pv
-                    p2 += w2 * pv
-                    f0 += w0 * f - s * d0
-                    f1 += w1 * f - s * d1
-                    f2 += w2 * f - s * d2
-                    continue
-            e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
-            first = min(first, e)
-            last = max(last, e + p + 1)
-            for a in range(p + 1):
-                k = e + a
-                g[k, 0] += w[a] * mi
-                g[k, 1] += w[a] * pv
-                g[k, 2] += w[a] * f - s * dw[a]
-        _flush_window(g, run, 0, m0, m1, m2)
-        _flush_window(g, run, 1, p0, p1, p2)
-        _flush_window(g, run, 2, f0, f1, f2)
-        touched[t, 0] = first
-        touched[t, 1] = last
-
-
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def g2p2g_1d(x, v, m, grid_a, dt, bx, ux, ihx, Cx, p, v_new, copies, touched):
-    n = x.shape[0]
-    nt = copies.shape[0]
-    for t in prange(nt):
-        g = copies[t]
-        _clear_touched(g, touched, t)
-        first = g.shape[0]
-        last = 0
-        w = np.empty(4)
-        dw = np.empty(4)
-        lo = t * n // nt
-        hi = (t + 1) * n // nt
-        quadratic = p == 2 and ux
-        run = -1
-        p0 = p1 = p2 = 0.0
-        for i in range(lo, hi):
-            if quadratic:
-                e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
-                if e >= 0:
-                    vn = v[i, 0] + dt * (w0 * grid_a[e, 0] + w1 * grid_a[e + 1, 0]
-                                         + w2 * grid_a[e + 2, 0])
-                    v_new[i, 0] = vn
-                    pv = m[i] * vn
-                    if e != run:
-                        _flush_window(g, run, 0, p0, p1, p2)
-                        run = e
-                        first = min(first, e)
-                        last = max(last, e + 3)
-                        p0 = p1 = p2 = 0.0
-                    p0 += w0 * pv
-                    p1 += w1 * pv
-                    p2 += w2 * pv
-                    continue
-            e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
-            first = min(first, e)
-            last = max(last, e + p + 1)
-            acc = 0.0
-            for a in range(p + 1):
-                acc += w[a] * grid_a[e + a, 0]
-            vn = v[i, 0] + dt * acc
-            v_new[i, 0] = vn
-            pv = m[i] * vn
-            for a in range(p + 1):
-                g[e + a, 0] += w[a] * pv
-        _flush_window(g, run, 0, p0, p1, p2)
-        touched[t, 0] = first
-        touched[t, 1] = last
-
-
-@njit(cache=True, error_model="numpy", fastmath=FAST)
-def _axis_sums_1d(x, bx, ux, ihx, Cx, p, grid_a, grid_v, w, dw):
-    """(sum N a, sum N v, sum dN/dx v) at x by the general basis path (not
-    inlined: it serves only the particles the quadratic form does not)."""
-    e = _axis(x, bx, ux, ihx, Cx, p, w, dw)
-    acc = 0.0
-    vg = 0.0
-    L = 0.0
-    for a in range(p + 1):
-        k = e + a
-        acc += w[a] * grid_a[k, 0]
-        vg += w[a] * grid_v[k, 0]
-        L += dw[a] * grid_v[k, 0]
-    return acc, vg, L
-
-
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def g2p_1d(x, v, u, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, ux, ihx, Cx, p,
-           lo_x, hi_x, fused, E, x_new, v_new, u_new, stress_new, V_new, L_out, acc_out,
-           store_acc, flags):
-    n = x.shape[0]
-    nt = flags.shape[0]
-    for t in prange(nt):
-        w = np.empty(4)
-        dw = np.empty(4)
-        lo = t * n // nt
-        hi = (t + 1) * n // nt
-        bad = -1
-        out = -1
-        neg = -1
-        quadratic = p == 2 and ux
-        for i in range(lo, hi):
-            e = -1
-            if quadratic:
-                e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
-                if e >= 0:
-                    v0, v1, v2 = grid_v[e, 0], grid_v[e + 1, 0], grid_v[e + 2, 0]
-                    acc = w0 * grid_a[e, 0] + w1 * grid_a[e + 1, 0] + w2 * grid_a[e + 2, 0]
-                    vg = w0 * v0 + w1 * v1 + w2 * v2
-                    L = d0 * v0 + d1 * v1 + d2 * v2
-            if e < 0:
-                acc, vg, L = _axis_sums_1d(x[i, 0], bx, ux, ihx, Cx, p, grid_a, grid_v, w, dw)
-            if store_acc:
-                acc_out[i, 0] = acc
-            if do_flip:
-                vn = v[i, 0] + vfactor * dt * acc
-                v_new[i, 0] = vn
-            else:
-                vn = v_new[i, 0]
-            dx = dt * vg
-            xn = x[i, 0] + dx
-            x_new[i, 0] = xn
-            u_new[i, 0] = u[i, 0] + dx
-            J = 1.0 + dt * L
-            if fused:
-                stress_new[i, 0, 0] = stress[i, 0, 0] + dt * E * L
-                V_new[i] = V[i] * J
-            else:
-                L_out[i, 0, 0] = L
-            finite = np.isfinite(xn) and np.isfinite(vn)
-            inside = not (xn < lo_x or xn > hi_x)  # NaN counts as non-finite only
-            if J <= 0.0 or not finite or not inside:  # one test on the common path
-                if J <= 0.0 and neg < 0:
-                    neg = i
-                if not finite and bad < 0:
-                    bad = i
-                if not inside and out < 0:
-                    out = i
-        flags[t, 0] = bad
-        flags[t, 1] = out
-        flags[t, 2] = neg
-
-
-# ----------------------------------------------------------------------- 2D
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def p2g_2d(x, v, m, V, stress, fext, has_fext, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx,
-           copies, touched):
-    n = x.shape[0]
-    nt = copies.shape[0]
-    for t in prange(nt):
-        g = copies[t]
-        _clear_touched(g, touched, t)
-        first = g.shape[0]
-        last = 0
-        wx = np.empty(4)
-        dx = np.empty(4)
-        wy = np.empty(4)
-        dy = np.empty(4)
-        lo = t * n // nt
-        hi = (t + 1) * n // nt
-        quadratic = p == 2 and ux and uy
-        for i in range(lo, hi):
-            mi = m[i]
-            px = mi * v[i, 0]
-            py = mi * v[i, 1]
-            Vi = V[i]
-            sxx = Vi * stress[i, 0, 0]
-            sxy = Vi * 0.5 * (stress[i, 0, 1] + stress[i, 1, 0])
-            syy = Vi * stress[i, 1, 1]
-            fx = fext[i, 0] if has_fext else 0.0
-            fy = fext[i, 1] if has_fext else 0.0
-            if quadratic:
-                ex, wx0, wx1, wx2, dx0, dx1, dx2 = _quadratic_interior(x[i, 0], bx, ihx)
-                ey, wy0, wy1, wy2, dy0, dy1, dy2 = _quadratic_interior(x[i, 1], by, ihy)
-                if ex >= 0 and ey >= 0:
-                    row = ey * nbx + ex
-                    first = min(first, row)
-                    last = max(last, row + 2 * nbx + 3)
-                    _p2g_row(g, row, wy0, dy0, wx0, wx1, wx2, dx0, dx1, dx2,
-                             mi, px, py, fx, fy, sxx, sxy, syy)
-                    _p2g_row(g, row + nbx, wy1, dy1, wx0, wx1, wx2, dx0, dx1, dx2,
-                             mi, px, py, fx, fy, sxx, sxy, syy)
-                    _p2g_row(g, row + 2 * nbx, wy2, dy2, wx0, wx1, wx2, dx0, dx1, dx2,
-                             mi, px, py, fx, fy, sxx, sxy, syy)
-                    continue
-            ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
-            ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
-            first = min(first, ey * nbx + ex)
-            last = max(last, (ey + p) * nbx + ex + p + 1)
-            for b in range(p + 1):
-                row = (ey + b) * nbx + ex
-                for a in range(p + 1):
-                    N = wx[a] * wy[b]
-                    gx = dx[a] * wy[b]
-                    gy = wx[a] * dy[b]
-                    k = row + a
-                    g[k, 0] += N * mi
-                    g[k, 1] += N * px
-                    g[k, 2] += N * py
-                    g[k, 3] += N * fx - (sxx * gx + sxy * gy)
-                    g[k, 4] += N * fy - (sxy * gx + syy * gy)
-        touched[t, 0] = first
-        touched[t, 1] = last
-
-
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def g2p2g_2d(x, v, m, grid_a, dt, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, v_new, copies,
-             touched):
-    n = x.shape[0]
-    nt = copies.shape[0]
-    for t in prange(nt):
-        g = copies[t]
-        _clear_touched(g, touched, t)
-        first = g.shape[0]
-        last = 0
-        wx = np.empty(4)
-        dx = np.empty(4)
-        wy = np.empty(4)
-        dy = np.empty(4)
-        lo = t * n // nt
-        hi = (t + 1) * n // nt
-        quadratic = p == 2 and ux and uy
-        for i in range(lo, hi):
-            if quadratic:
-                ex, wx0, wx1, wx2, _, _, _ = _quadratic_interior(x[i, 0], bx, ihx)
-                ey, wy0, wy1, wy2, _, _, _ = _quadratic_interior(x[i, 1], by, ihy)
-                if ex >= 0 and ey >= 0:
-                    r0 = ey * nbx + ex
-                    first = min(first, r0)
-                    last = max(last, r0 + 2 * nbx + 3)
-                    r1 = r0 + nbx
-                    r2 = r1 + nbx
-                    a0x, a0y = _gather_row(grid_a, r0, wy0, wx0, wx1, wx2)
-                    a1x, a1y = _gather_row(grid_a, r1, wy1, wx0, wx1, wx2)
-                    a2x, a2y = _gather_row(grid_a, r2, wy2, wx0, wx1, wx2)
-                    vx = v[i, 0] + dt * (a0x + a1x + a2x)
-                    vy = v[i, 1] + dt * (a0y + a1y + a2y)
-                    v_new[i, 0] = vx
-                    v_new[i, 1] = vy
-                    px = m[i] * vx
-                    py = m[i] * vy
-                    _scatter_row(g, r0, wy0, wx0, wx1, wx2, px, py)
-                    _scatter_row(g, r1, wy1, wx0, wx1, wx2, px, py)
-                    _scatter_row(g, r2, wy2, wx0, wx1, wx2, px, py)
-                    continue
-            ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
-            ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
-            first = min(first, ey * nbx + ex)
-            last = max(last, (ey + p) * nbx + ex + p + 1)
-            ax = 0.0
-            ay = 0.0
-            for b in range(p + 1):
-                row = (ey + b) * nbx + ex
-                for a in range(p + 1):
-                    N = wx[a] * wy[b]
-                    ax += N * grid_a[row + a, 0]
-                    ay += N * grid_a[row + a, 1]
-            vx = v[i, 0] + dt * ax
-            vy = v[i, 1] + dt * ay
-            v_new[i, 0] = vx
-            v_new[i, 1] = vy
-            px = m[i] * vx
-            py = m[i] * vy
-            for b in range(p + 1):
-                row = (ey + b) * nbx + ex
-                for a in range(p + 1):
-                    N = wx[a] * wy[b]
-                    g[row + a, 0] += N * px
-                    g[row + a, 1] += N * py
-        touched[t, 0] = first
-        touched[t, 1] = last
-
-
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def g2p_2d(x, v, u, stress, V, grid_a, grid_v, dt, vfactor, do_flip, bx, by, ux, uy, ihx,
-           ihy, Cx, Cy, p, nbx, lo_x, hi_x, lo_y, hi_y, fused, lam, mu, x_new, v_new, u_new,
-           stress_new, V_new, L_out, acc_out, store_acc, flags):
-    n = x.shape[0]
-    nt = flags.shape[0]
-    for t in prange(nt):
-        wx = np.empty(4)
-        dx = np.empty(4)
-        wy = np.empty(4)
-        dy = np.empty(4)
-        lo = t * n // nt
-        hi = (t + 1) * n // nt
-        bad = -1
-        out = -1
-        neg = -1
-        quadratic = p == 2 and ux and uy
-        for i in range(lo, hi):
-            ax = 0.0
-            ay = 0.0
-            vx = 0.0
-            vy = 0.0
-            Lxx = 0.0
-            Lxy = 0.0
-            Lyx = 0.0
-            Lyy = 0.0
-            done = False
-            if quadratic:
-                ex, wx0, wx1, wx2, dx0, dx1, dx2 = _quadratic_interior(x[i, 0], bx, ihx)
-                ey, wy0, wy1, wy2, dy0, dy1, dy2 = _quadratic_interior(x[i, 1], by, ihy)
-                if ex >= 0 and ey >= 0:
-                    done = True
-                    row = ey * nbx + ex
-                    for b in range(3):
-                        if b == 0:
-                            wb, db = wy0, dy0
-                        elif b == 1:
-                            wb, db = wy1, dy1
-                        else:
-                            wb, db = wy2, dy2
-                        r = _g2p_row(grid_a, grid_v, row + b * nbx, wb, db,
-                                     wx0, wx1, wx2, dx0, dx1, dx2)
-                        ax += r[0]
-                        ay += r[1]
-                        vx += r[2]
-                        vy += r[3]
-                        Lxx += r[4]
-                        Lxy += r[5]
-                        Lyx += r[6]
-                        Lyy += r[7]
-            if not done:
-                ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
-                ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
-            for b in range(0 if done else p + 1):
-                row = (ey + b) * nbx + ex
-                for a in range(p + 1):
-                    N = wx[a] * wy[b]
-                    gx = dx[a] * wy[b]
-                    gy = wx[a] * dy[b]
-                    k = row + a
-                    ax += N * grid_a[k, 0]
-                    ay += N * grid_a[k, 1]
-                    gvx = grid_v[k, 0]
-                    gvy = grid_v[k, 1]
-                    vx += N * gvx
-                    vy += N * gvy
-                    Lxx += gvx * gx
-                    Lxy += gvx * gy
-                    Lyx += gvy * gx
-                    Lyy += gvy * gy
-            if store_acc:
-                acc_out[i, 0] = ax
-                acc_out[i, 1] = ay
-            if do_flip:
-                vnx = v[i, 0] + vfactor * dt * ax
-                vny = v[i, 1] + vfactor * dt * ay
-                v_new[i, 0] = vnx
-                v_new[i, 1] = vny
-            else:
-                vnx = v_new[i, 0]
-                vny = v_new[i, 1]
-            xn = x[i, 0] + dt * vx
-            yn = x[i, 1] + dt * vy
-            x_new[i, 0] = xn
-            x_new[i, 1] = yn
-            u_new[i, 0] = u[i, 0] + dt * vx
-            u_new[i, 1] = u[i, 1] + dt * vy
-            J = (1.0 + dt * Lxx) * (1.0 + dt * Lyy) - dt * dt * Lxy * Lyx
-            if fused:
-                Dxx = dt * Lxx
-                Dyy = dt * Lyy
-                Dxy = 0.5 * dt * (Lxy + Lyx)
-                tr = lam * (Dxx + Dyy)
-                stress_new[i, 0, 0] = stress[i, 0, 0] + tr + 2.0 * mu * Dxx
-                stress_new[i, 1, 1] = stress[i, 1, 1] + tr + 2.0 * mu * Dyy
-                sxy = stress[i, 0, 1] + 2.0 * mu * Dxy
-                stress_new[i, 0, 1] = sxy
-                stress_new[i, 1, 0] = stress[i, 1, 0] + 2.0 * mu * Dxy
-                V_new[i] = V[i] * J
-            else:
-                L_out[i, 0, 0] = Lxx
-                L_out[i, 0, 1] = Lxy
-                L_out[i, 1, 0] = Lyx
-                L_out[i, 1, 1] = Lyy
-            finite = np.isfinite(xn) and np.isfinite(yn) and np.isfinite(vnx) \
-                and np.isfinite(vny)
-            inside = not (xn < lo_x or xn > hi_x or yn < lo_y or yn > hi_y)
-            if J <= 0.0 or not finite or not inside:  # one test on the common path
-                if J <= 0.0 and neg < 0:
-                    neg = i
-                if not finite and bad < 0:
-                    bad = i
-                if not inside and out < 0:
-                    out = i
-        flags[t, 0] = bad
-        flags[t, 1] = out
-        flags[t, 2] = neg
-
-
+# ------------------------------------------------------------ consistent mass
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies, touched):
     """Upper half of the consistent mass, M_(k, k+d) = sum m_p N_k N_(k+d)
@@ -861,7 +281,7 @@ def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim,
     ns = 2 * nh - 1
     centre = nh - 1
     for r in prange(nt):
-        cuts, members, counts = _segments(touched, lo + r * (hi - lo) // nt,
+        cuts, members, counts = holders(touched, lo + r * (hi - lo) // nt,
                                           lo + (r + 1) * (hi - lo) // nt)
         for j in range(cuts.shape[0] - 1):
             threads = members[j]
@@ -983,24 +403,19 @@ def small_mass_2d(mass, nbx, nby, p, tol, small):
     return count
 
 
-def _first_flags(rows):
-    """Per flag column, the smallest particle index >= 0 over the threads'
-    rows, or -1 (a few threads: plain Python beats array calls here)."""
-    found = []
-    for j in range(3):
-        hits = [row[j] for row in rows if row[j] >= 0]
-        found.append(min(hits) if hits else -1)
-    return found
-
-
 class Kernels:
-    """The compiled kernels bound to one spline grid (and its thread count)."""
+    """The compiled kernels bound to one spline grid and the run's block
+    count (the number of numba threads when bound): the particle-grid
+    transfers (:class:`skfem_mpm.kernels.transfer.Transfers`, generated per
+    dimension and degree), the consistent mass stencil and the lumped and
+    tiny-mass grid solves."""
 
     def __init__(self, grid):
         self.grid = grid
         self.dim = grid.dim
         self.p = grid.degree
         self.nthreads = get_num_threads()
+        self.transfers = Transfers(grid, self.nthreads)
         b = grid.breakpoints
         self.args = []
         for axis in range(grid.dim):
@@ -1009,83 +424,29 @@ class Kernels:
                               grid.extraction[axis]))
         self.ndofs = grid.ndofs
         self.nbx = grid.basis_per_axis[0]
-        self._copies = {}
         self._scratch = {}
-        self._mass = np.empty(grid.ndofs)
-        self._p2g_momentum = np.empty((grid.ndofs, grid.dim))
-        self._force = np.empty((grid.ndofs, grid.dim))
-        self._momentum = np.empty((grid.ndofs, grid.dim))
         self._small = np.empty(grid.ndofs, dtype=np.bool_)
-        self._mass_range = np.zeros((self.nthreads, 2))
-        self._no_acc = np.zeros((1, grid.dim))
-        self.flags = np.full((self.nthreads, 3), -1, dtype=np.int64)
-
-    def _buffer(self, ncomp):
-        """Per-thread grid copies with ncomp fields (zero between calls) and
-        their touched node ranges."""
-        if ncomp not in self._copies:
-            self._copies[ncomp] = (np.zeros((self.nthreads, self.ndofs, ncomp)),
-                                   np.zeros((self.nthreads, 2), dtype=np.int64))
-        return self._copies[ncomp]
 
     def p2g(self, particles, fext):
-        """(mass (dofs,), momentum (dofs, dim), force (dofs, dim))."""
-        p, dim = particles, self.dim
-        has = fext is not None
-        fx = fext if has else np.zeros((1, dim))
-        copies, touched = self._buffer(1 + 2 * dim)
-        if dim == 1:
-            (bx, ux, ihx, Cx), = self.args
-            p2g_1d(p.x, p.v, p.m, p.V, p.stress, fx, has, bx, ux, ihx, Cx, self.p, copies,
-                   touched)
-        else:
-            (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
-            p2g_2d(p.x, p.v, p.m, p.V, p.stress, fx, has, bx, by, ux, uy, ihx, ihy, Cx, Cy,
-                   self.p, self.nbx, copies, touched)
-        _reduce_fields(copies, touched, self._mass, self._p2g_momentum, self._force,
-                       self._mass_range)
-        return self._mass, self._p2g_momentum, self._force
+        """(lumped mass (dofs,), momentum (dofs, dim), force (dofs, dim)),
+        see :mod:`skfem_mpm.kernels.scatter`; reused by the next call."""
+        return self.transfers.p2g(particles, fext)
 
     def g2p2g(self, particles, grid_a, dt, v_new):
         """MUSL: v_new = v + dt N a and the grid momentum of m v_new."""
-        p, dim = particles, self.dim
-        copies, touched = self._buffer(dim)
-        if dim == 1:
-            (bx, ux, ihx, Cx), = self.args
-            g2p2g_1d(p.x, p.v, p.m, grid_a, dt, bx, ux, ihx, Cx, self.p, v_new, copies, touched)
-        else:
-            (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
-            g2p2g_2d(p.x, p.v, p.m, grid_a, dt, bx, by, ux, uy, ihx, ihy, Cx, Cy, self.p,
-                     self.nbx, v_new, copies, touched)
-        out = self._momentum
-        _reduce(copies, touched, out)
-        return out
+        return self.transfers.g2p2g(particles, grid_a, dt, v_new)
 
     def g2p(self, particles, grid_a, grid_v, dt, vfactor, flip, fused, material, new, L_out,
             acc_out=None):
-        """Particle update into the arrays of ``new`` (a Particles object);
-        returns the flags (first non-finite, outside, J <= 0 particle or -1)."""
-        p, dim = particles, self.dim
-        flags = self.flags
-        bounds = self.grid.bounds
-        store_acc = acc_out is not None
-        if not store_acc:
-            acc_out = self._no_acc  # never written
-        if dim == 1:
-            (bx, ux, ihx, Cx), = self.args
-            E = material.E if fused else 0.0
-            g2p_1d(p.x, p.v, p.u, p.stress, p.V, grid_a, grid_v, dt, vfactor, flip, bx, ux, ihx,
-                   Cx, self.p, bounds[0][0], bounds[0][1], fused, E, new.x, new.v, new.u,
-                   new.stress, new.V, L_out, acc_out, store_acc, flags)
-        else:
-            (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
-            lam = material.lam if fused else 0.0
-            mu = material.mu if fused else 0.0
-            g2p_2d(p.x, p.v, p.u, p.stress, p.V, grid_a, grid_v, dt, vfactor, flip, bx, by,
-                   ux, uy, ihx, ihy, Cx, Cy, self.p, self.nbx, bounds[0][0], bounds[0][1],
-                   bounds[1][0], bounds[1][1], fused, lam, mu, new.x, new.v, new.u, new.stress,
-                   new.V, L_out, acc_out, store_acc, flags)
-        return _first_flags(flags.tolist())
+        """Particle update into the arrays of ``new`` (a Particles object),
+        see :mod:`skfem_mpm.kernels.gather`; with ``fused``, the linear
+        elastic ``material``'s stress update (1D: sigma += E dt L); returns
+        the flags (first non-finite, outside, J <= 0 particle or -1)."""
+        lame = None
+        if fused:
+            lame = (material.E, 0.0) if self.dim == 1 else (material.lam, material.mu)
+        return self.transfers.g2p(particles, grid_a, grid_v, dt, vfactor, flip, new, L_out,
+                                  acc_out, lame)
 
     def _stencil_pattern(self):
         """CSR pattern of the stencil (rows, valid stencil slots, columns)."""
@@ -1199,8 +560,8 @@ class Kernels:
         (m_k < tol max of its neighbours) if the smallest positive mass is
         below tol times the largest; otherwise the scan is skipped."""
         small = self._small
-        if lumped is self._mass:
-            ranges = self._mass_range.tolist()
+        if lumped is self.transfers.mass:
+            ranges = self.transfers.mass_range.tolist()
             if min(r[0] for r in ranges) >= tol * max(r[1] for r in ranges):
                 small[:] = False
                 return small, 0

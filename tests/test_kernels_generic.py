@@ -1,0 +1,264 @@
+"""The particle-grid kernels generated from one source for 1D, 2D and 3D
+(skfem_mpm.kernels.scatter / gather) against the transfer-matrix reference,
+directly and through the compiled executor's binding (kernels.mpm.Kernels)."""
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from skfem_mpm import SplineGrid, transfer_matrices
+from skfem_mpm.kernels import mpm
+from skfem_mpm.kernels.transfer import Transfers
+
+TOL = 1e-13
+
+
+def tensor_grid(breakpoints, degree):
+    """What the kernels read of a spline grid, for any number of axes, from
+    1D spline lines (a 3D SplineGrid does not exist yet)."""
+    lines = [SplineGrid(np.asarray(b, dtype=float), degree) for b in breakpoints]
+    nb = tuple(g.basis_per_axis[0] for g in lines)
+    return SimpleNamespace(dim=len(lines), degree=degree, ndofs=int(np.prod(nb)),
+                           basis_per_axis=nb, lines=lines,
+                           breakpoints=tuple(g.breakpoints[0] for g in lines),
+                           _uniform=tuple(g._uniform[0] for g in lines),
+                           extraction=tuple(g.extraction[0] for g in lines),
+                           bounds=tuple(g.bounds[0] for g in lines))
+
+
+def reference_matrices(grid, x):
+    """(N, [dN/dx_d]): sparse (particles, nodes) matrices, the tensor
+    products of the 1D B-splines of each axis evaluated by the NumPy
+    reference of SplineGrid (node index sum_d i_d s_d, axis 0 fastest)."""
+    n, dim = x.shape
+    p = grid.degree
+    dofs = np.zeros((n, 1), dtype=np.int64)
+    values = np.ones((n, 1))
+    grads = [np.ones((n, 1)) for _ in range(dim)]
+    stride = 1
+    for d, line in enumerate(grid.lines):
+        first, w, g = line.axis_functions(0, x[:, d], backend="numpy")
+        axis_dofs = (first[:, None] + np.arange(p + 1)[None, :]) * stride
+        dofs = (axis_dofs[:, :, None] + dofs[:, None, :]).reshape(n, -1)
+        values_new = (w[:, :, None] * values[:, None, :]).reshape(n, -1)
+        grads = [((g if c == d else w)[:, :, None] * grads[c][:, None, :]).reshape(n, -1)
+                 for c in range(dim)]
+        values = values_new
+        stride *= grid.basis_per_axis[d]
+    rows = np.repeat(np.arange(n), dofs.shape[1])
+
+    def matrix(a):
+        return sp.csr_matrix((a.ravel(), (rows, dofs.ravel())), shape=(n, grid.ndofs))
+    return matrix(values), [matrix(g) for g in grads]
+
+
+def reference_p2g(grid, p, fext):
+    N, G = reference_matrices(grid, p.x)
+    dim = p.x.shape[1]
+    S = p.V[:, None, None] * 0.5 * (p.stress + p.stress.transpose(0, 2, 1))
+    mass = N.T @ p.m
+    momentum = N.T @ (p.m[:, None] * p.v)
+    force = N.T @ fext if fext is not None else np.zeros((grid.ndofs, dim))
+    for c in range(dim):
+        for d in range(dim):
+            force[:, c] -= G[d].T @ S[:, c, d]
+    return mass, momentum, force
+
+
+def reference_g2p(grid, p, ga, gv, dt, vfactor, lame):
+    N, G = reference_matrices(grid, p.x)
+    dim = p.x.shape[1]
+    acc = N @ ga
+    U = N @ gv
+    L = np.stack([np.stack([G[d] @ gv[:, c] for d in range(dim)], axis=-1)
+                  for c in range(dim)], axis=1)
+    F = np.eye(dim) + dt * L
+    J = np.linalg.det(F)
+    out = {"acc": acc, "v": p.v + vfactor * dt * acc, "x": p.x + dt * U, "u": p.u + dt * U,
+           "L": L, "J": J}
+    if lame is not None:
+        D = 0.5 * dt * (L + L.transpose(0, 2, 1))
+        tr = np.trace(D, axis1=1, axis2=2)
+        out["stress"] = p.stress + lame[0] * tr[:, None, None] * np.eye(dim) + 2 * lame[1] * D
+        out["V"] = p.V * J
+    return out
+
+
+def particles(grid, n, rng, order):
+    """Random particles over the whole grid (boundary and interior cells),
+    a few on breakpoints and on the grid's upper end (last cell)."""
+    dim = grid.dim
+    lo = np.array([b[0] for b in grid.bounds])
+    hi = np.array([b[1] for b in grid.bounds])
+    x = lo + (hi - lo) * rng.random((n, dim))
+    for d in range(dim):
+        x[:4, d] = hi[d]                    # the last cell's far end
+        x[4:8, d] = grid.breakpoints[d][rng.integers(0, grid.breakpoints[d].size, 4)]
+        x[8:10, d] = lo[d]
+    if order == "cells":  # runs of particles sharing a cell (as seeded scenes)
+        cells = np.zeros(n, dtype=np.int64)
+        for d in reversed(range(dim)):
+            e = np.clip(np.searchsorted(grid.breakpoints[d], x[:, d], side="right") - 1, 0,
+                        grid.breakpoints[d].size - 2)
+            cells = cells * grid.breakpoints[d].size + e
+        x = x[np.argsort(cells, kind="stable")]
+    else:
+        x = x[rng.permutation(n)]
+    V = 0.5 + rng.random(n)
+    return SimpleNamespace(n=n, dim=dim, x=x, v=rng.standard_normal((n, dim)),
+                           u=rng.standard_normal((n, dim)), m=1.0 + rng.random(n), V=V,
+                           stress=rng.standard_normal((n, dim, dim)))
+
+
+def expected_flags(grid, ref):
+    """First non-finite particle, first outside the grid, first with J <= 0."""
+    lo = np.array([b[0] for b in grid.bounds])
+    hi = np.array([b[1] for b in grid.bounds])
+    bad = ~(np.isfinite(ref["x"]).all(axis=1) & np.isfinite(ref["v"]).all(axis=1))
+    out = ((ref["x"] < lo) | (ref["x"] > hi)).any(axis=1)
+    return [int(np.flatnonzero(f)[0]) if f.any() else -1 for f in (bad, out, ref["J"] <= 0)]
+
+
+def new_state(p):
+    return SimpleNamespace(x=np.empty_like(p.x), v=np.empty_like(p.v), u=np.empty_like(p.u),
+                           m=p.m, V=np.empty_like(p.V), stress=np.empty_like(p.stress))
+
+
+def close(a, b, tol=TOL):
+    scale = max(np.abs(a).max(), 1e-300)
+    return np.abs(a - b).max() <= tol * scale
+
+
+def breakpoints(kind, dim, cells, rng):
+    axes = []
+    for d in range(dim):
+        if kind == "uniform":
+            axes.append(np.linspace(-0.3, 0.9 + 0.1 * d, cells + 1))
+        else:
+            axes.append(np.concatenate(([0.0], np.cumsum(0.5 + rng.random(cells)))))
+    return axes
+
+
+GRIDS = [(dim, p, kind) for dim in (1, 2, 3) for p in (1, 2, 3)
+         for kind in ("uniform", "nonuniform")]
+
+
+def make(dim, p, kind, seed=0):
+    rng = np.random.default_rng(seed + 100 * dim + 10 * p)
+    cells = (11, 9, 8)[dim - 1]  # interior cells exist for p = 3 (p <= e < cells - p)
+    return tensor_grid(breakpoints(kind, dim, cells, rng), p), rng
+
+
+@pytest.mark.parametrize("dim,p,kind", GRIDS)
+def test_transfers_match_the_transfer_matrices(dim, p, kind):
+    """p2g, g2p2g and g2p against N and grad N of the tensor products of
+    the 1D B-splines, in any order of the particles, on three thread blocks
+    (overlapping node ranges), twice (the copies are cleared in between)."""
+    grid, rng = make(dim, p, kind)
+    t = Transfers(grid, nthreads=3)
+    n = (400, 600, 800)[dim - 1]
+    for order in ("cells", "random"):
+        p_ = particles(grid, n, rng, order)
+        fext = rng.standard_normal((n, dim))
+        for forces in (fext, None):
+            got = t.p2g(p_, forces)
+            for a, b in zip(reference_p2g(grid, p_, forces), got):
+                assert close(a, b)
+        ga = rng.standard_normal((grid.ndofs, dim))
+        gv = rng.standard_normal((grid.ndofs, dim))
+        dt = 1e-3
+        v_new = np.empty_like(p_.v)
+        momentum = t.g2p2g(p_, ga, dt, v_new)
+        N, _ = reference_matrices(grid, p_.x)
+        v_ref = p_.v + dt * (N @ ga)
+        assert close(v_ref, v_new)
+        assert close(N.T @ (p_.m[:, None] * v_ref), momentum)
+        lame = (2.0, 0.0) if dim == 1 else (1.5, 0.7)
+        ref = reference_g2p(grid, p_, ga, gv, dt, 0.5, lame)
+        new = new_state(p_)
+        L = np.empty((n, dim, dim))
+        acc = np.empty((n, dim))
+        flags = t.g2p(p_, ga, gv, dt, 0.5, True, new, L, acc, lame=lame)
+        for k in ("x", "v", "u", "stress", "V"):
+            assert close(ref[k], getattr(new, k)), k
+        assert close(ref["acc"], acc)
+        # L stored (not fused), v^new given
+        new.v[:] = 7.0
+        t.g2p(p_, ga, gv, dt, 0.5, False, new, L)
+        assert close(ref["L"], L)
+        assert np.all(new.v == 7.0)
+        assert flags == expected_flags(grid, ref)
+
+
+def test_the_reference_is_the_2d_spline_space():
+    """The tensor-product reference above equals the transfer matrices of a
+    2D SplineGrid (scikit-fem's element and dofs)."""
+    rng = np.random.default_rng(3)
+    for kind in ("uniform", "nonuniform"):
+        axes = breakpoints(kind, 2, 6, rng)
+        grid2 = SplineGrid(tuple(axes), 2)
+        grid = tensor_grid(axes, 2)
+        x = particles(grid, 200, rng, "random").x
+        N, G = transfer_matrices(grid2, x)
+        Nt, Gt = reference_matrices(grid, x)
+        assert abs(N - Nt).max() < 1e-14
+        for a, b in zip(G, Gt):
+            assert abs(a - b).max() < 1e-12 * abs(a).max()
+
+
+@pytest.mark.parametrize("dim", (1, 2, 3))
+def test_flags_name_the_first_bad_particle_of_each_kind(dim):
+    """A NaN velocity, particles moved out of the grid and a compression
+    to J <= 0 are each reported at their first particle."""
+    grid, rng = make(dim, 2, "uniform")
+    n = 300
+    p_ = particles(grid, n, rng, "random")
+    t = Transfers(grid, nthreads=2)
+    ga = np.zeros((grid.ndofs, dim))
+    p_.v[:] = 0.0
+    p_.v[n - 40] = np.nan
+    index = np.arange(grid.ndofs) % grid.basis_per_axis[0]  # node index along axis 0
+    cases = (np.zeros((grid.ndofs, dim)),                      # only the NaN
+             np.ones((grid.ndofs, dim)),                       # everything moves by dt
+             -np.outer(index, np.ones(dim)) / grid.lines[0].h[0])  # dv_x/dx ~ -1 / h^2
+    seen = set()
+    for gv in cases:
+        for dt in (0.05, 1.0):
+            ref = reference_g2p(grid, p_, ga, gv, dt, 1.0, None)
+            expected = expected_flags(grid, ref)
+            new = new_state(p_)
+            assert t.g2p(p_, ga, gv, dt, 1.0, True, new, np.empty((n, dim, dim))) == expected
+            seen.update(k for k, f in enumerate(expected) if f >= 0)
+    assert seen == {0, 1, 2}
+
+
+# ------------------------------------------------ the executor's binding
+@pytest.mark.parametrize("dim", (1, 2, 3))
+def test_executor_kernels_run_the_generated_transfers(dim):
+    """kernels.mpm.Kernels (what the compiled executor calls) on the
+    generated transfers: p2g, g2p2g and g2p with the fused linear elastic
+    update (1D: sigma += E dt L; else the Lame parameters) and the kept
+    acceleration, against the transfer matrices, in 1D, 2D and 3D."""
+    grid, rng = make(dim, 2, "nonuniform", seed=5)
+    k = mpm.Kernels(grid)
+    n = 300
+    p_ = particles(grid, n, rng, "cells")
+    fext = rng.standard_normal((n, dim))
+    for a, b in zip(reference_p2g(grid, p_, fext), k.p2g(p_, fext)):
+        assert close(a, b)
+    ga = rng.standard_normal((grid.ndofs, dim))
+    gv = rng.standard_normal((grid.ndofs, dim))
+    v_new = np.empty_like(p_.v)
+    N, _ = reference_matrices(grid, p_.x)
+    momentum = k.g2p2g(p_, ga, 1e-3, v_new)
+    assert close(N.T @ (p_.m[:, None] * (p_.v + 1e-3 * (N @ ga))), momentum)
+    material = SimpleNamespace(E=3.0, lam=1.5, mu=0.7)
+    lame = (material.E, 0.0) if dim == 1 else (material.lam, material.mu)
+    ref = reference_g2p(grid, p_, ga, gv, 1e-3, 0.5, lame)
+    new, acc = new_state(p_), np.empty((n, dim))
+    flags = k.g2p(p_, ga, gv, 1e-3, 0.5, True, True, material, new, np.empty((1, 1, 1)), acc)
+    assert flags == expected_flags(grid, ref)
+    for name in ("x", "v", "u", "stress", "V"):
+        assert close(ref[name], getattr(new, name)), name
+    assert close(ref["acc"], acc)
