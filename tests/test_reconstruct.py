@@ -193,12 +193,18 @@ def test_grid_knots_lift_the_four_ppc_cap():
 
 @pytest.mark.slow
 def test_spline_reconstruction_converges_under_large_deformation():
-    # S4 with G = 0.05, cubic, 4 ppc: measured orders 3.0, 3.0, 3.0
+    """S4 with G = 0.05, cubic, 4 ppc, rk4 at the default cfl: measured
+    1.0e-6, 1.2e-7, 1.4e-8 at 16, 32, 64 cells (orders 3.1, 3.1). With CD the
+    same runs give 1.5e-4, 4.7e-5, 1.7e-5, 6.6e-6 at 16-128 cells (orders
+    1.7, 1.5, 1.3; 1.3, 1.2 at cfl 0.125): CD's own error dominates once the
+    fast-dof guard no longer lumps the filled grid's boundary rows (before,
+    1.8e-2, 2.2e-3, ... converged at order 3 from 100x higher)."""
     b = get_benchmark("neo-hookean-bar", "large")
-    cells = [16, 32, 64, 128]
-    errors = [b.errors(simulate(b.scene(n, 3, 4), Method(mass="consistent", scheme="cd",
+    cells = [16, 32, 64]
+    errors = [b.errors(simulate(b.scene(n, 3, 4), Method(mass="consistent", scheme="rk4",
                                                            reconstruction="spline")))["error_rms"]
               for n in cells]
+    assert errors[0] < 2e-6
     assert_order(errors, 1.0 / np.array(cells), expected=2.8, tol=0.0)
 
 
