@@ -300,6 +300,9 @@ def fem(scene, method=None, save_every=None, progress=False):
     method = Method() if method is None else method
     if not isinstance(method, Method):
         raise ValueError(f"method must be a Method, got {method!r}")
+    if method.mass == "hybrid":
+        raise ValueError("fem: mass='hybrid' has no meaning here (FEM has no particle "
+                         "velocities to re-project); use mass='lumped' or 'consistent'")
     if save_every is not None and (isinstance(save_every, bool) or int(save_every) != save_every
                                    or save_every < 1):
         raise ValueError(f"save_every must be a positive integer, got {save_every!r}")
