@@ -28,7 +28,7 @@ from concurrent.futures import Executor, ProcessPoolExecutor
 import numpy as np
 
 from .benchmarks import get_benchmark
-from .solve.method import MASSES, RECONSTRUCTIONS, SCHEMES, Method
+from .solve.method import HYBRID_SCHEMES, MASSES, RECONSTRUCTIONS, SCHEMES, Method
 from .solve.timing import PHASES
 from .testing import observed_orders
 
@@ -38,10 +38,14 @@ __all__ = ["parse_method", "run_one", "convergence", "work_precision", "write_re
 
 QUICK_METHODS = ("mpm-p1-lumped", "mpm-p2-lumped", "mpm-p2-consistent", "mpm-p3-consistent",
                  "mpm-p2-consistent-spline", "mpm-p3-consistent-spline", "fem-p2-consistent")
+FEM_MASSES = tuple(m for m in MASSES if m != "hybrid")  # fem has no re-projection
+# hybrid mass is MUSL only: its names carry the scheme, whatever the study's default
+_SUFFIX = {"hybrid": "-musl"}
 FULL_METHODS = tuple(
-    [f"mpm-p1-{m}" for m in MASSES]
-    + [f"mpm-p{p}-{m}-{r}" for p in (2, 3) for m in MASSES for r in RECONSTRUCTIONS]
-    + [f"fem-p{p}-{m}" for p in (1, 2, 3) for m in MASSES])
+    [f"mpm-p1-{m}{_SUFFIX.get(m, '')}" for m in MASSES]
+    + [f"mpm-p{p}-{m}-{r}{_SUFFIX.get(m, '')}" for p in (2, 3) for m in MASSES
+       for r in RECONSTRUCTIONS]
+    + [f"fem-p{p}-{m}" for p in (1, 2, 3) for m in FEM_MASSES])
 
 FIELDS = ("benchmark", "variant", "method", "kind", "degree", "mass", "reconstruction", "scheme",
           "cells", "h", "ppc", "dofs", "particles", "steps", "dt", "error", "error_measure",
@@ -81,6 +85,11 @@ def parse_method(name, scheme="musl", cfl=0.5):
         raise ValueError(f"fem methods have no scheme 'rk4' yet (method {name!r}; the study's "
                          f"default scheme is {scheme!r}): name the fem method's scheme, "
                          f"e.g. {'-'.join(parts[:3])}-cd")
+    if spec["mass"] == "hybrid" and (spec["kind"] == "fem"
+                                     or spec["scheme"] not in HYBRID_SCHEMES):
+        raise ValueError(f"hybrid mass is an MPM method with scheme one of {HYBRID_SCHEMES} "
+                         f"(e.g. mpm-p2-hybrid-spline-musl), got {name!r} with scheme "
+                         f"{spec['scheme']!r}")
     return spec
 
 

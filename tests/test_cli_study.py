@@ -48,7 +48,7 @@ def test_run_help_lists_choices_and_defaults_as_the_api(capsys):
     with pytest.raises(SystemExit):
         main(["run", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "{lumped,consistent}" in text and "{musl,usl,usf,cd,rk4}" in text
+    assert "{lumped,consistent,hybrid}" in text and "{musl,usl,usf,cd,rk4}" in text
     assert f"mass matrix (default: {Method().mass}, as Method())" in text
     assert f"time-stepping scheme (default: {Method().scheme})" in text
 

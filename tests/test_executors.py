@@ -6,9 +6,10 @@ kernels) run it. They must agree on every combination of scheme x mass x
 degree x dimension x material x effect: the default tier runs a
 pairwise-covering set (every pair of option values in at least one case),
 the slow tier the full product. Tolerances: 1e-12 relative with lumped
-mass; with consistent mass the compiled executor solves by conjugate
-gradients to rtol 1e-13 against the reference's sparse LU, so the bound is
-1e-9 relative.
+mass; with consistent (and hybrid) mass the compiled executor solves by
+conjugate gradients to rtol 1e-13 against the reference's sparse LU, so
+the bound is 1e-9 relative. Hybrid mass (MUSL only) has its own covering
+list, ``HYBRID``.
 
 Tiers: pairwise (default), every triple of option values (``slow``, about
 100 cases), the full product of 648 cases (``exhaustive``: run it with
@@ -180,6 +181,25 @@ def test_the_covering_sets_cover_every_combination(strength):
 
 @pytest.mark.parametrize("case", PAIRWISE, ids=_id)
 def test_executors_agree_pairwise(case):
+    check_agreement(case)
+
+
+# hybrid mass exists for MUSL only: every degree, material and effect in
+# each dimension (lumped acceleration, consistent velocity re-projection)
+HYBRID = [dict(scheme="musl", mass="hybrid", degree=degree, dim=dim, material=material,
+               effect=effect)
+          for dim, cases in ((1, ((2, "linear", "none"), (3, "neo-hookean", "gravity"),
+                                  (1, "custom", "prescribed"), (2, "custom-compiled", "damping"),
+                                  (3, "linear", "traction"), (2, "linear", "body-force"))),
+                             (2, ((2, "linear", "gravity"), (3, "neo-hookean", "damping"),
+                                  (1, "custom-compiled", "prescribed"),
+                                  (2, "custom", "traction"), (3, "linear", "none"),
+                                  (2, "linear", "body-force"))))
+          for degree, material, effect in cases]
+
+
+@pytest.mark.parametrize("case", HYBRID, ids=_id)
+def test_executors_agree_with_hybrid_mass(case):
     check_agreement(case)
 
 

@@ -121,7 +121,8 @@ def test_bad_simulate_arguments():
         simulate(scene, callback=3)
 
 
-@pytest.mark.parametrize("scheme, mass", [("musl", "consistent"), ("cd", "lumped")])
+@pytest.mark.parametrize("scheme, mass", [("musl", "consistent"), ("cd", "lumped"),
+                                          ("musl", "hybrid")])
 def test_restart_from_checkpoint_is_bit_for_bit(tmp_path, scheme, mass):
     b = get_benchmark("soil-column", "small")
     scene = b.scene(8, 2, 2)

@@ -21,7 +21,9 @@ this executor fuses them into few kernels:
 Consistent mass: a kernel assembles M into a fixed stencil pattern (and the
 per-dof stiffness weights of the fast-dof guard); :class:`StencilSystem`
 solves it by conjugate gradients, or the grid system of
-:mod:`skfem_mpm.solve.grid_system` by sparse LU.
+:mod:`skfem_mpm.solve.grid_system` by sparse LU. Hybrid mass: the same
+system solves the velocities (no fast-dof guard), the lumped solve the
+acceleration.
 
 Gravity costs one grid operation (g times the nodal mass); other particle
 forces enter the p2g kernel as one array. The kernels write the new state
@@ -70,6 +72,8 @@ class CompiledGrid:
         self.work_forces = work_forces  # particle forces whose work is counted
         self.grid_force = grid_force    # grid force of side tractions
         self.system = None              # the consistent-mass system
+        self.hybrid = False             # the acceleration is solved with lumped mass
+        self.lumped_small = 0           # hybrid: tiny-mass dofs of the lumped solve
         self.small = 0                  # tiny-mass dofs (the general solve merges them)
         self.gravity = None             # gravity still to add as an acceleration
         self.prepared = False
@@ -242,18 +246,19 @@ class CompiledExecutor:
             self._L = np.empty((p.n, p.dim, p.dim)) if not self.fused else np.empty((1, 1, 1))
         return self._acc, self._L
 
-    def _consistent_system(self, state, mass, stencil, K):
+    def _consistent_system(self, state, mass, stencil, K, small):
         """The step's consistent-mass system: compiled stencil CG, or the
         general grid system (sparse LU with ``mass_solver="direct"``, and
-        whenever tiny-mass dofs must be merged)."""
-        guard = state.method.frequency_guard
+        whenever tiny-mass dofs must be merged); ``small`` counts the
+        tiny-mass dofs. No fast-dof guard for hybrid mass (it guards a
+        consistent-mass acceleration)."""
+        guard = 0.0 if state.method.mass == "hybrid" else state.method.frequency_guard
         limit = None
         if guard > 0:
             limit = guard * fast_dof_limit(state.grid.degree, state.method.scheme) / (state.dt * state.wave_speed_now) ** 2
             centre = (stencil.shape[1] - 1) // 2
             K = np.multiply(K, state.guard_weights(mass, stencil[:, centre]),
                             out=self.kernels.scratch("guard_K", K.size))
-        small = self._small_dofs(state, mass)
         fast_rows = None if limit is None else (
             lambda diag: lumping_fraction(K / (limit * np.maximum(diag, 1e-300))))
         if self._use_cg(state) and not small:
@@ -276,7 +281,7 @@ class CompiledExecutor:
         with state.timer("p2g"):
             mass, momentum, force = k.p2g(p, fext)
         stencil = None
-        if state.method.mass == "consistent":
+        if state.method.needs_consistent_mass:
             with state.timer("mass_matrix"):
                 stencil = k.consistent_stencil(p)
         return CompiledGrid(mass, momentum, force, stencil, work_forces, grid_force)
@@ -293,8 +298,11 @@ class CompiledExecutor:
             if grid.grid_force is not None:
                 grid.force += grid.grid_force
             if grid.stencil is not None:
-                grid.system = self._consistent_system(state, grid.mass, *grid.stencil)
+                small = self._small_dofs(state, grid.mass)
+                grid.system = self._consistent_system(state, grid.mass, *grid.stencil, small)
                 grid.small = True  # solves go through the system
+                grid.hybrid = state.method.mass == "hybrid"
+                grid.lumped_small = small
                 if gravity is not None:
                     grid.force += grid.mass[:, None] * gravity[None, :]
                     gravity = None
@@ -309,6 +317,8 @@ class CompiledExecutor:
         self._prepare(state, grid)
         k, c, dt = self.kernels, state.constraints, state.dt
         system, mass, small = grid.system, grid.mass, grid.small
+        # the acceleration's system and tiny-mass count (hybrid: lumped)
+        a_system, a_small = (None, grid.lumped_small) if grid.hybrid else (system, small)
         momentum, force, gravity = grid.momentum, grid.force, grid.gravity
         with state.timer("solve"):
             t_values = c.values(state.t) if c.prescribed else None
@@ -331,7 +341,7 @@ class CompiledExecutor:
                            else gravity, c.mask, t_values, a_values, factor * dt,
                            self._a, self._v_new)
                 a, v_grid = self._a, self._v_new
-            elif factor is not None and system is not None and v_old is None:
+            elif factor is not None and a_system is not None and v_old is None:
                 a, v_old = self._consistent_solves(
                     state, system, mass, [(force, a_values, "acceleration"),
                                           (momentum, t_values, "velocity")],
@@ -341,8 +351,8 @@ class CompiledExecutor:
                 v_grid += v_old
                 system.remember("velocity", v_grid)  # see steps.remember_end_velocity
             else:
-                a = self._grid_solve(state, system, mass, force, a_values, "acceleration",
-                                     self._a, small, gravity)
+                a = self._grid_solve(state, a_system, mass, force, a_values, "acceleration",
+                                     self._a, a_small, gravity)
                 if factor is not None:
                     if v_old is None:
                         v_old = self._grid_solve(state, system, mass, momentum, t_values,
@@ -353,8 +363,8 @@ class CompiledExecutor:
                     if system is not None:
                         system.remember("velocity", v_grid)
             if c.any:
-                if system is not None:
-                    state.reactions = c.reactions(system.residual(a, force))
+                if a_system is not None:
+                    state.reactions = c.reactions(a_system.residual(a, force))
                 else:
                     state.defer_reactions(c, mass, a, force, gravity)
         grid.force, grid.gravity = force, gravity

@@ -304,6 +304,9 @@ def fem(scene, method=None, save_every=None, progress=False):
         raise ValueError("fem integrates in time with the explicit symplectic step (scheme "
                          "'musl', 'usl', 'usf' or 'cd'; 'cd' starts with a half step); "
                          "scheme 'rk4' is not available in fem yet")
+    if method.mass == "hybrid":
+        raise ValueError("fem: mass='hybrid' has no meaning here (FEM has no particle "
+                         "velocities to re-project); use mass='lumped' or 'consistent'")
     if save_every is not None and (isinstance(save_every, bool) or int(save_every) != save_every
                                    or save_every < 1):
         raise ValueError(f"save_every must be a positive integer, got {save_every!r}")

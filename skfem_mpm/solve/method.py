@@ -5,10 +5,11 @@ import numpy as np
 
 from ..validation import check_choice, check_positive
 
-__all__ = ["Method", "SCHEMES", "MASSES", "RECONSTRUCTIONS"]
+__all__ = ["Method", "SCHEMES", "MASSES", "HYBRID_SCHEMES", "RECONSTRUCTIONS"]
 
 SCHEMES = ("musl", "usl", "usf", "cd", "rk4")
-MASSES = ("lumped", "consistent")
+MASSES = ("lumped", "consistent", "hybrid")
+HYBRID_SCHEMES = ("musl",)  # the schemes that re-project the velocity
 RECONSTRUCTIONS = ("none", "spline", "tls", "mls")
 ON_EXIT = ("raise", "remove")
 MASS_SOLVERS = ("auto", "direct", "cg")
@@ -31,7 +32,17 @@ class Method:
         and ``cfl`` is a fraction of that; needs materials that can be
         staged, see :mod:`skfem_mpm.solve.runge_kutta`).
     mass
-        ``"lumped"`` (row sums) or ``"consistent"`` (sparse solve).
+        ``"lumped"`` (row sums), ``"consistent"`` (sparse solve) or
+        ``"hybrid"``: the lumped mass for the acceleration, m_i a_i = f_i,
+        and the consistent mass for the velocity solves, M v = N^T (m v_p)
+        (the MUSL re-projection of the updated particle velocities and,
+        with damping, v^n): the seed author's MUSL (Tielen 2016,
+        ``Vib_bar_Bspline.m``). With a reconstruction both masses come from
+        the reconstructed density integrated by Gauss quadrature. Only
+        ``scheme="musl"`` re-projects the velocity, so any other scheme with
+        ``"hybrid"`` raises ``ValueError``. The critical time step is the
+        lumped one (the acceleration's mass); ``frequency_guard`` does not
+        apply (it protects a consistent-mass acceleration).
     reconstruction
         ``"none"`` (particles are the quadrature points), ``"spline"``,
         ``"tls"``, ``"mls"`` (see :mod:`skfem_mpm.reconstruct`), or a callable
@@ -51,7 +62,7 @@ class Method:
         Relative threshold of the tiny-mass guard (see
         :mod:`skfem_mpm.solve.grid_system`); 0 disables it.
     frequency_guard
-        Consistent mass only: the rows of dofs whose own frequency would
+        Consistent mass only (not ``"hybrid"``): the rows of dofs whose own frequency would
         outgrow the time step (a function seen only at the tail of its
         support) are lumped; the factor scales the limit, 0 disables it
         (see :mod:`skfem_mpm.solve.grid_system`).
@@ -73,6 +84,12 @@ class Method:
                  mass_solver="auto", backend=None, reconstruction_options=None):
         self.scheme = check_choice("scheme", scheme, SCHEMES)
         self.mass = check_choice("mass", mass, MASSES)
+        if self.mass == "hybrid" and self.scheme not in HYBRID_SCHEMES:
+            raise ValueError(
+                f"mass='hybrid' (lumped mass for the acceleration, consistent mass for the "
+                f"re-projection of the updated particle velocities) needs a scheme that "
+                f"re-projects the velocity, one of {HYBRID_SCHEMES}; scheme={self.scheme!r} "
+                f"has no re-projection: use scheme='musl' or mass='lumped' or 'consistent'")
         if not callable(reconstruction):
             check_choice("reconstruction", reconstruction, RECONSTRUCTIONS)
         self.reconstruction = reconstruction
@@ -95,6 +112,17 @@ class Method:
             check_choice("backend", backend, ("numba", "numpy"))
         self.backend = backend
         self.reconstruction_options = dict(reconstruction_options or {})
+
+    @property
+    def needs_consistent_mass(self):
+        """True when some grid solve uses the consistent mass matrix."""
+        return self.mass in ("consistent", "hybrid")
+
+    @property
+    def acceleration_mass(self):
+        """The mass of the acceleration solve, ``"lumped"`` or
+        ``"consistent"`` (it sets the critical time step)."""
+        return "lumped" if self.mass == "hybrid" else self.mass
 
     @property
     def reconstruction_name(self):

@@ -99,7 +99,8 @@ class GridData:
         self.momentum = momentum
         self.force = force
         self.external = external
-        self.system = system
+        self.system = system       # the step's grid system (hybrid: the acceleration's)
+        self.velocity_system = None  # hybrid: the consistent system of the velocity solves
         self.acceleration = None
         self.velocity = None       # grid velocity used to move the particles
         self.velocity_old = None   # grid velocity from the particle momentum
@@ -197,7 +198,7 @@ def reconstructed_grid_data(state, transfer, particles=None, t=None):
         if surface_grid is not None:
             force += surface_grid
     consistent = None
-    if method.mass == "consistent":
+    if method.needs_consistent_mass:
         with state.timer("mass_matrix"):
             consistent = (NgT @ Ng.multiply((w * rho_g)[:, None]).tocsr()).tocsr()
 
@@ -244,7 +245,7 @@ def particles_to_grid(state, particles=None, t=None):
         if external_grid is not None:
             force += external_grid
     consistent = None
-    if state.method.mass == "consistent":
+    if state.method.needs_consistent_mass:
         with state.timer("mass_matrix"):
             consistent = transfer.consistent_mass(p.m)
     external = volume if surface is None else (surface if volume is None else volume + surface)
@@ -253,14 +254,26 @@ def particles_to_grid(state, particles=None, t=None):
     return data
 
 
-def step_system(state, data):
-    """The grid system of this step's mass (built once per GridData)."""
+def step_system(state, data, kind="acceleration"):
+    """The step's grid system for a solve of ``kind`` (built once per
+    GridData): one system for every solve, except with ``mass="hybrid"``: a
+    lumped one for the acceleration (``data.system``) and a consistent one
+    for the velocity (``data.velocity_system``, no frequency guard: it
+    guards a consistent-mass acceleration)."""
     from .grid_system import GridSystem
 
+    hybrid = state.method.mass == "hybrid"
+    if hybrid and kind == "velocity":
+        if data.velocity_system is None:
+            data.velocity_system = GridSystem(data.lumped, state.constraints, data.consistent,
+                                              state.adjacency, state.method.small_mass,
+                                              state.mass_solver, state.warm)
+        return data.velocity_system
     if data.system is None:
+        consistent = None if hybrid else data.consistent
         fast_rows = None
         guard = state.method.frequency_guard
-        if data.consistent is not None and guard > 0:
+        if consistent is not None and guard > 0:
             limit = guard * fast_dof_limit(state.grid.degree, state.method.scheme) / (state.dt * state.wave_speed_now) ** 2
 
             def fast_rows(mass_diagonal):
@@ -268,7 +281,7 @@ def step_system(state, data):
                 k = data.stiffness_weights() * state.guard_weights(data.lumped, mass_diagonal)
                 return lumping_fraction(k / (limit * np.maximum(mass_diagonal, 1e-300)))
 
-        data.system = GridSystem(data.lumped, state.constraints, data.consistent,
+        data.system = GridSystem(data.lumped, state.constraints, consistent,
                                  state.adjacency, state.method.small_mass,
                                  state.mass_solver, state.warm, fast_rows=fast_rows)
     return data.system
@@ -277,7 +290,7 @@ def step_system(state, data):
 def grid_velocity(state, data, momentum, t):
     """v with M v = P, constrained dofs set to their velocity at time t."""
     with state.timer("solve"):
-        system = step_system(state, data)
+        system = step_system(state, data, "velocity")
         v = system.solve(momentum, state.constraints.values(t), "velocity")
         system.remember("velocity", v)
     return v
@@ -288,8 +301,9 @@ def remember_end_velocity(data):
     the next step's velocity solve (M v = P with the next step's particle
     momentum, which the particles carry from this v: a closer start than
     this step's v_old, which misses the whole change dt a)."""
-    if data.system is not None:
-        data.system.remember("velocity", data.velocity)
+    system = data.velocity_system or data.system
+    if system is not None:
+        system.remember("velocity", data.velocity)
 
 
 def solve_velocity(state, data):
@@ -347,8 +361,9 @@ def project_velocity(state, data):
     the updated particle velocities (or their reconstructed momentum)."""
     with state.timer("p2g"):
         momentum = data.project_momentum(state.particles, data.new["v"])
-    if data.system is not None:  # CG warm start: last step's v plus this step's dt a
-        data.system.shift_guess("velocity", state.dt * data.acceleration)
+    system = data.velocity_system or data.system
+    if system is not None:  # CG warm start: last step's v plus this step's dt a
+        system.shift_guess("velocity", state.dt * data.acceleration)
     data.velocity = grid_velocity(state, data, momentum, state.t + state.dt)
 
 

@@ -11,7 +11,7 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
     allocated); with ``fast``, also the constitutive kernel and the point
     laws of ``materials`` that have one. With a ``method``, only what its
     run calls: the consistent-mass assembly and CG (the largest share of
-    the compile time) only for consistent mass, the MUSL re-projection only
+    the compile time) only for consistent or hybrid mass, the MUSL re-projection only
     for MUSL, the one-pass USL grid step only for USL and CD, the tiny-mass
     scan only when the merge is on."""
     if not hasattr(grid, "breakpoints"):
@@ -42,7 +42,7 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
     def needs(what):
         if method is None:
             return True
-        return {"consistent": method.mass == "consistent",
+        return {"consistent": method.needs_consistent_mass,  # hybrid: velocity solves
                 "musl": method.scheme == "musl",
                 "usl_grid": method.scheme in ("usl", "cd"),
                 "small_mass": method.small_mass > 0}[what]
