@@ -17,13 +17,19 @@ by default a local process pool with one worker per core, each worker held to
 one thread (numba and BLAS), so timed runs never share a core. A
 ``dask.distributed.Client`` is accepted too (its workers should also run one
 thread each). Every run compiles (or loads) its kernels before the clock
-starts; the compile time is reported separately as ``jit_time_s``.
+starts; the compile time is reported separately as ``jit_time_s``. On a
+pool the coarsest run of each kernel set (kind, degree, mass, scheme) goes
+first, alone in its worker, the other runs once those are done: each set
+compiles once and different sets compile side by side, instead of every
+worker compiling the same kernels at the same time (the later runs load
+them from numba's cache).
 """
 import csv
 import math
 import multiprocessing
 import os
 from concurrent.futures import Executor, ProcessPoolExecutor
+from itertools import zip_longest
 
 import numpy as np
 
@@ -178,15 +184,47 @@ def convergence(benchmark, methods, cells, ppc=2, variant=None, params=None, exe
     if executor == "serial":
         records = [run_one(job) for job in _progress(jobs, progress)]
     else:
+        first, rest = compile_first(jobs)
         pool, owned = _executor(executor)
+        bar = _bar(len(jobs), progress)
         try:
-            futures = [pool.submit(run_one, job) for job in jobs]
-            records = [f.result() for f in _progress(futures, progress)]
+            done = {}
+            for batch in (first, rest):
+                futures = [(i, pool.submit(run_one, jobs[i])) for i in batch]
+                for i, f in futures:
+                    done[i] = f.result()
+                    if bar is not None:
+                        bar.update()
+            records = [done[i] for i in range(len(jobs))]
         finally:
+            if bar is not None:
+                bar.close()
             if owned:
                 pool.shutdown()
     _add_orders(records)
     return records
+
+
+def _kernel_set(spec):
+    """What decides which kernels a run compiles."""
+    return (spec["kind"], spec["degree"], spec["mass"], spec["scheme"], spec["reconstruction"])
+
+
+def compile_first(jobs):
+    """(first, rest): indices of the coarsest job of each kernel set, those
+    needing the consistent-mass machinery (the longest compile) alternating
+    with lumped ones, and of the other jobs."""
+    first = {}
+    for i, job in enumerate(jobs):
+        key = _kernel_set(job["method"])
+        if key not in first or job["cells"] < jobs[first[key]]["cells"]:
+            first[key] = i
+    heavy = [i for i in sorted(first.values()) if jobs[i]["method"]["mass"] != "lumped"]
+    light = [i for i in sorted(first.values()) if jobs[i]["method"]["mass"] == "lumped"]
+    # alternate, so that two workers starting together share few kernels
+    order = [i for pair in zip_longest(heavy, light) for i in pair if i is not None]
+    chosen = set(order)
+    return order, [i for i in range(len(jobs)) if i not in chosen]
 
 
 def work_precision(benchmark, methods, cells, **kwargs):
@@ -204,6 +242,17 @@ def _progress(items, enabled):
     from tqdm import tqdm
 
     return tqdm(items, unit="run", disable=not sys.stderr.isatty(), leave=False)
+
+
+def _bar(total, enabled):
+    """A progress bar over ``total`` runs (None when not shown)."""
+    if not enabled:
+        return None
+    import sys
+
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="run", disable=not sys.stderr.isatty(), leave=False)
 
 
 def _add_orders(records):

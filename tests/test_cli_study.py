@@ -5,7 +5,7 @@ import json
 import pytest
 
 from skfem_mpm.cli import main
-from skfem_mpm.study import convergence, parse_method
+from skfem_mpm.study import compile_first, convergence, parse_method
 
 
 def test_list(capsys):
@@ -112,6 +112,20 @@ def test_default_process_pool_and_orders():
     records = convergence("vibrating-string", ["mpm-p1-lumped"], [8, 16], ppc=2,
                           params={"L": 1.0})
     assert records[1]["order"] > 1.8 and records[0]["jit_time_s"] >= 0
+
+
+def test_each_kernel_set_compiles_first_once():
+    """The coarsest run of every kernel set goes first (consistent-mass sets
+    alternating with lumped ones), every other run after: each job once."""
+    names = ["mpm-p1-lumped", "mpm-p2-consistent", "mpm-p2-lumped", "mpm-p3-consistent",
+             "mpm-p2-consistent-spline", "fem-p2-consistent"]
+    jobs = [{"method": parse_method(m), "cells": n} for m in names for n in (32, 8, 16)]
+    first, rest = compile_first(jobs)
+    assert sorted(first + rest) == list(range(len(jobs)))
+    assert [jobs[i]["method"]["name"] for i in first] == [
+        "mpm-p2-consistent", "mpm-p1-lumped", "mpm-p3-consistent", "mpm-p2-lumped",
+        "mpm-p2-consistent-spline", "fem-p2-consistent"]
+    assert all(jobs[i]["cells"] == 8 for i in first)
 
 
 def test_dask_local_cluster():

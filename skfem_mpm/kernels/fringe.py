@@ -134,14 +134,6 @@ class FringeFactor:
                 self.perm_r, self.perm_c, np.empty((nf, nc)), np.empty((nf, nc)),
                 np.empty((2, nf, (nc + 1) // 2)))
 
-    @staticmethod
-    def no_args():
-        """Arguments of the same types for a CG run without the correction."""
-        index, values = np.zeros(0, dtype=np.int64), np.zeros(0)
-        csc = (np.zeros(1, dtype=np.int64), index, values)
-        return ((index, index) + csc + csc + (values, index, index)
-                + (np.zeros((0, 1)), np.zeros((0, 1)), np.zeros((2, 0, 1))))
-
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _column_update(y, j, lo, hi, rows, values):

@@ -839,12 +839,15 @@ def _dots(r, z, partial):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def _precondition(A, cols, r, z, t, inv_diag, mode, kron, fringe):
-    """z = P^-1 r: mode 0 the inverse lumped mass, 1 Kronecker, 2 Kronecker
-    with the fringe correction (``t`` work space)."""
-    if mode == 2:
+def _precondition(A, cols, r, z, t, inv_diag, kron, fringe):
+    """z = P^-1 r: the Kronecker preconditioner with the fringe correction
+    when ``fringe`` is given, the Kronecker one when only ``kron`` is, else
+    the inverse lumped mass (``t`` work space). ``kron`` and ``fringe`` are
+    None or argument tuples: numba prunes the branches of None arguments
+    before typing, so a run compiles only the preconditioner it uses."""
+    if fringe is not None:
         apply_corrected(A, cols, *kron, *fringe, r, z, t)
-    elif mode == 1:
+    elif kron is not None:
         apply_kronecker(*kron, r, z)
     else:
         for i in range(r.shape[0]):
@@ -874,7 +877,7 @@ def _narrow(a, n):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def ell_pcg(A, cols, inv_diag, mode, kron, fringe, b, x, problem, rtol, maxiter, nt, work):
+def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, work):
     """Preconditioned conjugate gradients for A x = b (all columns at once,
     each with its own scalars), started from x.
 
@@ -886,11 +889,13 @@ def ell_pcg(A, cols, inv_diag, mode, kron, fringe, b, x, problem, rtol, maxiter,
     by the warm start take no iteration; a problem whose right-hand side is
     zero gets x = 0. Converged columns leave the iteration: the others are
     packed to the front of the work arrays, so the late iterations of a few
-    slow columns cost only their share. The preconditioner (``mode``) is 0
-    the inverse lumped mass ``inv_diag``, 1 the Kronecker one of
+    slow columns cost only their share. The preconditioner: the inverse
+    lumped mass ``inv_diag`` when ``kron`` is None, else the Kronecker one of
     :mod:`skfem_mpm.kernels.kronecker` (``kron``: the arguments of
-    ``apply_kronecker`` before r, z), 2 that with the fringe correction of
-    :mod:`skfem_mpm.kernels.fringe` (``fringe``: ``FringeFactor.args``).
+    ``apply_kronecker`` before r, z), with the fringe correction of
+    :mod:`skfem_mpm.kernels.fringe` unless ``fringe`` is None (else
+    ``FringeFactor.args``). Each combination compiles separately, and only
+    when used (see ``_precondition``).
     ``work`` holds six arrays shaped like b. Returns the iterations, negated
     when a column ended above its tolerance (the iteration limit, or a
     breakdown: a preconditioner that is not positive definite)."""
@@ -922,6 +927,7 @@ def ell_pcg(A, cols, inv_diag, mode, kron, fringe, b, x, problem, rtol, maxiter,
         converged[c] = limit[c] == 0.0 or rr[c] <= limit[c]
         active[c] = not converged[c]
     columns = np.arange(nc)  # compact column j is column columns[j] of x
+    kron_now, fringe_now = kron, fringe  # their work space narrows with the columns
     xc = x
     packed = False  # xc is x until the first packing
     d = work[2]
@@ -956,11 +962,13 @@ def ell_pcg(A, cols, inv_diag, mode, kron, fringe, b, x, problem, rtol, maxiter,
             rz = rz[keep]
             beta = beta[keep]
             active = active[keep]
-            if mode > 0:  # the preconditioners' work space
-                kron = (kron[0], kron[1], kron[2], kron[3], _narrow(kron[4], n), kron[5])
-            if mode == 2:
-                fringe = fringe[:11] + (_narrow(fringe[11], n), _narrow(fringe[12], n),
-                                        _narrow(fringe[13], (n + 1) // 2))
+            if kron is not None:  # the preconditioners' work space
+                kron_now = (kron[0], kron[1], kron[2], kron[3], _narrow(kron_now[4], n),
+                            kron[5])
+            if fringe is not None:
+                fringe_now = fringe[:11] + (_narrow(fringe_now[11], n),
+                                            _narrow(fringe_now[12], n),
+                                            _narrow(fringe_now[13], (n + 1) // 2))
         if it >= maxiter:
             break
         width = n
@@ -970,7 +978,7 @@ def ell_pcg(A, cols, inv_diag, mode, kron, fringe, b, x, problem, rtol, maxiter,
         if first:  # z = P^-1 r, d = z
             first = False
             d = _narrow(work[2], width)
-            _precondition(A, cols, r, z, spare, inv_diag, mode, kron, fringe)
+            _precondition(A, cols, r, z, spare, inv_diag, kron_now, fringe_now)
             for j in range(width):
                 rz[j] = 0.0
             for i in range(nr):
@@ -991,9 +999,9 @@ def ell_pcg(A, cols, inv_diag, mode, kron, fringe, b, x, problem, rtol, maxiter,
             if dq <= 0.0:
                 active[j] = False
             alpha[j] = rz[j] / dq if active[j] else 0.0
-        _cg_update(xc, r, z, d, q, inv_diag, mode == 0, alpha, active, sums)
-        if mode > 0:  # z = P^-1 r and its r.z
-            _precondition(A, cols, r, z, spare, inv_diag, mode, kron, fringe)
+        _cg_update(xc, r, z, d, q, inv_diag, kron is None, alpha, active, sums)
+        if kron is not None:  # z = P^-1 r and its r.z
+            _precondition(A, cols, r, z, spare, inv_diag, kron_now, fringe_now)
             _dots(r, z, partial)
             sums[:, 0, :] = partial
         for j in range(width):

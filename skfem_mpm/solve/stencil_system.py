@@ -38,7 +38,7 @@ class StencilSystem:
     into a compact row-by-row (ELL) matrix. The preconditioner is the
     Kronecker one of :mod:`skfem_mpm.kernels.kronecker` (``"kronecker"``,
     default), with the fringe correction of :mod:`skfem_mpm.kernels.fringe`
-    on ``FRINGE_LAYERS`` layers of the free-dof set's edge once the
+    on ``FRINGE_LAYERS`` layers of the free-dof set's edge (2D) once the
     Kronecker step alone has needed ``FRINGE_FROM`` iterations (0 layers:
     never), or the inverse lumped mass (``"lumped"``).
     """
@@ -48,8 +48,6 @@ class StencilSystem:
     max_iterations = None  # per CG run; None: 10 x the free dofs + 100
     iteration_log = None  # a list: each CG run appends its iterations (benchmarks)
     LUMPED_ROW = 0.2
-    _no_kronecker = (np.ones((1, 1)), np.ones((1, 1)), np.zeros(1, dtype=np.int64), np.ones(1),
-                     np.zeros((1, 1, 1)), 1)
 
     def __init__(self, kernels, stencil, lumped, constraints, fast, warm, rtol=1e-13):
         self.k = kernels
@@ -87,6 +85,15 @@ class StencilSystem:
         self._stale_fringe = {}
         self.iterations = 0
 
+    @property
+    def fringe_layers(self):
+        """FRINGE_LAYERS on a 2D grid, none in 1D: there the Kronecker step
+        is the banded inverse of the axis mass up to the lumped rows, and CG
+        converges long before FRINGE_FROM iterations (at most 7 per run on
+        S1, S2 large and small, quadratic and cubic, consistent mass), so a
+        1D run never compiles the fringe solve."""
+        return self.FRINGE_LAYERS if self.geometry[-1] == 2 else 0
+
     def _compact(self, group, need_fixed=False):
         """The group's free-dof matrix (built once per step and pattern; its
         fixed-column part F only when ``need_fixed``: nonzero fixed values)."""
@@ -114,7 +121,7 @@ class StencilSystem:
                                  self.fast[rows] >= self.LUMPED_ROW, A[:, centre].copy(),
                                  previous=self.memo.get(f"kronecker{g}"))
             self.memo[f"kronecker{g}"] = kron
-            if self.FRINGE_LAYERS > 0 and (self.FRINGE_FROM <= 0
+            if self.fringe_layers > 0 and (self.FRINGE_FROM <= 0
                                            or f"fringe{g}_on" in self.warm):
                 fringe = self._fringe(g, rows, A, cols)
         built = group[3] = (A, cols, F, fcols, inv_diag, kron, fringe, need_fixed)
@@ -205,27 +212,27 @@ class StencilSystem:
             if rows.size:
                 before = self.iterations
                 nt = self.k.nthreads  # the run's fixed blocks (solve/threads.py)
-                mode = 0 if kron is None else 1 if fringe is None else 2
-                pre = kron.args(b.shape[1], nt) if kron is not None else self._no_kronecker
-                extra = fringe.args(b.shape[1]) if fringe is not None else FringeFactor.no_args()
+                pre = kron.args(b.shape[1], nt) if kron is not None else None
+                extra = fringe.args(b.shape[1]) if fringe is not None else None
                 work = self.k.scratch("cg", (6,) + b.shape)
                 limit = self.max_iterations or 10 * rows.size + 100
                 problem = np.repeat(np.arange(len(problems)), comps.size)
-                its = ell_pcg(A, cols, inv_diag, mode, pre, extra, b, x, problem, self.rtol,
+                its = ell_pcg(A, cols, inv_diag, pre, extra, b, x, problem, self.rtol,
                               limit, nt, work)
                 if its < 0 and fringe is not None and self._stale_fringe[g]:
                     # factors of an earlier step: retry with the current block's
                     self.warm.pop(f"fringe{g}_rows", None)
                     fringe = self._fringe(g, rows, A, cols)
                     group[3] = group[3][:6] + (fringe,) + group[3][7:]
-                    more = ell_pcg(A, cols, inv_diag, mode, pre, fringe.args(b.shape[1]), b, x,
+                    more = ell_pcg(A, cols, inv_diag, pre, fringe.args(b.shape[1]), b, x,
                                    problem, self.rtol, limit, nt, work)
                     its = -its + more if more > 0 else its - abs(more)
                 if its < 0:
                     raise InvalidState(f"consistent-mass CG stopped above its tolerance "
                                        f"{self.rtol:g} after {-its} iterations")
                 self.iterations += its
-                if mode == 1 and self.FRINGE_LAYERS > 0 and its >= self.FRINGE_FROM:
+                if kron is not None and fringe is None and self.fringe_layers > 0 \
+                        and its >= self.FRINGE_FROM:
                     self.warm[f"fringe{g}_on"] = np.array([1])
                 if fringe is not None:
                     self._keep_fringe(g, [kind for _, _, kind in problems],
