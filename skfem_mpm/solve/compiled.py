@@ -59,7 +59,7 @@ def compiled_executor_applies(state):
         return False, "not a SplineGrid"
     if m.reconstruction != "none":
         return False, "reconstruction"
-    if m.scheme not in ("usl", "cd", "musl"):
+    if m.scheme not in ("usl", "cd", "musl", "rk4"):
         return False, f"scheme {m.scheme}"
     return True, ""
 
