@@ -9,7 +9,8 @@ the slow tier the full product. Tolerances: 1e-12 relative with lumped
 mass; with consistent (and hybrid) mass the compiled executor solves by
 conjugate gradients to rtol 1e-13 against the reference's sparse LU, so
 the bound is 1e-9 relative. Hybrid mass (MUSL only) has its own covering
-list, ``HYBRID``.
+list, ``HYBRID``; so has the Runge-Kutta scheme (``RK4``: materials it can
+stage, every mass).
 
 Tiers: pairwise (default), every triple of option values (``slow``, about
 100 cases), the full product of 648 cases (``exhaustive``: run it with
@@ -48,6 +49,30 @@ class CappedStress(Material):
     def update(self, particles, L, dt):
         stress, V, F = self.inner.update(particles, L, dt)
         return np.clip(stress, -self.cap, self.cap), V, F
+
+    def wave_speed(self, particles):
+        return self.inner.wave_speed(particles)
+
+    def strain_energy(self, particles):
+        return self.inner.strain_energy(particles)
+
+
+class SoftenedRate(Material):
+    """A user's small-strain rate law that ``rk4`` can stage (not fused into
+    any kernel): the linear elastic stress rate scaled by
+    1 / (1 + |sigma|^2 / s^2), a hypoelastic softening."""
+
+    def __init__(self, E, nu, s):
+        self.inner = LinearElastic(E, nu)
+        self.s = s
+
+    def stress_rate(self, particles, L):
+        size = np.einsum("nij,nij->n", particles.stress, particles.stress)
+        return self.inner.stress_rate(particles, L) / (1 + size / self.s ** 2)[:, None, None]
+
+    def update(self, particles, L, dt):
+        _, V, F = self.inner.update(particles, L, dt)
+        return particles.stress + dt * self.stress_rate(particles, L), V, F
 
     def wave_speed(self, particles):
         return self.inner.wave_speed(particles)
@@ -126,7 +151,8 @@ def scene_for(case, steps=20):
     material = {"linear": LinearElastic(10.0, 0.3),
                 "neo-hookean": NeoHookean(10.0, 0.3),
                 "custom": CappedStress(10.0, 0.3, 0.05),
-                "custom-compiled": CappedStressCompiled(10.0, 0.3, 0.05)}[case["material"]]
+                "custom-compiled": CappedStressCompiled(10.0, 0.3, 0.05),
+                "custom-staged": SoftenedRate(10.0, 0.3, 0.05)}[case["material"]]
     base_side = "left" if dim == 1 else "bottom"
     effects = []
     effect = case["effect"]
@@ -200,6 +226,31 @@ HYBRID = [dict(scheme="musl", mass="hybrid", degree=degree, dim=dim, material=ma
 
 @pytest.mark.parametrize("case", HYBRID, ids=_id)
 def test_executors_agree_with_hybrid_mass(case):
+    check_agreement(case)
+
+
+# rk4 (materials it can stage: linear, neo-Hookean, a user's rate law):
+# every degree, mass (hybrid is MUSL only) and effect in each dimension
+RK4 = [dict(scheme="rk4", mass=mass, degree=degree, dim=dim, material=material, effect=effect)
+       for dim, cases in ((1, ((1, "lumped", "linear", "gravity"),
+                               (2, "consistent", "neo-hookean", "prescribed"),
+                               (3, "lumped", "custom-staged", "damping"),
+                               (2, "lumped", "linear", "traction"),
+                               (3, "consistent", "linear", "body-force"),
+                               (1, "consistent", "custom-staged", "none"),
+                               (2, "consistent", "neo-hookean", "gravity"))),
+                          (2, ((2, "lumped", "neo-hookean", "gravity"),
+                               (3, "lumped", "linear", "prescribed"),
+                               (1, "consistent", "linear", "damping"),
+                               (2, "consistent", "custom-staged", "traction"),
+                               (2, "lumped", "linear", "body-force"),
+                               (3, "consistent", "neo-hookean", "none"),
+                               (1, "lumped", "custom-staged", "body-force"))))
+       for degree, mass, material, effect in cases]
+
+
+@pytest.mark.parametrize("case", RK4, ids=_id)
+def test_executors_agree_with_rk4(case):
     check_agreement(case)
 
 

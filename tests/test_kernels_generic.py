@@ -262,3 +262,68 @@ def test_executor_kernels_run_the_generated_transfers(dim):
     for name in ("x", "v", "u", "stress", "V"):
         assert close(ref[name], getattr(new, name)), name
     assert close(ref["acc"], acc)
+
+
+# ------------------------------------------------ Runge-Kutta stage rates
+@pytest.mark.parametrize("dim,p,kind", [(1, 1, "uniform"), (1, 2, "nonuniform"),
+                                        (1, 3, "uniform"), (2, 2, "uniform"),
+                                        (2, 3, "nonuniform"), (3, 2, "nonuniform")])
+def test_stage_rates_match_the_transfer_matrices(dim, p, kind):
+    """The rates gather (one Runge-Kutta right-hand side) against N and
+    grad N: N v, N a, V tr L, and the linear elastic stress rate
+    lambda tr(D) I + 2 mu D (D = sym L; 1D: E L) or L, on three blocks."""
+    grid, rng = make(dim, p, kind, seed=7)
+    t = Transfers(grid, nthreads=3)
+    n = (300, 500, 700)[dim - 1]
+    p_ = particles(grid, n, rng, "random")
+    ga = rng.standard_normal((grid.ndofs, dim))
+    gv = rng.standard_normal((grid.ndofs, dim))
+    N, G = reference_matrices(grid, p_.x)
+    L = np.stack([np.stack([G[d] @ gv[:, c] for d in range(dim)], axis=-1)
+                  for c in range(dim)], axis=1)
+    lame = (2.0, 0.0) if dim == 1 else (1.5, 0.7)
+    D = 0.5 * (L + L.transpose(0, 2, 1))
+    tr = np.trace(D, axis1=1, axis2=2)
+    stress_rate_ref = lame[0] * tr[:, None, None] * np.eye(dim) + 2 * lame[1] * D
+    out = [np.full((n, dim), np.nan), np.full((n, dim), np.nan),
+           np.full((n, dim, dim), np.nan), np.full((n, dim, dim), np.nan), np.full(n, np.nan)]
+    t.rates(p_, ga, gv, *out, lame=lame)
+    x_rate, v_rate, L_out, stress_rate, V_rate = out
+    assert close(N @ gv, x_rate) and close(N @ ga, v_rate)
+    assert close(p_.V * tr, V_rate)
+    assert close(stress_rate_ref, stress_rate)
+    assert np.isnan(L_out).all()  # fused: L is not stored
+    t.rates(p_, ga, gv, *out)
+    assert close(L, L_out)
+
+
+def test_stage_combination_is_the_weighted_sum_of_the_rates():
+    """kernels.staging.combine_stages against NumPy: y_n + sum_s c_s k_s
+    per field, u moved by the same dx as x, stages with c_s = 0 skipped,
+    the stress and V fields only with ``small``, F only with ``finite``."""
+    from skfem_mpm.kernels.staging import combine_stages
+
+    rng = np.random.default_rng(11)
+    n, dim, stages = 57, 2, 4
+    y = [rng.standard_normal(s) for s in ((n, dim), (n, dim), (n, dim), (n, dim, dim), (n,),
+                                          (n, dim, dim))]
+    k = [rng.standard_normal((stages,) + a.shape) for a in (y[0], y[2], y[3], y[4], y[5])]
+    k[0][2] = np.nan  # a stage with weight 0 is never read
+    c = np.array([0.1, 0.2, 0.0, 0.4])
+    for small, finite in ((True, False), (False, True)):
+        out = [np.full_like(a, 7.0) for a in y]
+        combine_stages(c, *y, *k, small, finite, *out, 3)
+        used = [0, 1, 3]
+
+        def summed(start, rate):
+            return start + sum(c[s] * rate[s] for s in used)
+
+        dx = summed(np.zeros_like(y[0]), k[0])
+        assert close(y[0] + dx, out[0]) and close(y[1] + dx, out[1])
+        assert close(summed(y[2], k[1]), out[2])
+        if small:
+            assert close(summed(y[3], k[2]), out[3]) and close(summed(y[4], k[3]), out[4])
+            assert (out[5] == 7.0).all()
+        else:
+            assert close(summed(y[5], k[4]), out[5])
+            assert (out[3] == 7.0).all() and (out[4] == 7.0).all()

@@ -21,6 +21,17 @@ r_c U to L_(:, c) for c >= 1.
 flags[t] = (first non-finite particle, first particle outside the grid,
 first particle with J <= 0) of thread t's block, or -1.
 
+The rates gather (one evaluation of a Runge-Kutta stage's right-hand side,
+:mod:`skfem_mpm.solve.runge_kutta`) reads the same sums at the particles
+and moves nothing:
+
+    dx_p/dt = sum_k v_k N_kp,   dv_p/dt = sum_k a_k N_kp,
+    L_p = sum_k v_k (x) grad N_k(x_p),   dV_p/dt = V_p tr L_p,
+
+and, for linear elasticity (``fused``), the stress rate
+d sigma_p/dt = lambda tr(D) I + 2 mu D with D = sym(L_p) (in 1D lambda is
+E and mu = 0); otherwise L_p is stored.
+
 The kernels are generated per (dim, p) from the template below
 (:mod:`skfem_mpm.kernels.generated`); :func:`g2p_kernel` returns them
 compiled.
@@ -32,7 +43,7 @@ from . import stencil as st
 from .generated import indent, load, module_header, times
 from .records import ParticleArrays, Update, unpack
 
-__all__ = ["g2p_kernel", "g2p_source"]
+__all__ = ["g2p_kernel", "g2p_source", "rates_kernel", "rates_source"]
 
 G2P = '''
 @njit(cache=True, parallel={parallel}, error_model="numpy", fastmath=FAST)
@@ -103,9 +114,9 @@ def g2p_name(dim, p, parallel=True):
     return f"g2p_{dim}d_p{p}" + ("" if parallel else "_serial")
 
 
-def g2p_source(dim, p, parallel=True):
-    """Source of the g2p kernel for (dim, p)."""
-    name = g2p_name(dim, p, parallel)
+def gathered_sums(dim, p):
+    """Lines forming A_c = sum_k a_k N_kp, U_c = sum_k v_k N_kp and
+    L_cd = sum_k v_k,c dN_k/dx_d of one particle (its weights computed)."""
     def along(weights, array, j, c):
         """Source of sum_a weights_a array[node a of row j, field c]."""
         nodes = [f"{w} * {st.entry(array, dim, j, a, c, 'KG')}" for a, w in enumerate(weights)]
@@ -135,6 +146,13 @@ def g2p_source(dim, p, parallel=True):
         sums.append(f"U{c} = " + " + ".join(f"U{j}_{c}" for j, _ in rows))
         for d in range(dim):
             sums.append(f"L{c}{d} = " + " + ".join(f"L{j}_{c}{d}" for j, _ in rows))
+    return sums
+
+
+def g2p_source(dim, p, parallel=True):
+    """Source of the g2p kernel for (dim, p)."""
+    name = g2p_name(dim, p, parallel)
+    sums = gathered_sums(dim, p)
     move = []
     for c in range(dim):
         move += [f"xn{c} = x[ip, {c}] + dt * U{c}", f"x_new[ip, {c}] = xn{c}",
@@ -177,4 +195,71 @@ def g2p_source(dim, p, parallel=True):
 def g2p_kernel(dim, p, parallel=True):
     """The compiled g2p kernel of (dim, p)."""
     name, source = g2p_source(dim, p, parallel)
+    return getattr(load(name, source), name)
+
+
+RATES = '''
+@njit(cache=True, parallel={parallel}, error_model="numpy", fastmath=FAST)
+def {name}(particles, grid, grid_a, grid_v, lame, nt, x_rate, v_rate, L_out, stress_rate,
+          V_rate):
+    """Runge-Kutta stage rates, dim = {dim}, p = {p}: see skfem_mpm.kernels.gather."""
+    {unpack_particles}
+    a_flat = grid_a.reshape(grid_a.size)
+    v_flat = grid_v.reshape(grid_v.size)
+    fused, lam, mu = lame
+    mu2 = 2.0 * mu
+{strides}
+{bounds}
+    n = x.shape[0]
+    for t in prange(nt):
+        lo = t * n // nt
+        hi = (t + 1) * n // nt
+        for i in range(lo, hi):
+            ip = np.uint64(i)
+{weights}
+            base = {base}
+{sums}
+{rates}
+            V_rate[ip] = V[ip] * ({trace})
+            if fused:
+{fused}
+            else:
+{store_L}
+'''
+
+
+def rates_name(dim, p, parallel=True):
+    return f"rates_{dim}d_p{p}" + ("" if parallel else "_serial")
+
+
+def rates_source(dim, p, parallel=True):
+    """Source of the stage-rates kernel for (dim, p)."""
+    name = rates_name(dim, p, parallel)
+    rates = []
+    for c in range(dim):
+        rates += [f"x_rate[ip, {c}] = U{c}", f"v_rate[ip, {c}] = A{c}"]
+    trace = " + ".join(f"L{c}{c}" for c in range(dim))
+    fused = [f"trD = {trace}"]
+    for c in range(dim):
+        for d in range(dim):
+            if c == d:
+                fused.append(f"stress_rate[ip, {c}, {d}] = mu2 * L{c}{c} + lam * trD")
+            else:
+                fused.append(f"stress_rate[ip, {c}, {d}] = mu2 * (0.5 * (L{c}{d} + L{d}{c}))")
+    body = RATES.format(
+        parallel=parallel, name=name, dim=dim, p=p, strides=indent(st.stride_names(dim), 1),
+        unpack_particles=unpack(ParticleArrays, "particles"),
+        bounds=indent(st.row_starts(dim, p, dim), 1),
+        weights=indent(st.axis_calls(dim, p, i="ip"), 3), base=st.base_index(dim),
+        sums=indent(gathered_sums(dim, p), 3), rates=indent(rates, 3), trace=trace,
+        fused=indent(fused, 4),
+        store_L=indent([f"L_out[ip, {c}, {d}] = L{c}{d}" for c in range(dim) for d in range(dim)],
+                       4))
+    return name, module_header() + body
+
+
+@functools.cache
+def rates_kernel(dim, p, parallel=True):
+    """The compiled stage-rates kernel of (dim, p)."""
+    name, source = rates_source(dim, p, parallel)
     return getattr(load(name, source), name)

@@ -448,6 +448,17 @@ class Kernels:
         return self.transfers.g2p(particles, grid_a, grid_v, dt, vfactor, flip, new, L_out,
                                   acc_out, lame)
 
+    def rates(self, particles, grid_a, grid_v, fused, material, x_rate, v_rate, L_out,
+              stress_rate, V_rate):
+        """A Runge-Kutta stage's particle rates (N v, N a, V tr L, and the
+        linear elastic ``material``'s stress rate with ``fused``, else L),
+        see :mod:`skfem_mpm.kernels.gather`."""
+        lame = None
+        if fused:
+            lame = (material.E, 0.0) if self.dim == 1 else (material.lam, material.mu)
+        self.transfers.rates(particles, grid_a, grid_v, x_rate, v_rate, L_out, stress_rate,
+                             V_rate, lame)
+
     def _stencil_pattern(self):
         """CSR pattern of the stencil (rows, valid stencil slots, columns)."""
         if getattr(self, "_pattern", None) is None:

@@ -8,7 +8,7 @@ count and the per-thread grid copies, and returns NumPy arrays.
 import numpy as np
 from numba import get_num_threads
 
-from .gather import g2p_kernel
+from .gather import g2p_kernel, rates_kernel
 from .records import grid_record, particle_record
 from .scatter import g2p2g_kernel, p2g_kernel, reduce_copies, reduce_fields
 
@@ -16,7 +16,7 @@ __all__ = ["Transfers"]
 
 
 class Transfers:
-    """p2g, g2p2g and g2p on one grid.
+    """p2g, g2p2g, g2p and the Runge-Kutta stage rates on one grid.
 
     ``grid`` is a :class:`skfem_mpm.SplineGrid` or any object with its
     ``dim``, ``degree``, ``ndofs``, ``breakpoints``, ``_uniform``,
@@ -90,3 +90,15 @@ class Transfers:
                 if first >= 0 and (found[j] < 0 or first < found[j]):
                     found[j] = first
         return found
+
+    def rates(self, particles, grid_a, grid_v, x_rate, v_rate, L_out, stress_rate, V_rate,
+              lame=None):
+        """A Runge-Kutta stage's particle rates into the given arrays: N v,
+        N a, V tr L and, with ``lame`` = (lambda, mu) (1D: (E, 0)), the
+        linear elastic stress rate, else L (see
+        :mod:`skfem_mpm.kernels.gather`)."""
+        fused = lame is not None
+        lam, mu = (float(lame[0]), float(lame[1])) if fused else (0.0, 0.0)
+        rates_kernel(self.dim, self.p)(
+            particle_record(particles), self.record, grid_a, grid_v, (fused, lam, mu),
+            self.nthreads, x_rate, v_rate, L_out, stress_rate, V_rate)

@@ -42,6 +42,7 @@ from ..materials import LinearElastic
 from ..materials.state import PackedState, state_layout
 from ..spline import SplineGrid
 from . import steps
+from .compiled_runge_kutta import CompiledRungeKutta
 from .grid_system import GridSystem
 from .stencil_system import StencilSystem
 from .timestep import fast_dof_limit, lumping_fraction
@@ -58,7 +59,7 @@ def compiled_executor_applies(state):
         return False, "not a SplineGrid"
     if m.reconstruction != "none":
         return False, "reconstruction"
-    if m.scheme not in ("usl", "cd", "musl"):
+    if m.scheme not in ("usl", "cd", "musl", "rk4"):
         return False, f"scheme {m.scheme}"
     return True, ""
 
@@ -83,12 +84,14 @@ class CompiledGrid:
         self.keep_acceleration = False
         self.particle_velocities_done = False
         self.new = None                 # the new particle state (Particles)
+        self.work = None                # external work when a scheme computes its own
         self.L = None
         self.outside = -1               # first particle outside the grid, or -1
 
 
-class CompiledExecutor:
-    """Executes the scheme operations of one simulation on the compiled kernels."""
+class CompiledExecutor(CompiledRungeKutta):
+    """Executes the scheme operations of one simulation on the compiled kernels
+    (the Runge-Kutta ones: :mod:`skfem_mpm.solve.compiled_runge_kutta`)."""
 
     path = "fast"
 
@@ -163,17 +166,19 @@ class CompiledExecutor:
             self._spare = None
 
     # ------------------------------------------------------------------- step
-    def external(self, state):
+    def external(self, state, particles=None, t=None):
         """Particle forces other than gravity (effects phase), the grid force
-        of side tractions, and the particle forces whose work is counted."""
-        p = state.particles
+        of side tractions, and the particle forces whose work is counted, of
+        ``particles`` at time ``t`` (default: the state's)."""
+        p = state.particles if particles is None else particles
+        t = state.t if t is None else t
         fext, grid_force, work_forces = None, None, None
         if self.other_forces:
             with state.timer("effects"):
                 for f in self.other_forces:
-                    term = f.forces(p, state.t)
+                    term = f.forces(p, t)
                     work_forces = term if work_forces is None else work_forces + term
-                    g = f.grid_forces(p, state.t, state.grid)
+                    g = f.grid_forces(p, t, state.grid)
                     if g is not None:
                         grid_force = g if grid_force is None else grid_force + g
                     else:
@@ -274,10 +279,12 @@ class CompiledExecutor:
                           solver, state.warm, fast_rows=fast_rows)
 
     # ------------------------------------------------------------ operations
-    def particles_to_grid(self, state):
-        p = state.particles
+    def particles_to_grid(self, state, particles=None, t=None):
+        """Mass, momentum and forces of ``particles`` at time ``t`` (default:
+        the state's; a Runge-Kutta stage passes its own)."""
+        p = state.particles if particles is None else particles
         k = self.kernels
-        fext, grid_force, work_forces = self.external(state)
+        fext, grid_force, work_forces = self.external(state, p, t)
         with state.timer("p2g"):
             mass, momentum, force = k.p2g(p, fext)
         stencil = None
@@ -491,11 +498,14 @@ class CompiledExecutor:
 
     def commit(self, state, grid):
         p, new, dt = state.particles, grid.new, state.dt
-        if self.gravity_work:
-            state.external_work += float(
-                self.kernels.mass_times_displacement(grid.mass, grid.velocity, dt) @ self.gravity)
-        if grid.work_forces is not None:
-            state.external_work += float(np.sum(grid.work_forces * (new.u - p.u)))
+        if grid.work is not None:  # a Runge-Kutta step's quadrature of the power
+            state.external_work += grid.work
+        else:
+            if self.gravity_work:
+                state.external_work += float(self.kernels.mass_times_displacement(
+                    grid.mass, grid.velocity, dt) @ self.gravity)
+            if grid.work_forces is not None:
+                state.external_work += float(np.sum(grid.work_forces * (new.u - p.u)))
         if grid.keep_acceleration:
             state.particle_acceleration = self._acc
             self._acc = None  # the state keeps this one; the next step writes a new one

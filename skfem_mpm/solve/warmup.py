@@ -12,8 +12,9 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
     laws of ``materials`` that have one. With a ``method``, only what its
     run calls: the consistent-mass assembly and CG (the largest share of
     the compile time) only for consistent or hybrid mass, the MUSL re-projection only
-    for MUSL, the one-pass USL grid step only for USL and CD, the tiny-mass
-    scan only when the merge is on."""
+    for MUSL, the one-pass USL grid step only for USL and CD, the g2p kernel
+    for every scheme but RK4, whose stage rates and combination only it,
+    the tiny-mass scan only when the merge is on."""
     if not hasattr(grid, "breakpoints"):
         return
     from ..spline import SplineGrid
@@ -45,6 +46,8 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
         return {"consistent": method.needs_consistent_mass,  # hybrid: velocity solves
                 "musl": method.scheme == "musl",
                 "usl_grid": method.scheme in ("usl", "cd"),
+                "g2p": method.scheme != "rk4",
+                "rk4": method.scheme == "rk4",
                 "small_mass": method.small_mass > 0}[what]
 
     for fext in (None, np.zeros((1, dim))):
@@ -53,9 +56,20 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
         k.g2p2g(p, zeros, 0.0, new.v)
     for fused in (True, False):
         L = np.empty((1, dim, dim)) if not fused else np.empty((1, 1, 1))
-        for flip in (True, False):
-            for acc in (None, np.empty((1, dim))):
-                k.g2p(p, zeros, zeros, 0.0, 1.0, flip, fused, material, new, L, acc)
+        if needs("g2p"):
+            for flip in (True, False):
+                for acc in (None, np.empty((1, dim))):
+                    k.g2p(p, zeros, zeros, 0.0, 1.0, flip, fused, material, new, L, acc)
+        if needs("rk4"):
+            k.rates(p, zeros, zeros, fused, material, new.v, new.u, np.empty((1, dim, dim)),
+                    np.empty((1, dim, dim)), np.empty(1))
+    if needs("rk4"):
+        from ..kernels.staging import combine_stages
+
+        rates = [np.zeros((4,) + a.shape) for a in (p.x, p.v, p.stress, p.V, p.stress)]
+        combine_stages(np.zeros(4), p.x, p.u, p.v, p.stress, p.V, p.stress, *rates, True,
+                       True, new.x, new.u, new.v, new.stress, new.V, new.stress.copy(),
+                       k.nthreads)
     if needs("small_mass"):
         k.small_mass(np.ones(grid.ndofs), 1e-3)
         for values in (None, zeros):
