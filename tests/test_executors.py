@@ -9,7 +9,8 @@ the slow tier the full product. Tolerances: 1e-12 relative with lumped
 mass; with consistent (and hybrid) mass the compiled executor solves by
 conjugate gradients to rtol 1e-13 against the reference's sparse LU, so
 the bound is 1e-9 relative. Hybrid mass (MUSL only) has its own covering
-list, ``HYBRID``.
+list, ``HYBRID``; reconstructions that run compiled theirs, ``RECONSTRUCTED``
+(every scheme, mass, material and effect, degrees 2 and 3).
 
 Tiers: pairwise (default), every triple of option values (``slow``, about
 100 cases), the full product of 648 cases (``exhaustive``: run it with
@@ -150,10 +151,12 @@ def scene_for(case, steps=20):
 
 def check_agreement(case):
     scene = scene_for(case)
-    method = dict(scheme=case["scheme"], mass=case["mass"])
+    recon = case.get("reconstruction", "none")
+    method = dict(scheme=case["scheme"], mass=case["mass"], reconstruction=recon)
     ref = simulate(scene, Method(backend="numpy", **method), save_every=5)
     fast = simulate(scene, Method(backend="numba", **method), save_every=5)
-    assert fast.path == "fast" and ref.path.startswith("reference"), (fast.path, ref.path)
+    path = "fast" if recon == "none" else f"fast (reconstruction {recon})"
+    assert fast.path == path and ref.path.startswith("reference"), (fast.path, ref.path)
     tol = 1e-12 if case["mass"] == "lumped" else 1e-9
     for key in ("x", "v", "stress"):
         a, b = ref.history[key], fast.history[key]
@@ -200,6 +203,25 @@ HYBRID = [dict(scheme="musl", mass="hybrid", degree=degree, dim=dim, material=ma
 
 @pytest.mark.parametrize("case", HYBRID, ids=_id)
 def test_executors_agree_with_hybrid_mass(case):
+    check_agreement(case)
+
+
+# reconstructions on the compiled executor: 1D spline (particle knots)
+RECONSTRUCTED = [dict(scheme=scheme, mass=mass, degree=degree, dim=1, material=material,
+                      effect=effect, reconstruction="spline")
+                 for scheme, mass, degree, material, effect in (
+                     ("musl", "lumped", 2, "linear", "gravity"),
+                     ("musl", "consistent", 3, "neo-hookean", "traction"),
+                     ("musl", "consistent", 2, "custom", "body-force"),
+                     ("usl", "consistent", 2, "custom-compiled", "prescribed"),
+                     ("cd", "lumped", 3, "linear", "damping"),
+                     ("cd", "consistent", 2, "linear", "gravity"),
+                     ("musl", "hybrid", 3, "linear", "none"),
+                     ("usl", "lumped", 3, "neo-hookean", "body-force"))]
+
+
+@pytest.mark.parametrize("case", RECONSTRUCTED, ids=_id)
+def test_executors_agree_with_reconstruction(case):
     check_agreement(case)
 
 
