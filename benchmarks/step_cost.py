@@ -6,7 +6,8 @@ the public API (``simulate``, JIT compilation excluded), the microseconds
 per step of:
 
 * S1, the vibrating string: 32 quadratic cells, 4 particles per cell
-  (128 particles), one period, MUSL, lumped and consistent mass;
+  (128 particles), one period, MUSL, lumped and consistent mass, and
+  both with the spline reconstruction (particle knots);
 * D2 small, the vibrating plate: 16 x 16 quadratic cells, 2 x 2 particles
   per cell, MUSL, lumped and consistent mass;
 
@@ -176,6 +177,10 @@ def cases():
         "s1-lumped-musl": (lambda: s1.scene(32, 2, 4, t_end=period), dict(mass="lumped")),
         "s1-consistent-musl": (lambda: s1.scene(32, 2, 4, t_end=period),
                                dict(mass="consistent")),
+        "s1-consistent-spline-musl": (lambda: s1.scene(32, 2, 4, t_end=period),
+                                      dict(mass="consistent", reconstruction="spline")),
+        "s1-lumped-spline-musl": (lambda: s1.scene(32, 2, 4, t_end=period),
+                                  dict(mass="lumped", reconstruction="spline")),
         "d2-16-lumped-musl": (lambda: d2.scene(16, 2, 2), dict(mass="lumped")),
         "d2-16-consistent-musl": (lambda: d2.scene(16, 2, 2), dict(mass="consistent")),
     }

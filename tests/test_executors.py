@@ -10,7 +10,8 @@ mass; with consistent (and hybrid) mass the compiled executor solves by
 conjugate gradients to rtol 1e-13 against the reference's sparse LU, so
 the bound is 1e-9 relative. Hybrid mass (MUSL only) has its own covering
 list, ``HYBRID``; so has the Runge-Kutta scheme (``RK4``: materials it can
-stage, every mass).
+stage, every mass), and the reconstructions that run compiled,
+``RECONSTRUCTED`` (every scheme, mass, material and effect, degrees 2 and 3).
 
 Tiers: pairwise (default), every triple of option values (``slow``, about
 100 cases), the full product of 648 cases (``exhaustive``: run it with
@@ -176,10 +177,12 @@ def scene_for(case, steps=20):
 
 def check_agreement(case):
     scene = scene_for(case)
-    method = dict(scheme=case["scheme"], mass=case["mass"])
+    recon = case.get("reconstruction", "none")
+    method = dict(scheme=case["scheme"], mass=case["mass"], reconstruction=recon)
     ref = simulate(scene, Method(backend="numpy", **method), save_every=5)
     fast = simulate(scene, Method(backend="numba", **method), save_every=5)
-    assert fast.path == "fast" and ref.path.startswith("reference"), (fast.path, ref.path)
+    path = "fast" if recon == "none" else f"fast (reconstruction {recon})"
+    assert fast.path == path and ref.path.startswith("reference"), (fast.path, ref.path)
     tol = 1e-12 if case["mass"] == "lumped" else 1e-9
     for key in ("x", "v", "stress"):
         a, b = ref.history[key], fast.history[key]
@@ -251,6 +254,28 @@ RK4 = [dict(scheme="rk4", mass=mass, degree=degree, dim=dim, material=material, 
 
 @pytest.mark.parametrize("case", RK4, ids=_id)
 def test_executors_agree_with_rk4(case):
+    check_agreement(case)
+
+
+# reconstructions on the compiled executor: 1D spline (particle knots)
+RECONSTRUCTED = [dict(scheme=scheme, mass=mass, degree=degree, dim=1, material=material,
+                      effect=effect, reconstruction="spline")
+                 for scheme, mass, degree, material, effect in (
+                     ("musl", "lumped", 2, "linear", "gravity"),
+                     ("musl", "consistent", 3, "neo-hookean", "traction"),
+                     ("musl", "consistent", 2, "custom", "body-force"),
+                     ("usl", "consistent", 2, "custom-compiled", "prescribed"),
+                     ("cd", "lumped", 3, "linear", "damping"),
+                     ("cd", "consistent", 2, "linear", "gravity"),
+                     ("musl", "hybrid", 3, "linear", "none"),
+                     ("usl", "lumped", 3, "neo-hookean", "body-force"),
+                     ("rk4", "consistent", 3, "linear", "traction"),
+                     ("rk4", "lumped", 2, "custom-staged", "gravity"),
+                     ("rk4", "consistent", 2, "neo-hookean", "prescribed"))]
+
+
+@pytest.mark.parametrize("case", RECONSTRUCTED, ids=_id)
+def test_executors_agree_with_reconstruction(case):
     check_agreement(case)
 
 

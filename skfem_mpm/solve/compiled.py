@@ -25,6 +25,12 @@ solves it by conjugate gradients, or the grid system of
 system solves the velocities (no fast-dof guard), the lumped solve the
 acceleration.
 
+Reconstruction (:mod:`skfem_mpm.solve.compiled_reconstruct`): the Gauss
+rule and the reconstruction (timed as ``reconstruct``), then the p2g kernel
+and the stencil assembly with the Gauss points as quadrature particles; the
+MUSL re-projection reconstructs the updated momentum with the same rule.
+``compiled_executor_applies`` names what stays on the reference executor.
+
 Gravity costs one grid operation (g times the nodal mass); other particle
 forces enter the p2g kernel as one array. The kernels write the new state
 into a second set of particle arrays; it becomes current only at ``commit``
@@ -42,6 +48,7 @@ from ..materials import LinearElastic
 from ..materials.state import PackedState, state_layout
 from ..spline import SplineGrid
 from . import steps
+from .compiled_reconstruct import CompiledReconstruction, unsupported
 from .compiled_runge_kutta import CompiledRungeKutta
 from .grid_system import GridSystem
 from .stencil_system import StencilSystem
@@ -58,7 +65,9 @@ def compiled_executor_applies(state):
     if not isinstance(state.grid, SplineGrid):
         return False, "not a SplineGrid"
     if m.reconstruction != "none":
-        return False, "reconstruction"
+        why = unsupported(m, state.grid.dim)
+        if why is not None:
+            return False, why
     if m.scheme not in ("usl", "cd", "musl", "rk4"):
         return False, f"scheme {m.scheme}"
     return True, ""
@@ -87,6 +96,7 @@ class CompiledGrid:
         self.work = None                # external work when a scheme computes its own
         self.L = None
         self.outside = -1               # first particle outside the grid, or -1
+        self.projection = None          # reconstruction: what the MUSL re-projection reuses
 
 
 class CompiledExecutor(CompiledRungeKutta):
@@ -127,6 +137,10 @@ class CompiledExecutor(CompiledRungeKutta):
         self._no_index = np.zeros(0, dtype=np.int64)
         self._first_bad = np.full(self.kernels.nthreads, -1, dtype=np.int64)
         self._state = {}  # id(material) -> its PackedState (None: no state)
+        self.recon = None
+        if state.method.reconstruction != "none":
+            self.recon = CompiledReconstruction(state, self.kernels)
+            self.path = f"fast (reconstruction {self.recon.name})"
 
     # ---------------------------------------------------------------- buffers
     WRITTEN = ("x", "v", "u", "stress", "V")
@@ -284,6 +298,8 @@ class CompiledExecutor(CompiledRungeKutta):
         the state's; a Runge-Kutta stage passes its own)."""
         p = state.particles if particles is None else particles
         k = self.kernels
+        if self.recon is not None:
+            return self._reconstructed_to_grid(state, p, t)
         fext, grid_force, work_forces = self.external(state, p, t)
         with state.timer("p2g"):
             mass, momentum, force = k.p2g(p, fext)
@@ -292,6 +308,38 @@ class CompiledExecutor(CompiledRungeKutta):
             with state.timer("mass_matrix"):
                 stencil = k.consistent_stencil(p)
         return CompiledGrid(mass, momentum, force, stencil, work_forces, grid_force)
+
+    def _reconstructed_to_grid(self, state, p, t=None):
+        """Mass, momentum, force (and consistent mass) integrated with Gauss
+        quadrature of the reconstructed particle fields, as the reference
+        does it: volume forces (other than uniform accelerations, which act
+        on the grid as m_i g) are reconstructed as densities; side tractions
+        give their grid force, other surface loads N^T f_p at the particles."""
+        t = state.t if t is None else t
+        volume, surface, grid_force, work_forces = None, None, None, None
+        if self.other_forces:
+            with state.timer("effects"):
+                for f in self.other_forces:
+                    term = f.forces(p, t)
+                    work_forces = term if work_forces is None else work_forces + term
+                    if not f.surface:
+                        volume = term if volume is None else volume + term
+                        continue
+                    g = f.grid_forces(p, t, state.grid)
+                    if g is None:
+                        surface = term if surface is None else surface + term
+                    else:
+                        grid_force = g if grid_force is None else grid_force + g
+            if surface is not None:  # N^T f_p: p2g of particles that carry only f_p
+                zero = np.zeros(p.n)
+                loads = p.replaced(m=zero, V=zero, stress=np.zeros_like(p.stress))
+                with state.timer("p2g"):
+                    g = self.kernels.p2g(loads, surface)[2].copy()
+                grid_force = g if grid_force is None else grid_force + g
+        mass, momentum, force, stencil, projection = self.recon.to_grid(state, p, volume)
+        grid = CompiledGrid(mass, momentum, force, stencil, work_forces, grid_force)
+        grid.projection = projection
+        return grid
 
     def _prepare(self, state, grid):
         """The step's grid system (consistent mass), tiny-mass count and
@@ -391,6 +439,8 @@ class CompiledExecutor(CompiledRungeKutta):
             momentum_new = self.kernels.g2p2g(p, grid.acceleration, grid.velocity_factor * dt,
                                               grid.new.v)
         grid.particle_velocities_done = True
+        if self.recon is not None:
+            momentum_new = self.recon.project(state, p, grid.new.v, grid.projection)
         with state.timer("solve"):
             if grid.system is not None:  # see steps.project_velocity
                 grid.system.shift_guess("velocity", dt * grid.acceleration)
@@ -501,7 +551,9 @@ class CompiledExecutor(CompiledRungeKutta):
         if grid.work is not None:  # a Runge-Kutta step's quadrature of the power
             state.external_work += grid.work
         else:
-            if self.gravity_work:
+            if self.gravity_work and self.recon is not None:  # grid.mass is not the particles'
+                state.external_work += float((p.m @ (new.u - p.u)) @ self.gravity)
+            elif self.gravity_work:
                 state.external_work += float(self.kernels.mass_times_displacement(
                     grid.mass, grid.velocity, dt) @ self.gravity)
             if grid.work_forces is not None:

@@ -140,7 +140,9 @@ class CompiledRungeKutta:
         if not self.fused:
             self._material_rates(state, particles, rk, slot)
         power = 0.0
-        if self.gravity_work:
+        if self.gravity_work and self.recon is not None:  # mass is not the particles'
+            power += float((particles.m @ rk.x[slot]) @ self.gravity)
+        elif self.gravity_work:
             power += float(self.kernels.mass_times_displacement(mass, v, 1.0) @ self.gravity)
         if grid.work_forces is not None:
             power += float(np.sum(grid.work_forces * rk.x[slot]))

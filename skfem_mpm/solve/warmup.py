@@ -87,6 +87,8 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
             k.usl_grid(np.ones(grid.ndofs), zeros, zeros, np.zeros(dim), mask, values, values,
                        0.0, out, zeros.copy())
     _warm_up_point_laws(grid.dim, materials)
+    if method is None or method.reconstruction != "none":
+        _warm_up_reconstruction(grid, method)
 
 
 def _warm_up_consistent(k, p, grid):
@@ -108,6 +110,21 @@ def _warm_up_consistent(k, p, grid):
         system.solve(np.ones((grid.ndofs, dim)), np.zeros((grid.ndofs, dim)), "velocity")
     system.residual(np.ones((grid.ndofs, dim)), np.ones((grid.ndofs, dim)))
     fast_row_fractions(K, st, np.ones(grid.ndofs), 1.0, np.empty(grid.ndofs))
+
+
+def _warm_up_reconstruction(grid, method):
+    """The Gauss rule and the reconstruction the compiled executor runs."""
+    from .compiled_reconstruct import unsupported
+
+    if grid.dim != 1 or (method is not None and unsupported(method, grid.dim) is not None):
+        return
+    from ..kernels.gauss_rule import gauss_rule_1d
+    from ..kernels.spline_1d import not_a_knot_spline
+
+    x = np.linspace(0.1, 0.9, 5)
+    rule = gauss_rule_1d(x, np.full(5, 0.1), 1.0, grid.breakpoints[0], x[:2], x[:2])
+    not_a_knot_spline(x, np.ones((5, 2)), rule[0], rule[1], rule[2], rule[3],
+                      np.empty((rule[3].size, 2)))
 
 
 def _warm_up_point_laws(dim, materials):
