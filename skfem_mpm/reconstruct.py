@@ -47,25 +47,22 @@ degree-p functions).
             2D: least squares in the cubic B-spline space of the grid (C2),
             with a second-difference penalty on the coefficients that the
             particles barely see (empty cells). Reproduces cubic polynomials.
-``tls``     Conservative Taylor least squares (after Wobbes, Moller, Galavi,
-            Vuik 2019, IJNME 117:271-290): per cell, the polynomial of degree
-            1 (or 2, ``degree=2``) that fits the particles of the cell and its
-            neighbours in the volume-weighted least-squares sense under the
-            constraint that its Gauss integral over the cell equals the
-            particle integral sum_p f_p V_p of the cell. Hence total mass
-            and momentum are exactly those of the particles. The neighbours'
-            particles enter with the small weight ``neighbour_weight``
-            (default 1e-3): they only decide what the cell's own particles
-            cannot (a cell with one particle). With full weight the fit over
-            three cells turns a zig-zag strain into a stress slope of the
-            opposite sign: the reconstructed stiffness becomes indefinite
-            (measured on S1, 32 quadratic cells: an eigenvalue of -341 and
-            exponential blow-up), whereas the weighted fit keeps the
-            spectrum of the Gauss FEM. A cell whose neighbourhood cannot
-            determine the polynomial falls back to the constant that
-            satisfies the constraint (never a singular solve). Reproduces
-            polynomials of its degree when the particles integrate them
-            exactly over each cell (e.g. Gauss layout).
+``tls``     Conservative Taylor least squares as published (Wobbes, Moller,
+            Galavi, Vuik 2019, IJNME 117:271-290): per cell, the quadratic
+            polynomial fitted to the cell's own particles in the
+            (volume-weighted) least-squares sense under the constraint that
+            its Gauss integral over the cell equals the particle integral
+            sum_p f_p V_p of the cell. Hence total mass and momentum are
+            exactly those of the particles, cell by cell. A cell whose
+            particles do not determine the quadratic (in 2D fewer than 6, so
+            2 x 2 particles per cell) takes the constrained linear fit, and
+            failing that the constant that satisfies the constraint (never a
+            singular solve); see :func:`reconstruct_tls`. Options:
+            ``degree=1`` (linear), ``neighbour_weight=w`` (the 3^d
+            neighbouring cells' particles enter each fit with weight w;
+            the earlier default was degree 1 with w = 1e-3). Reproduces
+            quadratics when the particles integrate them exactly over each
+            cell (e.g. Gauss layout, 3 per axis).
 ``mls``     Moving least squares with a linear basis and the cubic B-spline
             weight of radius ``radius`` (default 1.5 cells); where fewer than
             dim + 1 particles are in reach it falls back to the weighted mean
@@ -302,10 +299,74 @@ def _neighbour_cells(grid, cells):
     return np.stack(out, axis=1)
 
 
-def reconstruct_tls(grid, particles, values, rule, degree=1, neighbour_weight=1e-3):
-    """Conservative Taylor least squares (see the module docstring)."""
+TLS_RANK_TOL = 1e-8
+"""A cell's least-squares fit of a degree uses that degree when the smallest
+eigenvalue of its normal matrix, scaled to unit diagonal, exceeds this."""
+
+
+def _levels(dim):
+    """Number of monomials of degree 0, 1, 2 (leading columns of
+    :func:`_monomials`)."""
+    return (1, 1 + dim, 1 + dim + dim * (dim + 1) // 2)
+
+
+def _well_posed(A, m):
+    """Cells whose leading m x m normal matrix is positive definite after
+    scaling to unit diagonal (smallest eigenvalue > TLS_RANK_TOL)."""
+    sub = A[:, :m, :m]
+    d = np.einsum("cii->ci", sub)
+    ok = (d > 0).all(axis=1)
+    out = np.zeros(A.shape[0], dtype=bool)
+    if ok.any():
+        s = 1.0 / np.sqrt(d[ok])
+        scaled = sub[ok] * s[:, :, None] * s[:, None, :]
+        out[ok] = np.linalg.eigvalsh(scaled)[:, 0] > TLS_RANK_TOL
+    return out
+
+
+def reconstruct_tls(grid, particles, values, rule, degree=2, neighbour_weight=0.0):
+    """Conservative Taylor least squares (Wobbes, Moller, Galavi, Vuik 2019,
+    IJNME 117:271-290, Sec. 3).
+
+    Default (``degree=2, neighbour_weight=0``, the published method): for
+    each cell e holding particles, in the local coordinates
+    xi = (x - c_e) / h_e (c_e the cell centre, h_e its sizes per axis) and
+    the monomials phi = (1, xi_1, .., xi_d, xi_a xi_b for a <= b), find
+    coefficients a_e that minimise
+
+        sum_{p in e} V_p (phi(xi_p) . a_e - f_p)^2
+
+    subject to   sum_g w_g phi(xi_g) . a_e = sum_{p in e} V_p f_p
+
+    (Gauss points g of ``rule`` in the cell: the reconstruction integrates
+    to the particle integral cell by cell, so total mass and momentum are
+    those of the particles). It is the Lagrange system
+    [[A, G], [G^T, 0]] [a; lambda] = [b; S] with A = sum V_p phi phi^T,
+    b = sum V_p phi f_p, G = sum_g w_g phi_g, S = sum V_p f_p. With equal
+    particle volumes in a cell the V_p weights cancel and this is the
+    paper's unweighted fit.
+
+    Fallback (never a singular solve): when the particles of a cell do not
+    determine the quadratic (A restricted to the quadratic monomials has a
+    scaled smallest eigenvalue <= TLS_RANK_TOL: fewer than 6 particles in
+    2D, 3 in 1D, or them on a conic/line), the same constrained fit is made
+    with the linear monomials; when those are not determined either, the
+    constant S / |e| (the conserving constant). The constraint holds in
+    every case. In 2D the quadratic needs 3 x 3 particles per cell to be
+    determined on uniform layouts (2 x 2 falls back to linear everywhere).
+
+    ``degree=1`` uses the linear fit (and the constant fallback).
+    ``neighbour_weight`` > 0 adds the particles of the 3^d neighbouring
+    cells to each cell's fit with that weight (the constraint stays the
+    cell's own); with 1e-3 it was this project's earlier default. It
+    determines the fit of cells with few particles from their neighbours.
+    """
     if degree not in (1, 2):
         raise ValueError(f"tls degree must be 1 or 2, got {degree!r}")
+    neighbour_weight = float(neighbour_weight)
+    if not (neighbour_weight >= 0.0 and np.isfinite(neighbour_weight)):
+        raise ValueError(f"tls neighbour_weight must be a finite number >= 0, got "
+                         f"{neighbour_weight!r}")
     values = np.asarray(values, dtype=np.float64)
     k = values.shape[1]
     dim = grid.dim
@@ -314,13 +375,15 @@ def reconstruct_tls(grid, particles, values, rule, degree=1, neighbour_weight=1e
     slot[active] = np.arange(active.size)
     lower, size = _cell_geometry(grid, active)
     centre = lower + 0.5 * size
-    m = 1 + dim + (dim * (dim + 1) // 2 if degree == 2 else 0)
-    # each particle contributes to the fit of its own cell and its neighbours
+    m = _levels(dim)[degree]
     pcell, _ = grid.locate(particles.x)
-    nb = _neighbour_cells(grid, pcell)  # cells whose neighbourhood holds particle p
+    if neighbour_weight > 0:
+        nb = _neighbour_cells(grid, pcell)  # cells whose neighbourhood holds particle p
+        own_column = nb.shape[1] // 2
+    else:
+        nb, own_column = pcell[:, None], 0
     A = np.zeros((active.size, m, m))
     b = np.zeros((active.size, m, k))
-    own_column = nb.shape[1] // 2
     for j in range(nb.shape[1]):
         c = nb[:, j]
         s = np.where(c >= 0, slot[np.maximum(c, 0)], -1)
@@ -339,20 +402,22 @@ def reconstruct_tls(grid, particles, values, rule, degree=1, neighbour_weight=1e
     own = slot[pcell]
     S = np.zeros((active.size, k))
     np.add.at(S, own[own >= 0], particles.V[own >= 0, None] * values[own >= 0])
-    area = G[:, 0]
-    # scale-free rank test of the local normal matrices
-    scale = np.einsum("cii->c", A)[:, None, None] / m
-    eig_min = np.linalg.eigvalsh(A / np.maximum(scale, 1e-300))[:, 0]
-    good = eig_min > 1e-8
     coef = np.zeros((active.size, m, k))
-    coef[:, 0, :] = S / area[:, None]  # the fallback: the conserving constant
-    if good.any():
-        K = np.zeros((int(good.sum()), m + 1, m + 1))
-        K[:, :m, :m] = A[good]
-        K[:, :m, m] = G[good]
-        K[:, m, :m] = G[good]
-        rhs = np.concatenate((b[good], S[good][:, None, :]), axis=1)
-        coef[good] = np.linalg.solve(K, rhs)[:, :m, :]
+    coef[:, 0, :] = S / G[:, 0][:, None]  # the last fallback: the conserving constant
+    done = np.zeros(active.size, dtype=bool)
+    for size_m in [n for n in _levels(dim)[1:] if n <= m][::-1]:
+        use = ~done & _well_posed(A, size_m)
+        if not use.any():
+            continue
+        K = np.zeros((int(use.sum()), size_m + 1, size_m + 1))
+        K[:, :size_m, :size_m] = A[use][:, :size_m, :size_m]
+        K[:, :size_m, size_m] = G[use][:, :size_m]
+        K[:, size_m, :size_m] = G[use][:, :size_m]
+        rhs = np.concatenate((b[use][:, :size_m], S[use][:, None, :]), axis=1)
+        sol = np.zeros((int(use.sum()), m, k))
+        sol[:, :size_m] = np.linalg.solve(K, rhs)[:, :size_m, :]
+        coef[use] = sol
+        done |= use
     return np.einsum("gm,gmk->gk", gphi, coef[gslot])
 
 

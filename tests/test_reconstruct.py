@@ -226,3 +226,64 @@ def test_central_difference_is_second_order_in_time_where_musl_is_first():
     assert_order(errs["cd"], dts, expected=2.0, tol=0.2)
     assert observed_orders(errs["musl"], dts)[-1] < 1.3  # measured 1.38, 1.24: first order
     assert errs["cd"][-1] < errs["musl"][-1] / 4  # measured 7.2e-12 vs 3.6e-11
+
+
+def cell_integrals(grid, particles, values, rule, out):
+    """(Gauss integral of the reconstruction, particle integral) per cell."""
+    pcell, _ = grid.locate(particles.x)
+    gauss = np.zeros((grid.ncells, values.shape[1]))
+    np.add.at(gauss, rule.cell, rule.w[:, None] * out)
+    part = np.zeros_like(gauss)
+    np.add.at(part, pcell, particles.V[:, None] * values)
+    return gauss, part
+
+
+@pytest.mark.parametrize("dim", (1, 2))
+def test_published_tls_reproduces_quadratics_cell_by_cell(dim):
+    """The default tls is the published per-cell constrained quadratic: exact
+    on quadratics where the particle sum integrates them (Gauss layout, 3 per
+    axis), with no help from the neighbours (each cell's own particles
+    alone), and on randomly placed particles its cell integrals equal the
+    particle integrals to round-off."""
+    g = grid1d() if dim == 1 else grid2d()
+    check(reconstruct_tls, Particles.seed(g, 3, 1.0, layout="gauss"), g, poly(2, dim), 1e-11)
+    # a cell-wise quadratic that jumps between cells is reproduced too (no coupling)
+    jump = lambda x: poly(2, dim)(x) + 3.0 * g.locate(x)[0]
+    check(reconstruct_tls, Particles.seed(g, 3, 1.0, layout="gauss"), g, jump, 1e-10)
+    p = Particles.seed(g, 3, 1.0, layout="random", seed=2)
+    rule = integration_rule(g, p, g.degree + 2)
+    values = np.column_stack((np.cos(4 * p.x[:, 0]), p.x[:, -1] ** 3))
+    gauss, part = cell_integrals(g, p, values, rule, reconstruct_tls(g, p, values, rule))
+    assert np.abs(gauss - part).max() < 1e-14 * np.abs(part).max() * g.ncells
+
+
+def test_tls_falls_back_on_under_populated_cells():
+    """Cells with too few particles for the quadratic (or on a line) take
+    the linear constrained fit, then the conserving constant: no singular
+    solve, finite values, the cell constraint still exact, and linear data
+    reproduced wherever the linear fit is determined."""
+    g = SplineGrid.rectangle((0, 1), (0, 1), 4, 2)
+    h = 0.25
+    x = np.array([[0.1, 0.1],                                  # 1 particle: constant
+                  [0.3, 0.05], [0.45, 0.2],                    # 2: constant
+                  [0.55, 0.05], [0.7, 0.1], [0.625, 0.225],    # 3 (not on a line): linear
+                  [0.8, 0.05], [0.85, 0.1], [0.9, 0.15], [0.95, 0.2],  # 4 on a line: constant
+                  [0.05, 0.3], [0.2, 0.3], [0.05, 0.45], [0.2, 0.45], [0.125, 0.375]])  # 5: linear
+    # volumes whose particle sum integrates linears over the 3- and 5-particle cells
+    V = np.full(len(x), h * h / 3)
+    V[10:] = h * h / 5
+    p = Particles(x, np.ones(len(x)), V)
+    rule = integration_rule(g, p, 4)
+    lin = 0.5 + x[:, 0] - 0.7 * x[:, 1]
+    values = np.column_stack((lin, np.sin(5 * x[:, 0])))
+    out = reconstruct_tls(g, p, values, rule)
+    assert np.all(np.isfinite(out))
+    gauss, part = cell_integrals(g, p, values, rule, out)
+    assert np.abs(gauss - part).max() < 1e-15 * g.ncells
+    linear_cells = np.isin(rule.cell, g.locate(x[[3, 10]])[0])
+    exact = 0.5 + rule.x[:, 0] - 0.7 * rule.x[:, 1]
+    assert np.abs(out[linear_cells, 0] - exact[linear_cells]).max() < 1e-12
+    # the under-determined cells hold the conserving constant
+    const_cells = np.isin(rule.cell, g.locate(x[[0, 1, 6]])[0])
+    per_cell = out[const_cells, 1].reshape(-1, 16)
+    assert np.abs(per_cell - per_cell[:, :1]).max() < 1e-15

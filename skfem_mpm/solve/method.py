@@ -53,8 +53,9 @@ class Method:
     cfl
         Fraction of the critical time step used when ``dt`` is None; above 1
         it raises ``ValueError`` unless ``allow_unstable``. With a
-        reconstruction on a 2D grid dt_crit itself is 0.6 of the Gauss-FEM
-        one (see :mod:`skfem_mpm.solve.timestep`).
+        reconstruction on a 2D grid dt_crit is the Gauss-FEM one times a
+        factor <= 1 estimated by power iteration where the reconstructed
+        operator is stiffer (see :mod:`skfem_mpm.solve.timestep`).
     on_exit
         ``"raise"``: a particle leaving the grid stops the run with
         ``SimulationError``; ``"remove"``: it is removed and counted.

@@ -9,7 +9,9 @@ from ..kernels import resolve_backend
 from ..spline import SplineGrid
 from .grid_system import Constraints, dof_adjacency
 from .runge_kutta import check_staged
-from .timestep import critical_time_step, covered_weights, fast_dof_weights, stable_time_step
+from ..reconstruct import RECONSTRUCTORS
+from .timestep import (RECONSTRUCTION_EVERY, critical_time_step, covered_weights,
+                       fast_dof_weights, reconstruction_factor, stable_time_step)
 from .timing import PhaseTimer
 
 __all__ = ["State", "prepare"]
@@ -146,8 +148,9 @@ class State:
     def _choose_time_step(self):
         m = self.method
         self.wave_speed_now = self.wave_speed()
-        self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, m.mass,
-                                          m.reconstruction, m.scheme)
+        self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, m.mass, m.scheme)
+        self._reconstruction_vectors = None
+        self.dt_crit *= self.reconstruction_factor()
         t_end = self.scene.t_end
         dt = stable_time_step(m, self.dt_crit,
                               f" (degree {self.grid.degree}, {m.mass} mass)")
@@ -158,6 +161,24 @@ class State:
             self.n_steps = max(1, math.ceil(t_end / dt * (1 - 1e-12)))
             self.dt = t_end / self.n_steps
 
+    def reconstruction_factor(self):
+        """The factor on dt_crit of a reconstructed 2D method
+        (:func:`skfem_mpm.solve.timestep.reconstruction_factor`), estimated
+        at the start and, in adaptive runs, every RECONSTRUCTION_EVERY steps
+        from the previous power-iteration vectors; 1 otherwise."""
+        m = self.method
+        if m.reconstruction == "none" or self.grid.dim < 2:
+            return 1.0
+        if getattr(self, "_reconstruction_factor", None) is None:
+            recon = RECONSTRUCTORS[m.reconstruction] if isinstance(m.reconstruction, str) \
+                else m.reconstruction
+            with self.timer("reconstruct"):
+                self._reconstruction_factor, self._reconstruction_vectors = \
+                    reconstruction_factor(self.grid, self.particles, recon,
+                                          m.reconstruction_options,
+                                          self._reconstruction_vectors)
+        return self._reconstruction_factor
+
     def next_step_size(self):
         """Set ``dt`` for the coming step (finite strain: from the current
         wave speed; the last step ends exactly at t_end)."""
@@ -165,7 +186,10 @@ class State:
             return self.dt
         self.wave_speed_now = self.wave_speed()
         self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, self.method.mass,
-                                          self.method.reconstruction, self.method.scheme)
+                                          self.method.scheme)
+        if self.step % RECONSTRUCTION_EVERY == 0:
+            self._reconstruction_factor = None
+        self.dt_crit *= self.reconstruction_factor()
         remaining = self.scene.t_end - self.t
         dt = self.method.cfl * self.dt_crit
         self.dt = remaining if dt >= remaining * (1 - 1e-12) else dt

@@ -17,15 +17,18 @@ Lambda is computed here, once per (p, mass), with Gauss quadrature on a
 64-cell grid (values: p=1 lumped 4, consistent 12; see ``spectral_radius``).
 For a grid with non-uniform cells h_d is the smallest cell of axis d.
 
-Reconstruction in 2D. The internal force of a reconstructed method is
--G_gauss^T W R(sigma_p): the least-squares fit R of the particle stresses
-is not the Gauss-point stress of the grid field, and the operator is not
-symmetric, so its largest frequency exceeds the Gauss-FEM one. Measured on
-D1 large (p = 2, consistent mass, MUSL): stable at 0.35 dt_crit, J -> 0.56
-at 8 cells and J <= 0 at 16 cells with 0.5 dt_crit. The critical step of a
-2D reconstructed method is therefore RECONSTRUCTION_2D (0.6) times the
-Gauss one, so the default cfl 0.5 runs at 0.3. In 1D the seed's spline
-runs at 0.5 dt_crit on the hardest case (S2 large) and no factor applies.
+Reconstruction. The internal force of a reconstructed method is
+-G_gauss^T W R(sigma_p): the fit R of the particle stresses is not the
+Gauss-point stress of the grid field, and the operator is not symmetric,
+so its top frequency may differ from the Gauss one. A 2D reconstructed
+method therefore multiplies dt_crit by the factor of
+:func:`reconstruction_factor`: min(1, sqrt(lambda_G / lambda_R)) from a
+few power iterations on the reconstructed and on the Gauss scalar wave
+operator of the current particles (:class:`ReconstructedOperator`). It
+replaces a fixed factor 0.6 measured on one problem; measured exactly (all
+eigenvalues, 8 x 8 cells, D1): tls R/G = 1.000 (3 and 2 particles per
+axis: the fit reproduces the linear gradients), spline 0.993 (3 per axis)
+and 1.022 (2 per axis). In 1D no factor applies.
 """
 from functools import lru_cache
 
@@ -37,7 +40,8 @@ from skfem.helpers import dot, grad
 __all__ = ["spectral_radius", "interior_rayleigh_quotient", "critical_time_step", "STABILITY_LIMIT",
            "stable_time_step",
            "fast_dof_limit", "full_grid_quotients", "full_grid_mass_ratios", "fast_dof_weights",
-           "covered_weights", "lumping_fraction"]
+           "covered_weights", "lumping_fraction", "ReconstructedOperator", "power_iteration",
+           "reconstruction_factor"]
 
 
 @BilinearForm
@@ -166,13 +170,11 @@ def lumping_fraction(ratio):
     return s * s * (3.0 - 2.0 * s)
 
 
-RECONSTRUCTION_2D = 0.6
-
-
-def critical_time_step(grid, wave_speed, mass="lumped", reconstruction="none", scheme="cd"):
+def critical_time_step(grid, wave_speed, mass="lumped", scheme="cd"):
     """dt_crit = s / (c sqrt(sum_d Lambda(p, mass) / h_d^2)) for the grid,
-    s = 2 (or the scheme's STABILITY_LIMIT), times RECONSTRUCTION_2D for a
-    reconstructed method on a 2D grid.
+    s = 2 (or the scheme's STABILITY_LIMIT). A reconstructed 2D method
+    multiplies it by :func:`reconstruction_factor` (see the module
+    docstring).
 
     ``mass="hybrid"`` (lumped acceleration, consistent velocity
     re-projection) takes the lumped Lambda: the step's frequencies are
@@ -183,9 +185,8 @@ def critical_time_step(grid, wave_speed, mass="lumped", reconstruction="none", s
     and 3.0; consistent fails at 0.9 dt_crit(lumped))."""
     lam = spectral_radius(grid.degree, "lumped" if mass == "hybrid" else mass)
     h = np.asarray(grid.h, dtype=np.float64)
-    factor = RECONSTRUCTION_2D if (grid.dim == 2 and reconstruction != "none") else 1.0
     limit = STABILITY_LIMIT.get(scheme, 2.0)
-    return float(factor * limit / (wave_speed * np.sqrt(np.sum(lam / h ** 2))))
+    return float(limit / (wave_speed * np.sqrt(np.sum(lam / h ** 2))))
 
 
 def stable_time_step(method, dt_crit, what=""):
@@ -204,3 +205,129 @@ def stable_time_step(method, dt_crit, what=""):
                          f"step dt_crit = {dt_crit:.6g}{what} (cfl <= 1 is stable); use "
                          f"cfl <= 1 or allow_unstable=True")
     return method.cfl * dt_crit
+
+
+class ReconstructedOperator:
+    """The scalar wave operator of a reconstructed method on the current
+    particles: for a grid field v (ndofs,),
+
+        K v = sum_g w_g grad N(x_g) . R(rho_p grad v(x_p))_g,
+        M_L = diag(sum_g w_g R(rho_p)_g N_i(x_g)),
+
+    R the method's reconstruction onto the Gauss points g of the step's
+    integration rule (weights w_g), so that c^2 M_L^-1 K is the stiffness
+    of one displacement component with P-wave speed c (the scalar model of
+    :func:`critical_time_step`, where the same operator with Gauss
+    quadrature of the grid field itself has the top eigenvalue
+    sum_d Lambda(p, lumped) / h_d^2). K is not symmetric: the
+    reconstruction R is applied to particle gradients, not to the Gauss
+    points' own."""
+
+    def __init__(self, grid, particles, reconstruct, options):
+        from ..quadrature import transfer_matrices
+        from ..reconstruct import integration_rule
+
+        self.grid, self.particles = grid, particles
+        self.reconstruct, self.options = reconstruct, dict(options)
+        self.rule = integration_rule(grid, particles, grid.degree + 2)
+        Ng, self.Gg = transfer_matrices(grid, self.rule.x)
+        _, self.Gp = transfer_matrices(grid, particles.x)
+        self.rho = particles.m / particles.V
+        rho_g = reconstruct(grid, particles, self.rho[:, None], self.rule, **self.options)[:, 0]
+        self.lumped = Ng.T @ (self.rule.w * rho_g)
+        self.active = self.lumped > 1e-12 * np.abs(self.lumped).max()
+        self.gauss_weights = self.rule.w * rho_g
+
+    def gauss_stiffness(self, v):
+        """K_G v = sum_g w_g rho_g grad N(x_g) (grad N(x_g) . v): the same
+        operator with the grid field's own gradient at the Gauss points."""
+        return sum(G.T @ (self.gauss_weights * (G @ v)) for G in self.Gg)
+
+    def apply_gauss(self, v):
+        """M_L^-1 K_G v on the dofs with mass."""
+        out = np.zeros_like(v)
+        out[self.active] = self.gauss_stiffness(v)[self.active] / self.lumped[self.active]
+        return out
+
+    def stiffness(self, v):
+        """K v (see the class docstring)."""
+        g = np.column_stack([G @ v for G in self.Gp]) * self.rho[:, None]
+        r = self.reconstruct(self.grid, self.particles, g, self.rule, **self.options)
+        return sum(self.Gg[d].T @ (self.rule.w * r[:, d]) for d in range(self.grid.dim))
+
+    def apply(self, v):
+        """M_L^-1 K v on the dofs with mass (0 elsewhere)."""
+        out = np.zeros_like(v)
+        out[self.active] = self.stiffness(v)[self.active] / self.lumped[self.active]
+        return out
+
+    def start_vector(self):
+        """The deterministic start: the checkerboard (-1)^(i_1 + .. + i_d) of
+        the dof indices (the shape of the top grid mode)."""
+        idx = np.indices(self.grid.basis_per_axis[::-1]).reshape(self.grid.dim, -1)
+        v = np.where(idx.sum(axis=0) % 2 == 0, 1.0, -1.0)
+        return np.where(self.active, v, 0.0)
+
+
+def power_iteration(apply, weights, vector, iterations):
+    """|lambda_max| of an operator by the power method: w = apply(v),
+    lambda_k = ||w||_W / ||v||_W, v <- w / ||w||_W (W = diag(weights)),
+    ``iterations`` times from ``vector``; returns (lambda_k, v). The ratio
+    converges to the largest eigenvalue magnitude (Golub & Van Loan,
+    "Matrix Computations", 4th ed., Sec. 7.3.1); every operation is
+    deterministic, so the estimate is reproducible bit for bit."""
+    def norm(a):
+        return float(np.sqrt(np.sum(weights * a * a)))
+
+    v = vector / norm(vector)
+    lam = 0.0
+    for _ in range(int(iterations)):
+        w = apply(v)
+        lam = norm(w)
+        if lam == 0.0:
+            return 0.0, v
+        v = w / lam
+    return lam, v
+
+
+RECONSTRUCTION_ITERATIONS = 20
+"""Power iterations of the first estimate of a run (later ones, in
+adaptive runs, RECONSTRUCTION_ITERATIONS_NEXT from the previous vector)."""
+RECONSTRUCTION_ITERATIONS_NEXT = 3
+RECONSTRUCTION_EVERY = 25
+"""Adaptive runs (finite strain) re-estimate the factor every this many
+steps, RECONSTRUCTION_ITERATIONS_NEXT iterations from the previous vectors.
+Measured on D1 at 16 x 16 cells, 3 particles per axis, load average 7.7 on
+2 cores: first estimate 4.8 s (tls), 5.5 s (spline); each later one
+0.31-0.35 s (tls), 1.09-1.16 s (spline), i.e. 0.013 and 0.045 s per step
+amortised against 0.18-0.24 s per step of the runs themselves."""
+
+
+def reconstruction_factor(grid, particles, reconstruct, options, vectors=None, iterations=None):
+    """(f, vectors): the factor f <= 1 on the Gauss critical step of a
+    reconstructed method, and the two power-iteration vectors (kept for the
+    next estimate).
+
+        f = min(1, sqrt(lambda_G / lambda_R)),
+        lambda_R ~ |lambda_max(M_L^-1 K)|,  lambda_G ~ lambda_max(M_L^-1 K_G)
+
+    (:class:`ReconstructedOperator`: the reconstructed scalar wave operator
+    and the same with Gauss quadrature of the grid field, on the same
+    particles, cells and lumped reconstructed mass), each by
+    :func:`power_iteration`. The ratio lambda_R / lambda_G multiplies the
+    method's own dt_crit (lumped or consistent Lambda): it assumes the
+    reconstruction raises the top frequency of either mass in the same
+    proportion. Where the reconstructed operator is no stiffer than Gauss
+    quadrature f = 1: the Gauss step applies unchanged. Both estimates start
+    from the same vector and take the same number of iterations, so their
+    approach from below (20 iterations: 0.96-0.98 of the exact value on D1
+    at 8 x 8 cells, 3 particles per axis) largely cancels in the ratio."""
+    op = ReconstructedOperator(grid, particles, reconstruct, options)
+    if vectors is None or vectors[0].shape != op.lumped.shape:
+        start = op.start_vector()
+        vectors, iterations = (start, start), iterations or RECONSTRUCTION_ITERATIONS
+    n = iterations or RECONSTRUCTION_ITERATIONS_NEXT
+    lam_r, v_r = power_iteration(op.apply, op.lumped, np.where(op.active, vectors[0], 0.0), n)
+    lam_g, v_g = power_iteration(op.apply_gauss, op.lumped, np.where(op.active, vectors[1], 0.0),
+                                 n)
+    return (1.0 if lam_r <= lam_g else float(np.sqrt(lam_g / lam_r))), (v_r, v_g)
