@@ -15,6 +15,8 @@ range its block touches, and the copies are summed over those ranges
 kernel is the transfer-matrix code of :mod:`skfem_mpm.solve.steps`; the
 tests compare the two to 1e-12.
 """
+import math
+
 import numpy as np
 from numba import get_num_threads, njit, prange
 
@@ -551,10 +553,11 @@ class Kernels:
     def scratch(self, name, shape, dtype=np.float64):
         """A work array kept between steps (allocating it anew each step
         costs page faults); valid until the next request of the same name."""
+        size = math.prod(shape) if isinstance(shape, tuple) else int(shape)
         a = self._scratch.get(name)
-        if a is None or a.size < int(np.prod(shape)) or a.dtype != dtype:
-            a = self._scratch[name] = np.empty(int(np.prod(shape)) + 64, dtype=dtype)
-        return a[:int(np.prod(shape))].reshape(shape)
+        if a is None or a.size < size or a.dtype != dtype:
+            a = self._scratch[name] = np.empty(size + 64, dtype=dtype)
+        return a[:size].reshape(shape)
 
     def mass_times_displacement(self, mass, v_grid, dt):
         """sum_p m_p du_p of a g2p call with grid velocity v_grid: equal to
