@@ -136,6 +136,10 @@ def test_compiled_tls_agrees_with_the_reference(name, grid, p):
 @pytest.mark.parametrize("method, reason", [
     (Method(reconstruction="spline", reconstruction_options={"knots": "grid"}), "knots='grid'"),
     (Method(reconstruction=lambda grid, p, values, rule: values[:0]), "callable"),
+    (Method(reconstruction="tls", reconstruction_options={"degree": 1}), "degree=1"),
+    (Method(reconstruction="tls", reconstruction_options={"neighbour_weight": 1e-3}),
+     "neighbour_weight=0.001"),
+    (Method(reconstruction="mls"), "mls"),
 ])
 def test_what_stays_on_the_reference_executor_says_why(method, reason):
     case = dict(scheme="musl", mass="lumped", degree=2, dim=1, material="linear", effect="none")
