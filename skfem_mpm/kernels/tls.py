@@ -32,7 +32,7 @@ cell's sums run in particle order, as the oracle's np.add.at does), the
 Gauss points likewise; the fit of cell e is then evaluated at its points.
 """
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 __all__ = ["tls_reconstruct", "TLS_RANK_TOL"]
 
@@ -132,7 +132,7 @@ def _bins(cell, slot, nslots):
     return order, start
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
     """out[g] (ng, k) = the TLS fit of the particle ``values`` (n, k) of the
     cell gcell[g] at the Gauss point xg[g] (see the module docstring).
@@ -156,20 +156,31 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
             nact += 1
     porder, pstart = _bins(pcell, slot, nact)
     gorder, gstart = _bins(gcell, slot, nact)
-    for s in prange(nact):
+    centre = np.empty(dim)
+    size = np.empty(dim)
+    phi = np.empty(m)
+    A = np.empty((m, m))
+    b = np.empty((m, k))
+    G = np.empty(m)
+    S = np.empty(k)
+    coef = np.empty((m, k))
+    work = np.empty((m + 1, m + 1))
+    K = np.empty((m + 1, m + 1))
+    R = np.empty((m + 1, k))
+    for s in range(nact):  # serial: a few microseconds per cell
         c = cells[s]
-        e = (c % nx, c // nx)
-        centre = np.empty(dim)
-        size = np.empty(dim)
-        for a in range(dim):
-            br = breaks0 if a == 0 else breaks1
-            size[a] = br[e[a] + 1] - br[e[a]]
-            centre[a] = br[e[a]] + 0.5 * size[a]
-        phi = np.empty(m)
-        A = np.zeros((m, m))
-        b = np.zeros((m, k))
-        G = np.zeros(m)
-        S = np.zeros(k)
+        ix = c % nx
+        size[0] = breaks0[ix + 1] - breaks0[ix]
+        centre[0] = breaks0[ix] + 0.5 * size[0]
+        if dim == 2:
+            iy = c // nx
+            size[1] = breaks1[iy + 1] - breaks1[iy]
+            centre[1] = breaks1[iy] + 0.5 * size[1]
+        A[:] = 0.0
+        b[:] = 0.0
+        G[:] = 0.0
+        S[:] = 0.0
+        coef[:] = 0.0
         for i in range(pstart[s], pstart[s + 1]):
             q = porder[i]
             _monomials(x, q, centre, size, phi)
@@ -186,10 +197,6 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
             _monomials(xg, g, centre, size, phi)
             for r in range(m):
                 G[r] += wg[g] * phi[r]
-        coef = np.zeros((m, k))
-        work = np.empty((m + 1, m + 1))
-        K = np.empty((m + 1, m + 1))
-        R = np.empty((m + 1, k))
         solved = False
         for n in (m, 1 + dim):
             if solved or not _well_posed(A, n, TLS_RANK_TOL, work):
