@@ -34,7 +34,7 @@ Gauss points likewise; the fit of cell e is then evaluated at its points.
 import numpy as np
 from numba import njit
 
-__all__ = ["tls_reconstruct", "TLS_RANK_TOL"]
+__all__ = ["TLS_RANK_TOL", "tls_reconstruct"]
 
 TLS_RANK_TOL = 1e-8  # the value of skfem_mpm.reconstruct.TLS_RANK_TOL (a test checks)
 
