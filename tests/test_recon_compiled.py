@@ -11,9 +11,12 @@ import numpy as np
 import pytest
 
 from skfem_mpm import Method, Particles, SplineGrid
-from skfem_mpm.kernels.gauss_rule import gauss_rule_1d
+from skfem_mpm import reconstruct
+from skfem_mpm.kernels import tls as tls_kernel
+from skfem_mpm.kernels.gauss_rule import gauss_rule_1d, gauss_rule_cells, locate_cells
 from skfem_mpm.kernels.spline_1d import not_a_knot_spline
-from skfem_mpm.reconstruct import integration_rule, reconstruct_spline
+from skfem_mpm.kernels.tls import tls_reconstruct
+from skfem_mpm.reconstruct import integration_rule, reconstruct_spline, reconstruct_tls
 from skfem_mpm.solve.compiled import compiled_executor_applies
 from skfem_mpm.solve.state import prepare
 from test_executors import scene_for
@@ -63,12 +66,80 @@ def test_compiled_particle_spline_agrees_with_the_reference(name, grid, p):
     assert np.abs(out - expected).max() <= 1e-12 * np.abs(expected).max()
 
 
+def layouts_tls():
+    """(name, grid, particles): random layouts in 1D and 2D, uniform and
+    graded grids, with cells of every fallback level (quadratic: >= 3 per
+    cell in 1D, 3 x 3 in 2D; linear; constant: one particle, or particles
+    on a line), particles on cell boundaries and on the grid's upper end,
+    unequal volumes."""
+    rng = np.random.default_rng(11)
+    out = [(name, grid, p) for name, grid, p in layouts_1d()]
+    line = SplineGrid.line(0.0, 2.0, 10, 3)
+    x = np.concatenate((rng.uniform(0.0, 0.6, 12), rng.uniform(0.6, 1.0, 3),  # 3, 1-2 per cell
+                        [1.0, 1.2, 1.2, 1.4, 2.0], rng.uniform(1.6, 2.0, 9)))
+    out.append(("1D fallbacks", line, Particles(x[:, None], np.ones(x.size),
+                                                rng.uniform(0.01, 0.05, x.size))))
+    square = SplineGrid.rectangle((0.0, 1.0), (0.0, 2.0), (5, 6), 2)
+    p = Particles.seed(square, 3, 1.0, region=((0.0, 0.8), (0.0, 1.4)))
+    x = p.x + rng.uniform(-0.02, 0.02, p.x.shape)
+    out.append(("2D 3 x 3 jittered", square, Particles(x, np.ones(p.n), p.V)))
+    x = np.column_stack((rng.uniform(0.0, 1.0, 70), rng.uniform(0.0, 2.0, 70)))
+    x[:4] = [[0.2, 0.0], [0.4, 1.0], [1.0, 2.0], [0.6, 0.5]]  # on cell boundaries, the corner
+    x[4:8] = np.column_stack((np.linspace(0.61, 0.79, 4), np.linspace(0.71, 0.89, 4)))  # a line
+    out.append(("2D random", square, Particles(x, np.ones(70), rng.uniform(0.5, 1.5, 70) / 35)))
+    graded = SplineGrid((np.array([0.0, 0.1, 0.35, 0.5, 0.9, 1.0]),
+                         np.array([-1.0, -0.2, 0.0, 0.7, 1.0])), 3)
+    x = np.column_stack((rng.uniform(0.0, 1.0, 90), rng.uniform(-1.0, 1.0, 90)))
+    out.append(("2D graded", graded, Particles(x, np.ones(90), np.full(90, 2.0 / 90))))
+    return out
+
+
+def compiled_tls(grid, p, values, rule):
+    out = np.empty((rule.x.shape[0], values.shape[1]))
+    b0 = grid.breakpoints[0]
+    b1 = grid.breakpoints[1] if grid.dim == 2 else b0
+    pcell = locate_cells(p.x, b0, b1, grid._uniform[0], grid._uniform[-1])
+    tls_reconstruct(p.x, p.V, values, pcell, rule.x, rule.w, rule.cell, b0, b1, out)
+    return out
+
+
+def test_the_compiled_tls_rank_tolerance_is_the_reference_one():
+    assert tls_kernel.TLS_RANK_TOL == reconstruct.TLS_RANK_TOL
+
+
+@pytest.mark.parametrize("name, grid, p", [c for c in layouts_tls() if c[1].dim == 2],
+                         ids=lambda v: v if isinstance(v, str) else "")
+def test_compiled_2d_gauss_rule_equals_the_reference_bit_for_bit(name, grid, p):
+    rule = integration_rule(grid, p, grid.degree + 2)
+    pcell = locate_cells(p.x, *grid.breakpoints, *grid._uniform)
+    assert np.array_equal(pcell, grid.locate(p.x)[0])
+    ref, wref = np.polynomial.legendre.leggauss(grid.degree + 2)
+    xg, wg, cell = gauss_rule_cells(pcell, *grid.breakpoints, 0.5 * (ref + 1), 0.5 * wref)
+    assert np.array_equal(xg, rule.x) and np.array_equal(wg, rule.w)
+    assert np.array_equal(cell, rule.cell)
+
+
+@pytest.mark.parametrize("name, grid, p", layouts_tls(),
+                         ids=lambda v: v if isinstance(v, str) else "")
+def test_compiled_tls_agrees_with_the_reference(name, grid, p):
+    values = np.random.default_rng(7).normal(size=(p.n, 5))
+    values[:, 1] = 2.0 + p.x[:, 0] - 3.0 * p.x[:, -1] ** 2  # a quadratic column
+    rule = integration_rule(grid, p, grid.degree + 2)
+    expected = reconstruct_tls(grid, p, values, rule)
+    out = compiled_tls(grid, p, values, rule)
+    assert np.abs(out - expected).max() <= 1e-12 * np.abs(expected).max()
+
+
 # whole runs: tests/test_executors.py (RECONSTRUCTED)
 
 
 @pytest.mark.parametrize("method, reason", [
     (Method(reconstruction="spline", reconstruction_options={"knots": "grid"}), "knots='grid'"),
     (Method(reconstruction=lambda grid, p, values, rule: values[:0]), "callable"),
+    (Method(reconstruction="tls", reconstruction_options={"degree": 1}), "degree=1"),
+    (Method(reconstruction="tls", reconstruction_options={"neighbour_weight": 1e-3}),
+     "neighbour_weight=0.001"),
+    (Method(reconstruction="mls"), "mls"),
 ])
 def test_what_stays_on_the_reference_executor_says_why(method, reason):
     case = dict(scheme="musl", mass="lumped", degree=2, dim=1, material="linear", effect="none")

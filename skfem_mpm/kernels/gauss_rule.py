@@ -13,11 +13,22 @@ of width b, with the points and weights
 This is :func:`skfem_mpm.reconstruct.integration_rule` (the oracle)
 computed without the Python loop over pieces; the same arithmetic, so the
 points agree bit for bit.
+
+2D (:func:`gauss_rule_cells`): the cells that hold particles (ascending
+scikit-fem numbering e = ix + nx iy), each with the tensor rule of k points
+per axis, point (a, b) at index a + k b:
+
+    x_g = (u_ix + h_ix r_a, v_iy + k_iy r_b),   w_g = (h_ix k_iy) (w_a w_b),
+
+as :meth:`SplineGrid.gauss_rule` computes it (bit for bit). The particles'
+cells (:func:`locate_cells`) are those of :meth:`SplineGrid.locate`: on a
+uniform axis trunc((x - u_0) (n / (u_n - u_0))), else the last breakpoint
+<= x, clamped to the grid's cells.
 """
 import numpy as np
 from numba import njit
 
-__all__ = ["gauss_rule_1d"]
+__all__ = ["gauss_rule_1d", "gauss_rule_cells", "locate_cells"]
 
 
 @njit(cache=True, error_model="numpy")
@@ -87,3 +98,70 @@ def gauss_rule_1d(x, V, gap, breaks, ref, wref):
                     cell[g] = c
                     g += 1
     return order, starts[:npieces + 1].copy(), piece_points, xg, wg, cell
+
+
+@njit(cache=True, error_model="numpy")
+def _locate(x, breaks, uniform):
+    n = breaks.shape[0] - 1
+    if uniform:
+        e = int((x - breaks[0]) * (n / (breaks[n] - breaks[0])))
+    else:
+        lo, hi = -1, n + 1  # the last index with breaks[lo] <= x (searchsorted right - 1)
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if breaks[mid] <= x:
+                lo = mid
+            else:
+                hi = mid
+        e = lo
+    return min(max(e, 0), n - 1)
+
+
+@njit(cache=True, error_model="numpy")
+def locate_cells(x, breaks0, breaks1, uniform0, uniform1):
+    """The cell (ix + nx iy; ix in 1D) of each point x (n, d)."""
+    n, dim = x.shape
+    nx = breaks0.shape[0] - 1
+    cell = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        c = _locate(x[i, 0], breaks0, uniform0)
+        if dim == 2:
+            c += nx * _locate(x[i, 1], breaks1, uniform1)
+        cell[i] = c
+    return cell
+
+
+@njit(cache=True, error_model="numpy")
+def gauss_rule_cells(pcell, breaks0, breaks1, ref, wref):
+    """(xg, wg, cell) of the 2D tensor Gauss rule on the cells in ``pcell``
+    (ascending, each once; see the module docstring)."""
+    nx = breaks0.shape[0] - 1
+    ncells = nx * (breaks1.shape[0] - 1)
+    k = ref.shape[0]
+    held = np.zeros(ncells, dtype=np.bool_)
+    for i in range(pcell.shape[0]):
+        held[pcell[i]] = True
+    nheld = 0
+    for c in range(ncells):
+        if held[c]:
+            nheld += 1
+    ng = nheld * k * k
+    xg = np.empty((ng, 2))
+    wg = np.empty(ng)
+    cell = np.empty(ng, dtype=np.int64)
+    g = 0
+    for c in range(ncells):
+        if not held[c]:
+            continue
+        ix, iy = c % nx, c // nx
+        hx = breaks0[ix + 1] - breaks0[ix]
+        hy = breaks1[iy + 1] - breaks1[iy]
+        area = hx * hy
+        for b in range(k):
+            for a in range(k):
+                xg[g, 0] = breaks0[ix] + hx * ref[a]
+                xg[g, 1] = breaks1[iy] + hy * ref[b]
+                wg[g] = area * (wref[a] * wref[b])
+                cell[g] = c
+                g += 1
+    return xg, wg, cell

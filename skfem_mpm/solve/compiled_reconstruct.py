@@ -16,13 +16,22 @@ the generated scatter kernels and the stencil assembly compute them. The
 MUSL re-projection P_i = sum_g w_g (rho v^new)_h N_i reconstructs the
 updated particle momentum with the same rule (g2p2g on points of mass w_g).
 
-Which reconstructions run here is :func:`unsupported`'s answer; the rest
-stays on the reference executor.
+The rule: in 1D the body's pieces (:func:`skfem_mpm.kernels.gauss_rule.gauss_rule_1d`),
+in 2D the cells holding particles
+(:func:`skfem_mpm.kernels.gauss_rule.gauss_rule_cells`), p + 2 points per
+axis, both bit for bit those of :func:`skfem_mpm.reconstruct.integration_rule`.
+The reconstructions: the particle-knot spline in 1D
+(:mod:`skfem_mpm.kernels.spline_1d`) and the published TLS (default
+options) in 1D and 2D (:mod:`skfem_mpm.kernels.tls`). Which run here is
+:func:`unsupported`'s answer; the rest stays on the reference executor.
 """
 import numpy as np
 
-from ..kernels.gauss_rule import gauss_rule_1d
+from ..kernels.gauss_rule import gauss_rule_1d, gauss_rule_cells, locate_cells
 from ..kernels.spline_1d import not_a_knot_spline
+from ..kernels.tls import tls_reconstruct
+
+TLS_DEFAULTS = {"degree": 2, "neighbour_weight": 0.0}
 
 __all__ = ["CompiledReconstruction", "unsupported"]
 
@@ -40,6 +49,11 @@ def unsupported(method, dim):
         if set(options) - {"knots", "penalty"}:
             return "reconstruction options"
         return None
+    if recon == "tls":
+        for name, value in options.items():
+            if name not in TLS_DEFAULTS or value != TLS_DEFAULTS[name]:
+                return f"reconstruction tls with {name}={value!r} (compiled: the published default)"
+        return None
     return f"reconstruction {recon} in {dim}D"
 
 
@@ -53,12 +67,14 @@ class QuadraturePoints:
 
 
 class Rule:
-    """The step's Gauss rule: points, weights and what the 1D spline needs
-    (sorted order and piece bounds)."""
+    """The step's Gauss rule: points ``x``, weights ``w``, their cells
+    ``cell``, the particles' cells ``pcell`` (TLS) and what the 1D spline
+    needs (sorted order and piece bounds; None in 2D)."""
 
-    def __init__(self, order, piece_particles, piece_points, x, w):
+    def __init__(self, x, w, cell, pcell=None, order=None, piece_particles=None,
+                 piece_points=None):
+        self.x, self.w, self.cell, self.pcell = x, w, cell, pcell
         self.order, self.piece_particles, self.piece_points = order, piece_particles, piece_points
-        self.x, self.w = x, w
 
 
 class CompiledReconstruction:
@@ -72,18 +88,32 @@ class CompiledReconstruction:
         self.name = state.method.reconstruction
         ref, wref = np.polynomial.legendre.leggauss(grid.degree + 2)
         self.ref, self.wref = 0.5 * (ref + 1), 0.5 * wref
-        self.breaks = np.ascontiguousarray(grid.breakpoints[0], dtype=np.float64)
+        axes = [np.ascontiguousarray(b, dtype=np.float64) for b in grid.breakpoints]
+        self.breaks = axes[0]
+        self.breaks1 = axes[-1]  # unused in 1D
+        self.uniform = (bool(grid._uniform[0]), bool(grid._uniform[-1]))
         self.gap = float(grid.cell_sizes[0].max())
         self._zero_a = np.zeros((grid.ndofs, grid.dim))
 
     def rule(self, p):
-        order, pp, pg, xg, wg, _ = gauss_rule_1d(p.x[:, 0], p.V, self.gap, self.breaks,
-                                                 self.ref, self.wref)
-        return Rule(order, pp, pg, xg[:, None], wg)
+        pcell = None
+        if self.name == "tls":
+            pcell = locate_cells(p.x, self.breaks, self.breaks1, *self.uniform)
+        if self.dim == 1:
+            order, pp, pg, xg, wg, cell = gauss_rule_1d(p.x[:, 0], p.V, self.gap, self.breaks,
+                                                        self.ref, self.wref)
+            return Rule(xg[:, None], wg, cell, pcell, order, pp, pg)
+        xg, wg, cell = gauss_rule_cells(pcell, self.breaks, self.breaks1, self.ref, self.wref)
+        return Rule(xg, wg, cell, pcell)
 
     def reconstruct(self, p, values, rule):
         """The reconstructed ``values`` (n, k) at the rule's points (ng, k)."""
         out = np.empty((rule.x.shape[0], values.shape[1]))
+        values = np.ascontiguousarray(values)
+        if self.name == "tls":
+            tls_reconstruct(p.x, p.V, values, rule.pcell, rule.x, rule.w, rule.cell,
+                            self.breaks, self.breaks1, out)
+            return out
         not_a_knot_spline(p.x[:, 0], values, rule.order, rule.piece_particles,
                           rule.piece_points, rule.x[:, 0], out)
         return out

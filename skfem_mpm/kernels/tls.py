@@ -1,0 +1,229 @@
+"""Conservative Taylor least squares (TLS) per cell, compiled: the twin of
+:func:`skfem_mpm.reconstruct.reconstruct_tls` with its default options
+(``degree=2, neighbour_weight=0``), which is the oracle.
+
+The method (Wobbes, Moller, Galavi, Vuik 2019, IJNME 117:271-290, Sec. 3):
+for each cell e that holds Gauss points of the rule, in the local
+coordinates xi = (x - c_e) / h_e (c_e = u_e + h_e / 2 the cell centre, h_e
+its sizes per axis) and the monomials
+
+    phi = (1, xi_1, .., xi_d, xi_a xi_b for a <= b)      (m = 3 in 1D, 6 in 2D),
+
+the coefficients a_e (m, k) of all k value columns at once solve the
+Lagrange system of the volume-weighted fit under the conservation
+constraint
+
+    [[A, G], [G^T, 0]] [a_e; lambda] = [b; S],
+    A = sum_{p in e} V_p phi_p phi_p^T,  b = sum_{p in e} V_p phi_p f_p,
+    G = sum_{g in e} w_g phi_g,          S = sum_{p in e} V_p f_p,
+
+so that the Gauss integral of the fit over the cell is the cell's particle
+integral. Fallback levels (never a singular solve): the quadratic when the
+leading m x m block of A, scaled to unit diagonal, has its smallest
+eigenvalue above TLS_RANK_TOL; else the same with the 1 + d linear
+monomials; else the conserving constant S / G_0. The eigenvalue test is
+made as a Cholesky factorisation of D^(-1/2) A D^(-1/2) - TLS_RANK_TOL I
+(D = diag A, all > 0): it succeeds exactly when the smallest eigenvalue
+exceeds TLS_RANK_TOL. The Lagrange system (symmetric indefinite) is solved
+by Gaussian elimination with partial pivoting.
+
+Particles are binned to their cells by a counting sort (stable: each
+cell's sums run in particle order, as the oracle's np.add.at does), the
+Gauss points likewise; the fit of cell e is then evaluated at its points.
+"""
+import numpy as np
+from numba import njit
+
+__all__ = ["TLS_RANK_TOL", "tls_reconstruct"]
+
+TLS_RANK_TOL = 1e-8  # the value of skfem_mpm.reconstruct.TLS_RANK_TOL (a test checks)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _monomials(x, g, centre, size, phi):
+    """phi = (1, xi, (eta), xi xi, (xi eta, eta eta)) at point x[g]."""
+    dim = x.shape[1]
+    phi[0] = 1.0
+    for a in range(dim):
+        phi[1 + a] = (x[g, a] - centre[a]) / size[a]
+    j = 1 + dim
+    for a in range(dim):
+        for b in range(a, dim):
+            phi[j] = phi[1 + a] * phi[1 + b]
+            j += 1
+
+
+@njit(cache=True, error_model="numpy")
+def _well_posed(A, n, tol, work):
+    """Smallest eigenvalue of the leading n x n block of A scaled to unit
+    diagonal > tol, by Cholesky of the scaled block minus tol I."""
+    for i in range(n):
+        if not A[i, i] > 0.0:
+            return False
+    for i in range(n):
+        si = 1.0 / np.sqrt(A[i, i])
+        for j in range(n):
+            work[i, j] = A[i, j] * si * (1.0 / np.sqrt(A[j, j]))
+        work[i, i] -= tol
+    for j in range(n):
+        pivot = work[j, j]
+        for q in range(j):
+            pivot -= work[j, q] * work[j, q]
+        if not pivot > 0.0:
+            return False
+        root = np.sqrt(pivot)
+        work[j, j] = root
+        for i in range(j + 1, n):
+            s = work[i, j]
+            for q in range(j):
+                s -= work[i, q] * work[j, q]
+            work[i, j] = s / root
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _solve(K, R, n):
+    """K[:n, :n] X = R[:n] in place (X in R) by Gaussian elimination with
+    partial pivoting."""
+    k = R.shape[1]
+    for j in range(n):
+        best = j
+        for i in range(j + 1, n):
+            if abs(K[i, j]) > abs(K[best, j]):
+                best = i
+        if best != j:
+            for q in range(n):
+                K[j, q], K[best, q] = K[best, q], K[j, q]
+            for c in range(k):
+                R[j, c], R[best, c] = R[best, c], R[j, c]
+        for i in range(j + 1, n):
+            f = K[i, j] / K[j, j]
+            if f != 0.0:
+                for q in range(j + 1, n):
+                    K[i, q] -= f * K[j, q]
+                for c in range(k):
+                    R[i, c] -= f * R[j, c]
+    for j in range(n - 1, -1, -1):
+        for c in range(k):
+            s = R[j, c]
+            for q in range(j + 1, n):
+                s -= K[j, q] * R[q, c]
+            R[j, c] = s / K[j, j]
+
+
+@njit(cache=True, error_model="numpy")
+def _bins(cell, slot, nslots):
+    """Counting sort of the items with slot[cell[i]] >= 0 by that slot
+    (stable): items order[start[s]:start[s + 1]] are in slot s."""
+    start = np.zeros(nslots + 1, dtype=np.int64)
+    for i in range(cell.shape[0]):
+        s = slot[cell[i]]
+        if s >= 0:
+            start[s + 1] += 1
+    for s in range(nslots):
+        start[s + 1] += start[s]
+    fill = start[:-1].copy()
+    order = np.empty(start[nslots], dtype=np.int64)
+    for i in range(cell.shape[0]):
+        s = slot[cell[i]]
+        if s >= 0:
+            order[fill[s]] = i
+            fill[s] += 1
+    return order, start
+
+
+@njit(cache=True, error_model="numpy")
+def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
+    """out[g] (ng, k) = the TLS fit of the particle ``values`` (n, k) of the
+    cell gcell[g] at the Gauss point xg[g] (see the module docstring).
+
+    ``x`` (n, d) particle positions, ``V`` (n,) volumes, ``pcell`` (n,) the
+    cell of each particle (scikit-fem numbering: ix + nx iy), ``xg`` (ng, d),
+    ``wg`` (ng,), ``gcell`` (ng,) the rule; ``breaks0``/``breaks1`` the
+    grid's breakpoints per axis (``breaks1`` unused in 1D)."""
+    dim = x.shape[1]
+    k = values.shape[1]
+    nx = breaks0.shape[0] - 1
+    ncells = nx * (breaks1.shape[0] - 1 if dim == 2 else 1)
+    m = 1 + dim + dim * (dim + 1) // 2
+    slot = np.full(ncells, -1, dtype=np.int64)
+    cells = np.empty(ncells, dtype=np.int64)
+    nact = 0
+    for g in range(gcell.shape[0]):
+        if slot[gcell[g]] < 0:
+            slot[gcell[g]] = nact
+            cells[nact] = gcell[g]
+            nact += 1
+    porder, pstart = _bins(pcell, slot, nact)
+    gorder, gstart = _bins(gcell, slot, nact)
+    centre = np.empty(dim)
+    size = np.empty(dim)
+    phi = np.empty(m)
+    A = np.empty((m, m))
+    b = np.empty((m, k))
+    G = np.empty(m)
+    S = np.empty(k)
+    coef = np.empty((m, k))
+    work = np.empty((m + 1, m + 1))
+    K = np.empty((m + 1, m + 1))
+    R = np.empty((m + 1, k))
+    for s in range(nact):  # serial: a few microseconds per cell
+        c = cells[s]
+        ix = c % nx
+        size[0] = breaks0[ix + 1] - breaks0[ix]
+        centre[0] = breaks0[ix] + 0.5 * size[0]
+        if dim == 2:
+            iy = c // nx
+            size[1] = breaks1[iy + 1] - breaks1[iy]
+            centre[1] = breaks1[iy] + 0.5 * size[1]
+        A[:] = 0.0
+        b[:] = 0.0
+        G[:] = 0.0
+        S[:] = 0.0
+        coef[:] = 0.0
+        for i in range(pstart[s], pstart[s + 1]):
+            q = porder[i]
+            _monomials(x, q, centre, size, phi)
+            for r in range(m):
+                wr = V[q] * phi[r]
+                for t in range(m):
+                    A[r, t] += wr * phi[t]
+                for col in range(k):
+                    b[r, col] += wr * values[q, col]
+            for col in range(k):
+                S[col] += V[q] * values[q, col]
+        for i in range(gstart[s], gstart[s + 1]):
+            g = gorder[i]
+            _monomials(xg, g, centre, size, phi)
+            for r in range(m):
+                G[r] += wg[g] * phi[r]
+        solved = False
+        for n in (m, 1 + dim):
+            if solved or not _well_posed(A, n, TLS_RANK_TOL, work):
+                continue
+            for r in range(n):
+                for t in range(n):
+                    K[r, t] = A[r, t]
+                K[r, n] = G[r]
+                K[n, r] = G[r]
+                for col in range(k):
+                    R[r, col] = b[r, col]
+            K[n, n] = 0.0
+            for col in range(k):
+                R[n, col] = S[col]
+            _solve(K, R, n + 1)
+            for r in range(n):
+                for col in range(k):
+                    coef[r, col] = R[r, col]
+            solved = True
+        if not solved:  # the conserving constant
+            for col in range(k):
+                coef[0, col] = S[col] / G[0]
+        for i in range(gstart[s], gstart[s + 1]):
+            g = gorder[i]
+            _monomials(xg, g, centre, size, phi)
+            for col in range(k):
+                acc = 0.0
+                for r in range(m):
+                    acc += phi[r] * coef[r, col]
+                out[g, col] = acc
