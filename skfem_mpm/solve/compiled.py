@@ -56,6 +56,8 @@ def compiled_executor_applies(state):
         return False, "backend numpy"
     if not isinstance(state.grid, SplineGrid):
         return False, "not a SplineGrid"
+    if state.grid.dim == 3:
+        return False, "3D (compiled kernels not yet generated for 3D)"
     if m.reconstruction != "none":
         return False, "reconstruction"
     if m.scheme not in ("usl", "cd", "musl"):
