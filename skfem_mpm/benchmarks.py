@@ -515,6 +515,88 @@ class VibratingPlate2D(Benchmark):
                      effects=_sliding_walls())
 
 
+# ----------------------------------------------------------------------- T1
+def _sliding_walls_3d():
+    return [Fixed(side, axis) for axis, pair in enumerate((("xmin", "xmax"), ("ymin", "ymax"),
+                                                           ("zmin", "zmax")))
+            for side in pair]
+
+
+class VibratingCube3D(Benchmark):
+    """T1: the irrotational mode of a unit cube with sliding walls (linear
+    elastic, 3D), exact:
+
+        u_i = A sin(pi x_i) prod_(j != i) cos(pi x_j) sin(w t),
+        w = pi sqrt(3 (lambda + 2 mu) / rho),
+
+    u = grad phi with phi = -(A / pi) prod_j cos(pi x_j) sin(w t), so
+    rho u_tt = (lambda + 2 mu) grad div u = -(lambda + 2 mu) 3 pi^2 u, and the
+    shear tractions vanish on the walls (shared/BENCHMARKS.md, T1)."""
+
+    name = "vibrating-cube"
+    title = "T1 vibrating cube (linear elastic, 3D)"
+    dim = 3
+    defaults = {"E": 100.0, "nu": 0.3, "rho": 1.0, "A": 1e-3, "t_end": None}
+    variants = {"small": {"A": 1e-7}, "large": {"A": 1e-3}}
+
+    @property
+    def omega(self):
+        lam, mu = lame_parameters(self.E, self.nu)
+        return float(np.pi * np.sqrt(3 * (lam + 2 * mu) / self.rho))
+
+    def default_t_end(self):
+        return np.pi / (2 * self.omega)
+
+    @property
+    def amplitude(self):
+        return self.A
+
+    def velocity_amplitude(self):
+        return self.A * self.omega
+
+    def stress_amplitude(self):
+        lam, mu = lame_parameters(self.E, self.nu)
+        return (lam + 2 * mu) * self.A * np.pi
+
+    def _shape(self, X):
+        s, c = np.sin(np.pi * X), np.cos(np.pi * X)
+        return np.column_stack((s[:, 0] * c[:, 1] * c[:, 2],
+                                c[:, 0] * s[:, 1] * c[:, 2],
+                                c[:, 0] * c[:, 1] * s[:, 2]))
+
+    def displacement(self, X, t):
+        return self.A * np.sin(self.omega * t) * self._shape(X)
+
+    def velocity(self, X, t):
+        return self.A * self.omega * np.cos(self.omega * t) * self._shape(X)
+
+    def strain(self, X, t):
+        """eps_ii = A pi prod_j cos(pi x_j) sin(w t);
+        eps_ik = -A pi sin(pi x_i) sin(pi x_k) cos(pi x_l) sin(w t), l the third axis."""
+        s, c = np.sin(np.pi * X), np.cos(np.pi * X)
+        a = self.A * np.pi * np.sin(self.omega * t)
+        eps = np.empty((X.shape[0], 3, 3))
+        diagonal = a * c.prod(axis=1)
+        for i in range(3):
+            eps[:, i, i] = diagonal
+            for k in range(i + 1, 3):
+                third = 3 - i - k
+                eps[:, i, k] = eps[:, k, i] = -a * s[:, i] * s[:, k] * c[:, third]
+        return eps
+
+    def stress(self, X, t):
+        lam, mu = lame_parameters(self.E, self.nu)
+        eps = self.strain(X, t)
+        return 2 * mu * eps + lam * np.trace(eps, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+
+    def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
+        grid = SplineGrid.box((0, 1), (0, 1), (0, 1), cells, degree)
+        particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0,
+                                   velocity=lambda X: self.velocity(X, 0.0))
+        return Scene(grid, Body(particles, LinearElastic(self.E, self.nu)),
+                     self.t_end if t_end is None else t_end, effects=_sliding_walls_3d())
+
+
 # ----------------------------------------------------------------------- D3
 class CollidingDisks(Benchmark):
     """D3: two elastic disks collide and separate (Sulsky, Chen, Schreyer
@@ -573,7 +655,8 @@ def _mirror_index(X):
 
 
 BENCHMARKS = {cls.name: cls for cls in (VibratingString, SoilColumn, TractionBar, NeoHookeanBar,
-                                        AxisAligned2D, VibratingPlate2D, CollidingDisks)}
+                                        AxisAligned2D, VibratingPlate2D, CollidingDisks,
+                                        VibratingCube3D)}
 
 
 def get_benchmark(name, variant=None, **params):

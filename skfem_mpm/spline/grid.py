@@ -163,15 +163,20 @@ class SplineGrid:
             self.mapping = self.mesh._mapping()
             return
         # vertex (i_x, i_y[, i_z]) is i_x + (n_x + 1) i_y + (n_x + 1)(n_y + 1) i_z;
-        # vertex k of cell e sits at the cell's lower corner + refdom.p[:, k]
+        # vertex k of a cell sits at its lower corner + corner[:, k]: quads
+        # counter-clockwise (RefQuad.p), hexahedra as MeshHex1's own unit cube
+        # lists them (its doflocs, 1 - RefHex.p), which scikit-fem's meshio
+        # export turns into VTK's hexahedron order
         mesh_type = MESHES[self.dim]
+        ref = mesh_type.elem.refdom.p
+        corner = ref if self.dim == 2 else 1.0 - ref
         counts = [n + 1 for n in self.cells_per_axis]
         stride = np.cumprod([1] + counts[:-1])
         coords = np.meshgrid(*self.breakpoints, indexing="ij")
         points = np.vstack([c.ravel(order="F") for c in coords])
-        corner = np.meshgrid(*[np.arange(n) for n in self.cells_per_axis], indexing="ij")
-        v0 = sum(stride[d] * corner[d].ravel(order="F") for d in range(self.dim))
-        offsets = (stride @ mesh_type.elem.refdom.p).astype(np.int64)  # (nverts,)
+        first = np.meshgrid(*[np.arange(n) for n in self.cells_per_axis], indexing="ij")
+        v0 = sum(stride[d] * first[d].ravel(order="F") for d in range(self.dim))
+        offsets = np.rint(stride @ corner).astype(np.int64)  # (nverts,)
         t = v0[None, :] + offsets[:, None]
         self.mesh = mesh_type(points, t)
         self.mapping = MappingRectangular(self.mesh)

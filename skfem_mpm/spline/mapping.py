@@ -24,28 +24,33 @@ class MappingRectangular(Mapping):
     """Mapping of scikit-fem's reference cell [0, 1]^dim onto axis-aligned
     cells (dim = 2 or 3).
 
-    The vertices of every cell of ``mesh`` (a MeshQuad1 or MeshHex1) must be
-    listed as scikit-fem's reference cell lists them (``mesh.refdom.p``):
-    vertex k at lower + size * refdom.p[:, k].
+    Every cell of ``mesh`` (a MeshQuad1 or MeshHex1) must be an axis-aligned
+    rectangle or box whose vertices are its 2^dim corners, in any order: the
+    map sends the reference origin to the cell's lower corner whatever the
+    vertex order (scikit-fem's own hexahedral meshes list the corners
+    mirrored against ``RefHex.p``, which its isoparametric map follows with
+    det DF < 0; this map keeps det DF > 0).
     """
 
     def __init__(self, mesh):
         self.mesh = mesh
         p, t = mesh.p, mesh.t
-        ref = mesh.refdom.p  # (dim, nverts)
-        lower_vertex = int(np.flatnonzero(np.all(ref == 0.0, axis=0))[0])
-        upper_vertex = int(np.flatnonzero(np.all(ref == 1.0, axis=0))[0])
+        corners = p[:, t]  # (dim, nverts, cells)
         self.dim = p.shape[0]
-        self.lower = p[:, t[lower_vertex]]
-        self.size = p[:, t[upper_vertex]] - self.lower
-        expected = self.lower[:, None, :] + self.size[:, None, :] * ref[:, :, None]
-        scale = np.abs(self.size).max(initial=1.0)
-        ok = np.all(self.size > 0) and np.allclose(p[:, t], expected, rtol=0.0,
-                                                   atol=1e-12 * scale)
+        self.lower = corners.min(axis=1)
+        self.size = corners.max(axis=1) - self.lower
+        ok = np.all(self.size > 0)
+        if ok:
+            unit = (corners - self.lower[:, None, :]) / self.size[:, None, :]
+            code = np.rint(unit)
+            ok = (np.allclose(unit, code, rtol=0.0, atol=1e-12) and t.shape[0] == 2 ** self.dim
+                  and np.all(np.sort((code * (2 ** np.arange(self.dim))[:, None, None])
+                                     .sum(axis=0), axis=0)
+                             == np.arange(2 ** self.dim)[:, None]))
         if not ok:
             raise ValueError(
-                "MappingRectangular needs axis-aligned cells whose vertices are listed "
-                "as scikit-fem's reference cell lists them (mesh.refdom.p)"
+                "MappingRectangular needs axis-aligned rectangles or boxes whose vertices "
+                "are their 2^dim corners"
             )
 
     def _cell_arrays(self, tind):
