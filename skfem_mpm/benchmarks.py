@@ -381,6 +381,12 @@ def _sliding_walls():
     return [Fixed("left", 0), Fixed("right", 0), Fixed("bottom", 1), Fixed("top", 1)]
 
 
+def _sliding_walls_3d():
+    return [Fixed(side, axis) for axis, pair in enumerate((("xmin", "xmax"), ("ymin", "ymax"),
+                                                           ("zmin", "zmax")))
+            for side in pair]
+
+
 class AxisAligned2D(Benchmark):
     """D1: manufactured axis-aligned finite deformation of the unit square
     (compressible neo-Hookean, plane strain), sliding walls."""
@@ -409,48 +415,59 @@ class AxisAligned2D(Benchmark):
         lam, mu = lame_parameters(self.E, self.nu)
         return (lam + 2 * mu) * self.A * np.pi
 
-    def _phase(self, t):
-        return np.sin(self.c * np.pi * t), np.sin(self.c * np.pi * t + np.pi)
+    #: phase of each component: u_i = A sin(pi X_i) sin(c pi t + theta_i)
+    phases = (0.0, np.pi, 0.0)
+
+    def _theta(self):
+        return np.array(self.phases[:self.dim])
 
     def displacement(self, X, t):
-        sx, sy = self._phase(t)
-        return np.column_stack((self.A * np.sin(np.pi * X[:, 0]) * sx,
-                                self.A * np.sin(np.pi * X[:, 1]) * sy))
+        return self.A * np.sin(np.pi * X) * np.sin(self.c * np.pi * t + self._theta())
 
     def velocity(self, X, t):
-        cx = np.cos(self.c * np.pi * t)
-        cy = np.cos(self.c * np.pi * t + np.pi)
         w = self.A * self.c * np.pi
-        return np.column_stack((w * np.sin(np.pi * X[:, 0]) * cx, w * np.sin(np.pi * X[:, 1]) * cy))
+        return w * np.sin(np.pi * X) * np.cos(self.c * np.pi * t + self._theta())
 
     def deformation_gradient(self, X, t):
-        sx, sy = self._phase(t)
-        F = np.zeros((X.shape[0], 2, 2))
-        F[:, 0, 0] = 1 + self.A * np.pi * np.cos(np.pi * X[:, 0]) * sx
-        F[:, 1, 1] = 1 + self.A * np.pi * np.cos(np.pi * X[:, 1]) * sy
+        F = np.zeros((X.shape[0], self.dim, self.dim))
+        stretch = 1 + self.A * np.pi * np.cos(np.pi * X) * np.sin(self.c * np.pi * t + self._theta())
+        for i in range(self.dim):
+            F[:, i, i] = stretch[:, i]
         return F
 
     def stress(self, X, t):
         return NeoHookean(self.E, self.nu).cauchy_stress(self.deformation_gradient(X, t))
 
     def body_force(self, X, t):
-        """b_i = pi^2 U_i (mu / rho0 - c^2 - (lambda (ln J - 1) - mu) / (rho0 F_ii^2))."""
+        """b_i = pi^2 U_i (mu / rho0 - c^2 - (lambda (ln J - 1) - mu) / (rho0 F_ii^2)),
+        J = prod_i F_ii."""
         lam, mu = lame_parameters(self.E, self.nu)
         U = self.displacement(X, t)
         F = self.deformation_gradient(X, t)
-        lnJ = np.log(F[:, 0, 0] * F[:, 1, 1])
-        out = np.empty_like(U)
-        for i in range(2):
-            out[:, i] = np.pi ** 2 * U[:, i] * (
-                mu / self.rho0 - self.c ** 2 - (lam * (lnJ - 1) - mu) / (self.rho0 * F[:, i, i] ** 2))
-        return out
+        diagonal = np.stack([F[:, i, i] for i in range(self.dim)], axis=1)
+        lnJ = np.log(diagonal.prod(axis=1))
+        return np.pi ** 2 * U * (mu / self.rho0 - self.c ** 2
+                                 - (lam * (lnJ - 1) - mu)[:, None] / (self.rho0 * diagonal ** 2))
 
     def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
-        grid = SplineGrid.rectangle((0, 1), (0, 1), cells, degree)
+        unit = ((0, 1),) * self.dim
+        grid = (SplineGrid.rectangle(*unit, cells, degree) if self.dim == 2
+                else SplineGrid.box(*unit, cells, degree))
         particles = Particles.seed(grid, ppc, self.rho0, layout=layout, seed=0,
                                    velocity=lambda X: self.velocity(X, 0.0))
+        walls = _sliding_walls() if self.dim == 2 else _sliding_walls_3d()
         return Scene(grid, Body(particles, NeoHookean(self.E, self.nu)), self.t_end if t_end is None else t_end,
-                     effects=_sliding_walls() + [BodyForce(self.body_force)])
+                     effects=walls + [BodyForce(self.body_force)])
+
+
+class AxisAligned3D(AxisAligned2D):
+    """T2: D1 with a third component, u_i = A sin(pi X_i) sin(c pi t + theta_i),
+    theta = (0, pi, 0), in the unit cube with sliding walls (compressible
+    neo-Hookean, 3D; shared/BENCHMARKS.md, T2)."""
+
+    name = "axis-aligned-3d"
+    title = "T2 axis-aligned displacement (neo-Hookean, 3D)"
+    dim = 3
 
 
 # ----------------------------------------------------------------------- D2
@@ -516,12 +533,6 @@ class VibratingPlate2D(Benchmark):
 
 
 # ----------------------------------------------------------------------- T1
-def _sliding_walls_3d():
-    return [Fixed(side, axis) for axis, pair in enumerate((("xmin", "xmax"), ("ymin", "ymax"),
-                                                           ("zmin", "zmax")))
-            for side in pair]
-
-
 class VibratingCube3D(Benchmark):
     """T1: the irrotational mode of a unit cube with sliding walls (linear
     elastic, 3D), exact:
@@ -656,7 +667,7 @@ def _mirror_index(X):
 
 BENCHMARKS = {cls.name: cls for cls in (VibratingString, SoilColumn, TractionBar, NeoHookeanBar,
                                         AxisAligned2D, VibratingPlate2D, CollidingDisks,
-                                        VibratingCube3D)}
+                                        VibratingCube3D, AxisAligned3D)}
 
 
 def get_benchmark(name, variant=None, **params):

@@ -12,7 +12,8 @@ def test_list(capsys):
     assert main(["list"]) == 0
     out = capsys.readouterr().out
     for name in ("vibrating-string", "soil-column", "traction-bar", "neo-hookean-bar",
-                 "axis-aligned-2d", "vibrating-plate-2d", "colliding-disks", "vibrating-cube"):
+                 "axis-aligned-2d", "vibrating-plate-2d", "colliding-disks", "vibrating-cube",
+                 "axis-aligned-3d"):
         assert name in out
 
 
