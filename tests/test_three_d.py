@@ -193,3 +193,29 @@ def test_neo_hookean_in_3d_converges_on_axis_aligned_3d():
     result = simulate(large.scene(4, 2, ppc=2), Method(scheme="usl", mass="consistent"))
     assert large.errors(result)["error_rms"] < 0.15
     assert det(result.particles.F).min() > 0
+
+
+def test_side_tractions_in_3d_load_the_face_area():
+    """Traction on a side name in 3D: the outermost particles carry it on a
+    face of total area = the body's side (cubic particles), at the face;
+    fem's side rule integrates the grid's side exactly."""
+    from skfem_mpm import Traction
+    from skfem_mpm.solve.fem import _side_rule
+
+    grid = SplineGrid.box((0.0, 2.0), (0.0, 1.0), (0.0, 1.0), (8, 4, 4), 2)
+    for side, region, area, axis, face in (
+            ("xmax", ((0.0, 1.5), (0.0, 1.0), (0.0, 1.0)), 1.0, 0, 1.5),
+            ("zmax", ((0.0, 2.0), (0.0, 1.0), (0.0, 0.75)), 2.0, 2, 0.75),
+            ("ymin", ((0.0, 2.0), (0.25, 1.0), (0.0, 1.0)), 2.0, 1, 0.25)):
+        particles = Particles.seed(grid, 2, 1.0, region=region)
+        force, = Traction(side, (1.0, 0.0, 0.0)).bind(particles, grid)
+        assert abs(force.share.sum() - area) < 1e-12
+        assert np.allclose(force.points(particles)[:, axis], face, rtol=0, atol=1e-12)
+    for side, area, axis, value in (("xmin", 1.0, 0, 0.0), ("ymax", 2.0, 1, 1.0),
+                                    ("zmax", 2.0, 2, 1.0)):
+        x, w = _side_rule(grid, side, 3)
+        assert np.isclose(w.sum(), area) and np.allclose(x[:, axis], value)
+        # exact for x^2 y^2 z^2 on the side (3 points per cell, degree 5)
+        others = [a for a in range(3) if a != axis]
+        exact = np.prod([(grid.bounds[a][1] ** 3 - grid.bounds[a][0] ** 3) / 3 for a in others])
+        assert np.isclose((w * np.prod(x[:, others] ** 2, axis=1)).sum(), exact)
