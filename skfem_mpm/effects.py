@@ -204,7 +204,7 @@ class Traction(Effect):
         if not callable(tau):
             value = check_finite_array("tau", _numbers(
                 "tau", tau, "a number, a vector or a callable tau(t) / tau(x, t)"))
-            tau = (lambda t, _v=value: _v)
+            tau = (lambda t, *, _v=value: _v)  # keyword-only: not read as tau(x, t)
         self.where = where
         self.tau = tau
         self._takes_x = _positional_count(tau) >= 2
