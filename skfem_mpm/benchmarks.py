@@ -622,19 +622,23 @@ class CollidingDisks(Benchmark):
                 "t_end": 3.5}
     variants = {"default": {}}
 
+    #: the centres of the two bodies (the first moves along +(1, ..., 1))
+    centres = ((0.2, 0.2), (0.8, 0.8))
+
     def default_t_end(self):
         return 3.5
 
     amplitude = 1.0
 
     def scene(self, cells=20, degree=2, ppc=2, layout="uniform", fem=False, t_end=None):
-        grid = SplineGrid.rectangle((0, 1), (0, 1), cells, degree)
+        unit = ((0, 1),) * self.dim
+        grid = (SplineGrid.rectangle(*unit, cells, degree) if self.dim == 2
+                else SplineGrid.box(*unit, cells, degree))
         bodies = []
-        for centre, sign in (((0.2, 0.2), 1.0), ((0.8, 0.8), -1.0)):
-            disk = (lambda X, c=centre: (X[:, 0] - c[0]) ** 2 + (X[:, 1] - c[1]) ** 2
-                    < self.radius ** 2)
-            p = Particles.seed(grid, ppc, self.rho, layout=layout, region=disk, seed=0,
-                               velocity=np.array([sign * self.speed, sign * self.speed]))
+        for centre, sign in zip(self.centres, (1.0, -1.0)):
+            ball = (lambda X, c=np.array(centre): ((X - c) ** 2).sum(axis=1) < self.radius ** 2)
+            p = Particles.seed(grid, ppc, self.rho, layout=layout, region=ball, seed=0,
+                               velocity=np.full(self.dim, sign * self.speed))
             bodies.append(Body(p, LinearElastic(self.E, self.nu)))
         return Scene(grid, bodies, self.t_end if t_end is None else t_end)
 
@@ -646,7 +650,7 @@ class CollidingDisks(Benchmark):
         first = result.particles.body == 0
         p0 = np.linalg.norm(m[first] @ h["v"][0][first])
         momentum = max(np.linalg.norm(m @ v) for v in h["v"]) / p0
-        # point reflection about (0.5, 0.5): particle i of disk 0 <-> its mirror in disk 1
+        # point reflection about the centre: particle i of body 0 <-> its mirror in body 1
         x = h["x"][-1]
         X = h["X"][0]
         mirror = _mirror_index(X)
@@ -658,6 +662,17 @@ class CollidingDisks(Benchmark):
                 "symmetry": sym, "centre_gap": gap}
 
 
+class CollidingSpheres3D(CollidingDisks):
+    """T3: D3 in the unit cube, two elastic spheres of radius 0.2 at
+    (0.25, 0.25, 0.25) and (0.75, 0.75, 0.75) moving at +-(0.1, 0.1, 0.1)
+    (shared/BENCHMARKS.md, T3). No exact solution: :meth:`checks` as D3."""
+
+    name = "colliding-spheres"
+    title = "T3 colliding spheres"
+    dim = 3
+    centres = ((0.25, 0.25, 0.25), (0.75, 0.75, 0.75))
+
+
 def _mirror_index(X):
     from scipy.spatial import cKDTree
 
@@ -667,7 +682,7 @@ def _mirror_index(X):
 
 BENCHMARKS = {cls.name: cls for cls in (VibratingString, SoilColumn, TractionBar, NeoHookeanBar,
                                         AxisAligned2D, VibratingPlate2D, CollidingDisks,
-                                        VibratingCube3D, AxisAligned3D)}
+                                        VibratingCube3D, AxisAligned3D, CollidingSpheres3D)}
 
 
 def get_benchmark(name, variant=None, **params):

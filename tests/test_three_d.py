@@ -119,8 +119,17 @@ def test_vibrating_cube_converges_at_second_order():
     assert_order(errors, 1.0 / np.array(cells), expected=2.0, tol=0.2)
 
 
-def test_vibrating_cube_is_listed():
-    assert BENCHMARKS["vibrating-cube"].dim == 3
+def test_3d_benchmarks_are_listed_and_2d_scenes_refuse_3d_walls():
+    for name in ("vibrating-cube", "axis-aligned-3d", "colliding-spheres"):
+        assert BENCHMARKS[name].dim == 3
+    from skfem_mpm import Body, Fixed, Scene
+
+    grid = SplineGrid.rectangle((0, 1), (0, 1), 2, 2)
+    body = Body(Particles.seed(grid, 1, 1.0), LinearElastic(1.0))
+    with pytest.raises(ValueError, match=r"component must be None or an integer in \[0, 1\], got 2"):
+        Scene(grid, body, 1.0, effects=[Fixed("left", 2)])
+    with pytest.raises(ValueError, match="side must be one of .* for a 2D grid, got 'zmax'"):
+        Scene(grid, body, 1.0, effects=[Fixed("zmax")])
 
 
 def test_paraview_output_of_a_3d_run(tmp_path):
@@ -326,3 +335,25 @@ def test_effects_checkpoint_restart_and_fem_in_3d(tmp_path):
                    effects=[Gravity((0.0, 0.0, -9.81)), Fixed("zmin")])
     result = fem(filled, method)
     assert result.history["u"][-1][:, 2].max() < 0.0
+
+
+@pytest.mark.parametrize("method", [dict(scheme="usl"), dict(scheme="musl", mass="consistent")],
+                         ids=["usl", "musl-consistent"])
+def test_colliding_spheres_meet_part_and_keep_momentum_and_symmetry(method):
+    """T3 at 8 cells per axis (272 particles, quadratic, 2 x 2 x 2 per cell),
+    t_end 3.5: total momentum stays zero, the motion point-symmetric about
+    the centre, the energy does not grow (USL: measured 2.5e-7 of the
+    initial, the particle-measured total at the contact), and the spheres
+    touch and part (body 0's mean x velocity 0.1 -> -0.08)."""
+    bench = get_benchmark("colliding-spheres")
+    h = 1.0 / 8
+    result = simulate(bench.scene(8, 2, 2), Method(**method), save_every=5)
+    checks = bench.checks(result)
+    assert checks["momentum"] < 1e-8
+    assert checks["symmetry"] < 1e-9 * h
+    assert checks["energy_growth"] < (1e-6 if method["scheme"] == "usl" else 1e-3)
+    first = result.particles.body == 0
+    gaps = np.array([np.linalg.norm(x[~first].mean(axis=0) - x[first].mean(axis=0))
+                     for x in result.history["x"]]) - 2 * bench.radius
+    assert gaps.min() < gaps[0] - 0.3 and gaps[-1] > gaps.min() + 0.1
+    assert result.history["v"][-1][first].mean(axis=0).min() < -0.05
