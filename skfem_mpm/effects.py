@@ -416,7 +416,7 @@ class Prescribed(Effect):
     def check(self, grid):
         grid.boundary_dofs(self.side)
         if self.component is None:
-            raise ValueError("Prescribed needs a component (0 or 1)")
+            raise ValueError(f"Prescribed needs a component (0 to {grid.dim - 1}), got None")
         _check_component(self.component, grid.dim)
 
     def constraints(self, grid):
