@@ -275,6 +275,11 @@ def test_lagrange_grid_on_tetrahedra_and_hexahedra(mesh_type):
     assert np.allclose(grid.evaluate(linear, x), 1 + 2 * x[:, 0] - x[:, 1] + 0.5 * x[:, 2])
     particles = Particles.from_mesh(mesh, 2.0, intorder=2)
     assert np.isclose(particles.V.sum(), 2.0)
+    from skfem.io.meshio import to_meshio
+
+    through_meshio = Particles.from_meshio(to_meshio(mesh), 2.0, intorder=2)
+    assert np.allclose(np.sort(through_meshio.V), np.sort(particles.V))
+    assert np.isclose(through_meshio.m.sum(), 4.0)
     mass = BilinearForm(lambda u, v, _: u * v)
     M_p = asm(mass, ParticleBasis(grid, particles))
     M_g = asm(mass, grid.basis(intorder=2))
