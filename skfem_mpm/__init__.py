@@ -9,8 +9,8 @@ from .particles import Particles
 from .quadrature import ParticleBasis, transfer_matrices
 from .scene import Body, Scene
 from .solve import Method, fem, simulate
-from .spline import (ElementLineBSpline, ElementQuadBSpline, MappingRectangular,
-                     SplineGrid)
+from .spline import (ElementHexBSpline, ElementLineBSpline, ElementQuadBSpline,
+                     MappingRectangular, SplineGrid)
 
 __all__ = [
     "__version__",
@@ -28,6 +28,7 @@ __all__ = [
     "Traction",
     "fem",
     "simulate",
+    "ElementHexBSpline",
     "ElementLineBSpline",
     "ElementQuadBSpline",
     "MappingRectangular",

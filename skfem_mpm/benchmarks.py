@@ -381,6 +381,12 @@ def _sliding_walls():
     return [Fixed("left", 0), Fixed("right", 0), Fixed("bottom", 1), Fixed("top", 1)]
 
 
+def _sliding_walls_3d():
+    return [Fixed(side, axis) for axis, pair in enumerate((("xmin", "xmax"), ("ymin", "ymax"),
+                                                           ("zmin", "zmax")))
+            for side in pair]
+
+
 class AxisAligned2D(Benchmark):
     """D1: manufactured axis-aligned finite deformation of the unit square
     (compressible neo-Hookean, plane strain), sliding walls."""
@@ -409,48 +415,59 @@ class AxisAligned2D(Benchmark):
         lam, mu = lame_parameters(self.E, self.nu)
         return (lam + 2 * mu) * self.A * np.pi
 
-    def _phase(self, t):
-        return np.sin(self.c * np.pi * t), np.sin(self.c * np.pi * t + np.pi)
+    #: phase of each component: u_i = A sin(pi X_i) sin(c pi t + theta_i)
+    phases = (0.0, np.pi, 0.0)
+
+    def _theta(self):
+        return np.array(self.phases[:self.dim])
 
     def displacement(self, X, t):
-        sx, sy = self._phase(t)
-        return np.column_stack((self.A * np.sin(np.pi * X[:, 0]) * sx,
-                                self.A * np.sin(np.pi * X[:, 1]) * sy))
+        return self.A * np.sin(np.pi * X) * np.sin(self.c * np.pi * t + self._theta())
 
     def velocity(self, X, t):
-        cx = np.cos(self.c * np.pi * t)
-        cy = np.cos(self.c * np.pi * t + np.pi)
         w = self.A * self.c * np.pi
-        return np.column_stack((w * np.sin(np.pi * X[:, 0]) * cx, w * np.sin(np.pi * X[:, 1]) * cy))
+        return w * np.sin(np.pi * X) * np.cos(self.c * np.pi * t + self._theta())
 
     def deformation_gradient(self, X, t):
-        sx, sy = self._phase(t)
-        F = np.zeros((X.shape[0], 2, 2))
-        F[:, 0, 0] = 1 + self.A * np.pi * np.cos(np.pi * X[:, 0]) * sx
-        F[:, 1, 1] = 1 + self.A * np.pi * np.cos(np.pi * X[:, 1]) * sy
+        F = np.zeros((X.shape[0], self.dim, self.dim))
+        stretch = 1 + self.A * np.pi * np.cos(np.pi * X) * np.sin(self.c * np.pi * t + self._theta())
+        for i in range(self.dim):
+            F[:, i, i] = stretch[:, i]
         return F
 
     def stress(self, X, t):
         return NeoHookean(self.E, self.nu).cauchy_stress(self.deformation_gradient(X, t))
 
     def body_force(self, X, t):
-        """b_i = pi^2 U_i (mu / rho0 - c^2 - (lambda (ln J - 1) - mu) / (rho0 F_ii^2))."""
+        """b_i = pi^2 U_i (mu / rho0 - c^2 - (lambda (ln J - 1) - mu) / (rho0 F_ii^2)),
+        J = prod_i F_ii."""
         lam, mu = lame_parameters(self.E, self.nu)
         U = self.displacement(X, t)
         F = self.deformation_gradient(X, t)
-        lnJ = np.log(F[:, 0, 0] * F[:, 1, 1])
-        out = np.empty_like(U)
-        for i in range(2):
-            out[:, i] = np.pi ** 2 * U[:, i] * (
-                mu / self.rho0 - self.c ** 2 - (lam * (lnJ - 1) - mu) / (self.rho0 * F[:, i, i] ** 2))
-        return out
+        diagonal = np.stack([F[:, i, i] for i in range(self.dim)], axis=1)
+        lnJ = np.log(diagonal.prod(axis=1))
+        return np.pi ** 2 * U * (mu / self.rho0 - self.c ** 2
+                                 - (lam * (lnJ - 1) - mu)[:, None] / (self.rho0 * diagonal ** 2))
 
     def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
-        grid = SplineGrid.rectangle((0, 1), (0, 1), cells, degree)
+        unit = ((0, 1),) * self.dim
+        grid = (SplineGrid.rectangle(*unit, cells, degree) if self.dim == 2
+                else SplineGrid.box(*unit, cells, degree))
         particles = Particles.seed(grid, ppc, self.rho0, layout=layout, seed=0,
                                    velocity=lambda X: self.velocity(X, 0.0))
+        walls = _sliding_walls() if self.dim == 2 else _sliding_walls_3d()
         return Scene(grid, Body(particles, NeoHookean(self.E, self.nu)), self.t_end if t_end is None else t_end,
-                     effects=_sliding_walls() + [BodyForce(self.body_force)])
+                     effects=walls + [BodyForce(self.body_force)])
+
+
+class AxisAligned3D(AxisAligned2D):
+    """T2: D1 with a third component, u_i = A sin(pi X_i) sin(c pi t + theta_i),
+    theta = (0, pi, 0), in the unit cube with sliding walls (compressible
+    neo-Hookean, 3D; shared/BENCHMARKS.md, T2)."""
+
+    name = "axis-aligned-3d"
+    title = "T2 axis-aligned displacement (neo-Hookean, 3D)"
+    dim = 3
 
 
 # ----------------------------------------------------------------------- D2
@@ -515,6 +532,82 @@ class VibratingPlate2D(Benchmark):
                      effects=_sliding_walls())
 
 
+# ----------------------------------------------------------------------- T1
+class VibratingCube3D(Benchmark):
+    """T1: the irrotational mode of a unit cube with sliding walls (linear
+    elastic, 3D), exact:
+
+        u_i = A sin(pi x_i) prod_(j != i) cos(pi x_j) sin(w t),
+        w = pi sqrt(3 (lambda + 2 mu) / rho),
+
+    u = grad phi with phi = -(A / pi) prod_j cos(pi x_j) sin(w t), so
+    rho u_tt = (lambda + 2 mu) grad div u = -(lambda + 2 mu) 3 pi^2 u, and the
+    shear tractions vanish on the walls (shared/BENCHMARKS.md, T1)."""
+
+    name = "vibrating-cube"
+    title = "T1 vibrating cube (linear elastic, 3D)"
+    dim = 3
+    defaults = {"E": 100.0, "nu": 0.3, "rho": 1.0, "A": 1e-3, "t_end": None}
+    variants = {"small": {"A": 1e-7}, "large": {"A": 1e-3}}
+
+    @property
+    def omega(self):
+        lam, mu = lame_parameters(self.E, self.nu)
+        return float(np.pi * np.sqrt(3 * (lam + 2 * mu) / self.rho))
+
+    def default_t_end(self):
+        return np.pi / (2 * self.omega)
+
+    @property
+    def amplitude(self):
+        return self.A
+
+    def velocity_amplitude(self):
+        return self.A * self.omega
+
+    def stress_amplitude(self):
+        lam, mu = lame_parameters(self.E, self.nu)
+        return (lam + 2 * mu) * self.A * np.pi
+
+    def _shape(self, X):
+        s, c = np.sin(np.pi * X), np.cos(np.pi * X)
+        return np.column_stack((s[:, 0] * c[:, 1] * c[:, 2],
+                                c[:, 0] * s[:, 1] * c[:, 2],
+                                c[:, 0] * c[:, 1] * s[:, 2]))
+
+    def displacement(self, X, t):
+        return self.A * np.sin(self.omega * t) * self._shape(X)
+
+    def velocity(self, X, t):
+        return self.A * self.omega * np.cos(self.omega * t) * self._shape(X)
+
+    def strain(self, X, t):
+        """eps_ii = A pi prod_j cos(pi x_j) sin(w t);
+        eps_ik = -A pi sin(pi x_i) sin(pi x_k) cos(pi x_l) sin(w t), l the third axis."""
+        s, c = np.sin(np.pi * X), np.cos(np.pi * X)
+        a = self.A * np.pi * np.sin(self.omega * t)
+        eps = np.empty((X.shape[0], 3, 3))
+        diagonal = a * c.prod(axis=1)
+        for i in range(3):
+            eps[:, i, i] = diagonal
+            for k in range(i + 1, 3):
+                third = 3 - i - k
+                eps[:, i, k] = eps[:, k, i] = -a * s[:, i] * s[:, k] * c[:, third]
+        return eps
+
+    def stress(self, X, t):
+        lam, mu = lame_parameters(self.E, self.nu)
+        eps = self.strain(X, t)
+        return 2 * mu * eps + lam * np.trace(eps, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+
+    def scene(self, cells, degree, ppc=2, layout="uniform", fem=False, t_end=None):
+        grid = SplineGrid.box((0, 1), (0, 1), (0, 1), cells, degree)
+        particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0,
+                                   velocity=lambda X: self.velocity(X, 0.0))
+        return Scene(grid, Body(particles, LinearElastic(self.E, self.nu)),
+                     self.t_end if t_end is None else t_end, effects=_sliding_walls_3d())
+
+
 # ----------------------------------------------------------------------- D3
 class CollidingDisks(Benchmark):
     """D3: two elastic disks collide and separate (Sulsky, Chen, Schreyer
@@ -529,19 +622,23 @@ class CollidingDisks(Benchmark):
                 "t_end": 3.5}
     variants = {"default": {}}
 
+    #: the centres of the two bodies (the first moves along +(1, ..., 1))
+    centres = ((0.2, 0.2), (0.8, 0.8))
+
     def default_t_end(self):
         return 3.5
 
     amplitude = 1.0
 
     def scene(self, cells=20, degree=2, ppc=2, layout="uniform", fem=False, t_end=None):
-        grid = SplineGrid.rectangle((0, 1), (0, 1), cells, degree)
+        unit = ((0, 1),) * self.dim
+        grid = (SplineGrid.rectangle(*unit, cells, degree) if self.dim == 2
+                else SplineGrid.box(*unit, cells, degree))
         bodies = []
-        for centre, sign in (((0.2, 0.2), 1.0), ((0.8, 0.8), -1.0)):
-            disk = (lambda X, c=centre: (X[:, 0] - c[0]) ** 2 + (X[:, 1] - c[1]) ** 2
-                    < self.radius ** 2)
-            p = Particles.seed(grid, ppc, self.rho, layout=layout, region=disk, seed=0,
-                               velocity=np.array([sign * self.speed, sign * self.speed]))
+        for centre, sign in zip(self.centres, (1.0, -1.0)):
+            ball = (lambda X, c=np.array(centre): ((X - c) ** 2).sum(axis=1) < self.radius ** 2)
+            p = Particles.seed(grid, ppc, self.rho, layout=layout, region=ball, seed=0,
+                               velocity=np.full(self.dim, sign * self.speed))
             bodies.append(Body(p, LinearElastic(self.E, self.nu)))
         return Scene(grid, bodies, self.t_end if t_end is None else t_end)
 
@@ -553,7 +650,7 @@ class CollidingDisks(Benchmark):
         first = result.particles.body == 0
         p0 = np.linalg.norm(m[first] @ h["v"][0][first])
         momentum = max(np.linalg.norm(m @ v) for v in h["v"]) / p0
-        # point reflection about (0.5, 0.5): particle i of disk 0 <-> its mirror in disk 1
+        # point reflection about the centre: particle i of body 0 <-> its mirror in body 1
         x = h["x"][-1]
         X = h["X"][0]
         mirror = _mirror_index(X)
@@ -565,6 +662,17 @@ class CollidingDisks(Benchmark):
                 "symmetry": sym, "centre_gap": gap}
 
 
+class CollidingSpheres3D(CollidingDisks):
+    """T3: D3 in the unit cube, two elastic spheres of radius 0.2 at
+    (0.25, 0.25, 0.25) and (0.75, 0.75, 0.75) moving at +-(0.1, 0.1, 0.1)
+    (shared/BENCHMARKS.md, T3). No exact solution: :meth:`checks` as D3."""
+
+    name = "colliding-spheres"
+    title = "T3 colliding spheres"
+    dim = 3
+    centres = ((0.25, 0.25, 0.25), (0.75, 0.75, 0.75))
+
+
 def _mirror_index(X):
     from scipy.spatial import cKDTree
 
@@ -573,7 +681,8 @@ def _mirror_index(X):
 
 
 BENCHMARKS = {cls.name: cls for cls in (VibratingString, SoilColumn, TractionBar, NeoHookeanBar,
-                                        AxisAligned2D, VibratingPlate2D, CollidingDisks)}
+                                        AxisAligned2D, VibratingPlate2D, CollidingDisks,
+                                        VibratingCube3D, AxisAligned3D, CollidingSpheres3D)}
 
 
 def get_benchmark(name, variant=None, **params):

@@ -61,7 +61,8 @@ def _run_options(p):
                    help="override a benchmark parameter (repeatable)")
     p.add_argument("--degree", type=int, default=2, choices=(1, 2, 3),
                    help="B-spline degree (default: %(default)s)")
-    p.add_argument("--cells", type=int, default=16, help="cells per axis (default: %(default)s)")
+    p.add_argument("--cells", type=int, default=None,
+                   help=f"cells per axis (default: {RUN_CELLS[1]}; {RUN_CELLS[3]} in 3D)")
     p.add_argument("--ppc", type=int, default=2,
                    help="particles per cell and axis (default: %(default)s)")
     p.add_argument("--mass", default=_method_default("mass"), choices=MASSES,
@@ -133,7 +134,7 @@ def _check_run_args(args):
     for flag, value in (("--t-end", args.t_end), ("--dt", args.dt), ("--cfl", args.cfl)):
         if value is not None and not value > 0:
             raise _UsageError(f"{flag} must be a positive number, got {value}")
-    if args.cells < 1:
+    if args.cells is not None and args.cells < 1:
         raise _UsageError(f"--cells must be a positive integer, got {args.cells}")
     if args.ppc < 1:
         raise _UsageError(f"--ppc must be a positive integer, got {args.ppc}")
@@ -146,6 +147,8 @@ def _cmd_run(args, kind):
     _check_run_args(args)
     _check_out(args.out)
     bench = get_benchmark(args.benchmark, args.variant, **_parse_set(args.params))
+    if args.cells is None:
+        args.cells = RUN_CELLS[bench.dim]
     method = Method(scheme=args.scheme, mass=args.mass, reconstruction=args.reconstruction,
                     cfl=args.cfl, dt=args.dt)
     scene = bench.scene(args.cells, args.degree, args.ppc, fem=kind == "fem", t_end=args.t_end)
@@ -196,6 +199,8 @@ def _write_run_pictures(result, bench, out):
     plot_displacement_history(result, os.path.join(out, "displacement.png"), exact=exact)
 
 
+# default cells per axis of `run` and `fem`; 3D runs on the reference executor
+RUN_CELLS = {1: 16, 2: 16, 3: 4}
 QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.1, "scheme": "cd"}
 
 
@@ -212,6 +217,8 @@ def _cmd_study(args):
     cells = args.cells or (QUICK["cells"] if args.quick else [8, 16, 32, 64, 128])
     if bench.dim == 2 and args.cells is None:
         cells = [4, 8, 16] if args.quick else [4, 8, 16, 32]
+    if bench.dim == 3 and args.cells is None:  # the reference executor in 3D
+        cells = [2, 4] if args.quick else [2, 4, 8]
     if any(c < 1 for c in cells):
         raise _UsageError(f"--cells must be positive integers, got {cells}")
     if args.ppc is not None and args.ppc < 1:

@@ -35,6 +35,7 @@ import inspect
 import numpy as np
 
 from .errors import InvalidState
+from .spline.grid import SIDE_AXES, side_axis
 from .validation import check_finite_array
 
 __all__ = ["Effect", "ParticleForce", "Gravity", "BodyForce", "Traction", "Fixed", "Prescribed",
@@ -164,14 +165,15 @@ def _positional_count(fn):
     return sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) for p in params)
 
 
-SIDES = ("left", "right", "bottom", "top")
+SIDES = tuple(SIDE_AXES)
 
 
 class Traction(Effect):
     """A force per unit area of the body's surface (per unit cross-section in 1D).
 
-    ``where`` is a side of the body (``'left'``, ``'right'``, ``'bottom'``,
-    ``'top'``) or a boolean particle mask. ``tau(t)`` or ``tau(x, t)``
+    ``where`` is a side of the body (``'xmin'``, ``'xmax'``, ``'ymin'``,
+    ``'ymax'``, ``'zmin'``, ``'zmax'``, or the aliases ``'left'``,
+    ``'right'``, ``'bottom'``, ``'top'``) or a boolean particle mask. ``tau(t)`` or ``tau(x, t)``
     returns the traction vector (a float in 1D); a normal pressure p on the
     top side is ``Traction('top', lambda t: (0.0, -p))``.
 
@@ -202,7 +204,7 @@ class Traction(Effect):
         if not callable(tau):
             value = check_finite_array("tau", _numbers(
                 "tau", tau, "a number, a vector or a callable tau(t) / tau(x, t)"))
-            tau = (lambda t, _v=value: _v)
+            tau = (lambda t, *, _v=value: _v)  # keyword-only: not read as tau(x, t)
         self.where = where
         self.tau = tau
         self._takes_x = _positional_count(tau) >= 2
@@ -216,8 +218,10 @@ class Traction(Effect):
         return f"Traction({where!r})"
 
     def check(self, grid):
-        if isinstance(self.where, str) and grid.dim == 1 and self.where not in ("left", "right"):
+        if isinstance(self.where, str) and grid.dim == 1 and self.where not in ("left", "right", "xmin", "xmax"):
             raise ValueError(f"where must be 'left' or 'right' in 1D, got {self.where!r}")
+        if isinstance(self.where, str):
+            side_axis(self.where, grid.dim)
 
     def traction(self, x, t):
         return self.tau(x, t) if self._takes_x else self.tau(t)
@@ -232,8 +236,8 @@ class Traction(Effect):
         """Bind to the particles once per run (reference configuration)."""
         dim = particles.dim
         if isinstance(self.where, str):
-            axis = 0 if self.where in ("left", "right") else 1
-            sign = 1.0 if self.where in ("right", "top") else -1.0
+            axis, end = side_axis(self.where, dim)
+            sign = 1.0 if end else -1.0
             size = particles.V0 ** (1.0 / dim)  # reference extent along the normal
             coord = sign * particles.X[:, axis]
             candidates = np.ones(particles.n, dtype=bool) if self.body is None \
@@ -373,7 +377,7 @@ class Fixed(Effect):
     one), None all of them."""
 
     def __init__(self, side, component=None):
-        _check_component(component, 2)  # the grid's dimension is checked in the scene
+        _check_component(component, 3)  # the grid's dimension is checked in the scene
         self.side = side
         self.component = component
 
@@ -396,7 +400,7 @@ class Prescribed(Effect):
 
     def __init__(self, side, component, velocity):
         if component is not None:
-            _check_component(component, 2)
+            _check_component(component, 3)
         if not callable(velocity):
             value = float(velocity)
             if not np.isfinite(value):
@@ -412,7 +416,7 @@ class Prescribed(Effect):
     def check(self, grid):
         grid.boundary_dofs(self.side)
         if self.component is None:
-            raise ValueError("Prescribed needs a component (0 or 1)")
+            raise ValueError(f"Prescribed needs a component (0 to {grid.dim - 1}), got None")
         _check_component(self.component, grid.dim)
 
     def constraints(self, grid):

@@ -88,10 +88,14 @@ def save_result(result, path, grid=True):
     lines += ["  </Collection>", "</VTKFile>", ""]
     pvd.write_text("\n".join(lines))
     if grid and getattr(result, "grid", None) is not None:
+        from skfem.io.meshio import to_meshio
+
+        # scikit-fem's own conversion: it knows each cell type's vertex order
+        # (a hexahedron's differs from VTK's)
         m = result.grid.mesh
-        cell_type = "line" if m.dim() == 1 else ("triangle" if m.t.shape[0] == 3 else "quad")
-        meshio.write(str(out / "grid.vtu"),
-                     meshio.Mesh(_points3(m.p.T), [(cell_type, m.t.T.astype(np.int64))]),
+        cells = [(block.type, block.data.astype(np.int64))
+                 for block in to_meshio(m, encode_cell_data=False).cells]
+        meshio.write(str(out / "grid.vtu"), meshio.Mesh(_points3(m.p.T), cells),
                      file_format="vtu")
     return pvd
 

@@ -1,18 +1,22 @@
 """``LagrangeGrid``: a plain scikit-fem mesh and Lagrange element as an MPM grid.
 
-The general (non-spline) path: P1 on MeshLine1/MeshTri1, Q1 on MeshQuad1, so
-triangulated domains from Gmsh can carry particles. It offers the same
+The general (non-spline) path: P1 on MeshLine1/MeshTri1/MeshTet1, Q1 on
+MeshQuad1/MeshHex1, so triangulated or tetrahedral domains from Gmsh can
+carry particles. It offers the same
 methods the solver uses on a :class:`~skfem_mpm.SplineGrid` (``locate``,
 ``shape_functions``, ``boundary_dofs``, ``basis``).
 
 Point location avoids ``mesh.element_finder`` (which builds dense
 point-by-element arrays): a k-d tree of cell centroids proposes the k nearest
 cells of each point, and a vectorised barycentric test picks the one that
-contains it (points that fail are retried with more candidates).
+contains it (points that fail are retried with more candidates); quads and
+hexahedra are searched through their split into triangles or tetrahedra
+(scikit-fem's ``to_meshtri`` / ``to_meshtet``, simplex j inside cell
+j mod ncells).
 """
 import numpy as np
 from scipy.spatial import cKDTree
-from skfem import CellBasis, FacetBasis, MeshLine1, MeshQuad1, MeshTri1
+from skfem import CellBasis, FacetBasis, MeshHex1, MeshLine1, MeshQuad1, MeshTet1, MeshTri1
 from skfem.assembly import Dofs
 from skfem.element import ElementVector
 from skfem.mapping import MappingAffine, MappingIsoparametric
@@ -22,27 +26,33 @@ from .validation import as_points
 __all__ = ["LagrangeGrid"]
 
 _CANDIDATES = 8
+_MESHES = (MeshLine1, MeshTri1, MeshQuad1, MeshTet1, MeshHex1)
+# the side names of every dimension as aliases of scikit-fem's default tags
+_SIDE_ALIASES = {"xmin": "left", "xmax": "right", "ymin": "bottom", "ymax": "top",
+                 "zmin": "front", "zmax": "back"}
 
 
 class LagrangeGrid:
     """An MPM grid on a scikit-fem mesh with a Lagrange element.
 
-    ``element`` defaults to the mesh's own (P1 on lines and triangles, Q1 on
-    quadrilaterals). Boundary sides are the mesh's named boundaries, or
-    scikit-fem's defaults ``left``/``right``/``bottom``/``top`` of the
-    bounding box when the mesh has none.
+    ``element`` defaults to the mesh's own (P1 on lines, triangles and
+    tetrahedra, Q1 on quadrilaterals and hexahedra). Boundary sides are the
+    mesh's named boundaries, or scikit-fem's defaults ``left``/``right``/
+    ``bottom``/``top``/``front``/``back`` of the bounding box when the mesh
+    has none; ``xmin`` ... ``zmax`` name the defaults in every dimension.
     """
 
     def __init__(self, mesh, element=None):
-        if not isinstance(mesh, (MeshLine1, MeshTri1, MeshQuad1)):
+        if not isinstance(mesh, _MESHES):
             raise ValueError(
-                f"LagrangeGrid supports MeshLine1, MeshTri1 and MeshQuad1, got {type(mesh).__name__}"
+                f"LagrangeGrid supports {', '.join(m.__name__ for m in _MESHES)}, "
+                f"got {type(mesh).__name__}"
             )
         if not mesh.boundaries:
             mesh = mesh.with_defaults()
         self.mesh = mesh
         self.element = mesh.elem() if element is None else element
-        if self.element.maxdeg > 2 or self.element.refdom is not mesh.refdom:
+        if self.element.maxdeg > max(2, mesh.dim()) or self.element.refdom is not mesh.refdom:
             raise ValueError(
                 f"LagrangeGrid needs a first-order Lagrange element on {type(mesh).__name__}, "
                 f"got {type(self.element).__name__}"
@@ -60,9 +70,10 @@ class LagrangeGrid:
             mesh.p[:, mesh.t[1]] - mesh.p[:, mesh.t[0]]
         h = float(np.sqrt((edges ** 2).sum(axis=0)).min())
         self.h = (h,) * self.dim
-        self._affine = isinstance(mesh, (MeshLine1, MeshTri1))
+        self._affine = isinstance(mesh, (MeshLine1, MeshTri1, MeshTet1))
         self.mapping = self.new_mapping()
-        self._triangles = mesh.to_meshtri() if isinstance(mesh, MeshQuad1) else mesh
+        self._triangles = (mesh.to_meshtri() if isinstance(mesh, MeshQuad1)
+                           else mesh.to_meshtet() if isinstance(mesh, MeshHex1) else mesh)
         tri = self._triangles
         self._tri_mapping = MappingAffine(tri)
         self._tree = cKDTree(tri.p[:, tri.t].mean(axis=1).T)
@@ -103,10 +114,10 @@ class LagrangeGrid:
         _, cand = self._tree.query(x, k=k)
         cand = cand.reshape(len(x), k)
         invA, b = self._tri_mapping.invA, self._tri_mapping.b
-        rel = x[:, None, :] - b.T[cand]  # (n, k, 2)
+        rel = x[:, None, :] - b.T[cand]  # (n, k, dim)
         lam = np.einsum("nkij,nkj->nki", np.moveaxis(invA, 2, 0)[cand], rel)
         tol = 1e-12
-        inside = (lam[..., 0] >= -tol) & (lam[..., 1] >= -tol) & (lam.sum(axis=-1) <= 1 + tol)
+        inside = np.all(lam >= -tol, axis=-1) & (lam.sum(axis=-1) <= 1 + tol)
         found = inside.any(axis=1)
         out = np.where(found, cand[np.arange(len(x)), inside.argmax(axis=1)], -1)
         missing = np.flatnonzero(~found)
@@ -119,7 +130,7 @@ class LagrangeGrid:
         x = as_points("x", x, self.dim)
         cells = self._find_triangles(x, _CANDIDATES)
         self._check_inside(x, cells)
-        if isinstance(self.mesh, MeshQuad1):
+        if isinstance(self.mesh, (MeshQuad1, MeshHex1)):
             cells = cells % self.mesh.nelements
         ref = self.new_mapping().invF(x.T[:, :, None], tind=cells)[:, :, 0].T
         return cells, np.ascontiguousarray(ref)
@@ -180,6 +191,8 @@ class LagrangeGrid:
 
     def _check_side(self, side):
         names = tuple(self.mesh.boundaries)
+        if side not in names and _SIDE_ALIASES.get(side) in names:
+            return _SIDE_ALIASES[side]
         if side not in names:
             raise ValueError(f"side must be one of {', '.join(map(repr, names))}, got {side!r}")
         return side
@@ -187,8 +200,7 @@ class LagrangeGrid:
     def boundary_dofs(self, side, component=None):
         """Dofs on a named boundary; scalar numbering, or component c of the
         vector space (dim * s + c) when ``component`` is given."""
-        self._check_side(side)
-        facets = self.mesh.boundaries[side]
+        facets = self.mesh.boundaries[self._check_side(side)]
         scalar = np.unique(self.mesh.facets[:, facets].ravel())
         if component is None:
             return scalar

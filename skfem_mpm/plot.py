@@ -100,6 +100,11 @@ def _field_values(result, field, save, exact=None):
     h = result.history
     if field == "stress":
         s = h["stress"][save]
+        if s.shape[1] == 3:  # von Mises
+            d = np.diagonal(s, axis1=1, axis2=2)
+            return np.sqrt(0.5 * ((d[:, 0] - d[:, 1]) ** 2 + (d[:, 1] - d[:, 2]) ** 2
+                                  + (d[:, 2] - d[:, 0]) ** 2)
+                           + 3 * (s[:, 0, 1] ** 2 + s[:, 1, 2] ** 2 + s[:, 0, 2] ** 2))
         return s[:, 0, 0] if s.shape[1] == 1 else np.sqrt(
             s[:, 0, 0] ** 2 - s[:, 0, 0] * s[:, 1, 1] + s[:, 1, 1] ** 2 + 3 * s[:, 0, 1] ** 2)
     if field in ("velocity", "displacement"):
@@ -115,14 +120,34 @@ def _field_values(result, field, save, exact=None):
 
 
 def plot_particles(result, path, field="stress", save=-1, exact=None, title=""):
-    """Particles coloured by a field (stress: von Mises in 2D, sigma_xx in 1D;
-    velocity or displacement magnitude; displacement error) over the grid."""
+    """Particles coloured by a field (stress: von Mises in 2D and 3D, sigma_xx
+    in 1D; velocity or displacement magnitude; displacement error) over the
+    grid. In 3D the picture is the slice through the middle of the grid
+    normal to z: the particles within a quarter cell of the layer nearest
+    the middle plane, over the grid's x-y lines."""
     plt = _pyplot()
     values = _field_values(result, field, save, exact)
     x = result.history["x"][save]
     grid = result.grid
-    fig, ax = plt.subplots(figsize=(7, 5 if x.shape[1] == 2 else 3))
-    if x.shape[1] == 1:
+    fig, ax = plt.subplots(figsize=(7, 3 if x.shape[1] == 1 else 5))
+    note = ""
+    if x.shape[1] == 3:
+        middle = 0.5 * sum(grid.bounds[2])
+        layer = x[np.argmin(np.abs(x[:, 2] - middle)), 2]
+        keep = np.abs(x[:, 2] - layer) < 0.25 * grid.h[2]
+        x, values = x[keep], values[keep]
+        note = f", slice z = {layer:.3g}"
+        for axis, other in ((0, 1), (1, 0)):
+            lo, hi = grid.bounds[other]
+            for b in grid.breakpoints[axis]:
+                ends = np.array([[b, b], [lo, hi]])
+                ax.plot(*(ends if axis == 0 else ends[::-1]), color="0.85", linewidth=0.4)
+        sc = ax.scatter(x[:, 0], x[:, 1], c=values, s=8, cmap="viridis")
+        fig.colorbar(sc, ax=ax, label=field)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x")
+        ax.set_ylabel("y")
+    elif x.shape[1] == 1:
         ax.plot(x[:, 0], values, ".", markersize=3)
         for b in grid.mesh.p[0]:
             ax.axvline(b, color="0.85", linewidth=0.5)
@@ -138,7 +163,7 @@ def plot_particles(result, path, field="stress", save=-1, exact=None, title=""):
         ax.set_aspect("equal")
         ax.set_xlabel("x")
         ax.set_ylabel("y")
-    ax.set_title(title or f"{field} at t = {result.times[save]:.4g}")
+    ax.set_title(title or f"{field} at t = {result.times[save]:.4g}{note}")
     _save(plt, fig, path)
     return path
 

@@ -12,7 +12,8 @@ def test_list(capsys):
     assert main(["list"]) == 0
     out = capsys.readouterr().out
     for name in ("vibrating-string", "soil-column", "traction-bar", "neo-hookean-bar",
-                 "axis-aligned-2d", "vibrating-plate-2d", "colliding-disks"):
+                 "axis-aligned-2d", "vibrating-plate-2d", "colliding-disks", "vibrating-cube",
+                 "axis-aligned-3d", "colliding-spheres"):
         assert name in out
 
 
@@ -137,3 +138,14 @@ def test_dask_local_cluster():
                               params={"L": 1.0}, executor=client)
     assert [r["status"] for r in records] == ["ok", "ok"]
     assert records[1]["error"] < records[0]["error"]
+
+
+def test_run_defaults_to_4_cells_in_3d(capsys):
+    """`run` on a 3D benchmark (the reference executor) defaults to 4 cells
+    per axis, 16 in 1D and 2D, as its help says."""
+    assert main(["run", "vibrating-cube", "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["cells"] == 4 and record["particles"] == 8 * 4 ** 3
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    assert "default: 16; 4 in 3D" in " ".join(capsys.readouterr().out.split())

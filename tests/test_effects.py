@@ -132,3 +132,12 @@ def test_large_strain_side_traction_reaches_the_static_stretch():
         assert errors[-1] < 5e-3, (cells, errors[-1])
         assert abs(p.stress[end, 0, 0] / tau - 1) < 0.03, (cells, p.stress[end, 0, 0] / tau)
     assert errors[1] < errors[0] / 2, errors
+
+
+def test_a_constant_traction_is_that_constant_at_every_time():
+    """A number or vector given as tau is the traction at every time (the
+    constant's own default argument once made it read as tau(x, t), so the
+    traction was the time t)."""
+    assert Traction("right", 5.0).traction(None, 0.25) == 5.0
+    assert np.array_equal(Traction("zmax", (0.0, 0.0, -1.0)).traction(np.zeros((4, 3)), 0.7),
+                          [0.0, 0.0, -1.0])

@@ -26,11 +26,14 @@ def load(v, w):
 def make_grid(dim, p):
     if dim == 1:
         return SplineGrid(np.array([0.0, 0.2, 0.5, 0.6, 1.0]), p)
+    if dim == 3:
+        return SplineGrid((np.array([0.0, 0.4, 1.0]), np.array([-1.0, -0.2, 1.0]),
+                           np.array([0.0, 0.3, 0.5])), p)
     return SplineGrid((np.array([0.0, 0.4, 1.0, 1.5]), np.array([-1.0, -0.2, 0.0, 1.0])), p)
 
 
 @pytest.mark.parametrize("p", (1, 2, 3))
-@pytest.mark.parametrize("dim", (1, 2))
+@pytest.mark.parametrize("dim", (1, 2, 3))
 def test_gauss_layout_particles_reproduce_gauss_quadrature(dim, p):
     grid = make_grid(dim, p)
     k = p + 1  # exact to degree 2p + 1 >= the mass integrand's 2p
@@ -48,7 +51,7 @@ def test_gauss_layout_particles_reproduce_gauss_quadrature(dim, p):
 
 
 @pytest.mark.parametrize("p", (1, 2, 3))
-@pytest.mark.parametrize("dim", (1, 2))
+@pytest.mark.parametrize("dim", (1, 2, 3))
 def test_forms_equal_explicit_particle_sums(dim, p):
     grid = make_grid(dim, p)
     particles = Particles.seed(grid, 2, 1.7, layout="random", seed=3)
@@ -80,8 +83,9 @@ def test_forms_equal_explicit_particle_sums(dim, p):
 
 
 @pytest.mark.parametrize("p", (1, 2, 3))
-def test_transfer_matrices_equal_what_forms_compute(p):
-    grid = make_grid(2, p)
+@pytest.mark.parametrize("dim", (2, 3))
+def test_transfer_matrices_equal_what_forms_compute(dim, p):
+    grid = make_grid(dim, p)
     particles = Particles.seed(grid, 2, 1.0, layout="random", seed=1)
     pb = ParticleBasis(grid, particles)
     N = pb.N_matrix.toarray()
@@ -90,11 +94,11 @@ def test_transfer_matrices_equal_what_forms_compute(p):
         vals = np.asarray(pb.basis[j][0])[:, 0]
         grads = np.asarray(pb.basis[j][0].grad)[:, :, 0]
         assert np.abs(N[np.arange(particles.n), dofs] - vals).max() < 1e-14
-        for d in range(2):
+        for d in range(dim):
             G = pb.grad_N[d].toarray()
             assert np.abs(G[np.arange(particles.n), dofs] - grads[d]).max() < 1e-12
     assert pb.N_matrix.shape == (particles.n, grid.ndofs)
-    assert np.all(np.diff(pb.N_matrix.indptr) == (p + 1) ** 2)
+    assert np.all(np.diff(pb.N_matrix.indptr) == (p + 1) ** dim)
 
 
 @pytest.mark.parametrize("p", (1, 2, 3))

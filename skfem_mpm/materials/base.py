@@ -25,7 +25,7 @@ A material has
     point_parameters(dim)   the float64 array of parameters ``point_update`` reads
 
 Write your own by following the same shape (see examples/custom_material.py).
-2D is plane strain throughout; 1D is uniaxial strain.
+2D is plane strain throughout; 1D is uniaxial strain; 3D is the full solid.
 
 Per-particle state (accumulated plastic strain, sigma_zz in plane strain,
 back stresses, damage, ...): declare it with ``state_fields`` and it lives in
@@ -63,10 +63,15 @@ def incremental_deformation(L, dt):
 
 
 def det(A):
-    """Determinants of a stack of 1x1 or 2x2 matrices."""
+    """Determinants of a stack of 1x1, 2x2 or 3x3 matrices (3x3 by the
+    rule of Sarrus: expansion along the first row)."""
     if A.shape[-1] == 1:
         return A[:, 0, 0].copy()
-    return A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    if A.shape[-1] == 2:
+        return A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    return (A[:, 0, 0] * (A[:, 1, 1] * A[:, 2, 2] - A[:, 1, 2] * A[:, 2, 1])
+            - A[:, 0, 1] * (A[:, 1, 0] * A[:, 2, 2] - A[:, 1, 2] * A[:, 2, 0])
+            + A[:, 0, 2] * (A[:, 1, 0] * A[:, 2, 1] - A[:, 1, 1] * A[:, 2, 0]))
 
 
 class Material:
@@ -94,8 +99,9 @@ class Material:
         return {}
 
     def check_dim(self, dim):
-        if dim not in (1, 2):
-            raise ValueError(f"{type(self).__name__} models 1D and 2D (plane strain), got dim={dim}")
+        if dim not in (1, 2, 3):
+            raise ValueError(
+                f"{type(self).__name__} models 1D, 2D (plane strain) and 3D, got dim={dim}")
 
     def update(self, particles, L, dt):  # pragma: no cover - interface
         raise NotImplementedError

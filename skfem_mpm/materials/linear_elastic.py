@@ -11,11 +11,11 @@ __all__ = ["LinearElastic"]
 class LinearElastic(Material):
     """Small-strain isotropic linear elasticity (hypoelastic rate form).
 
-        d_eps = dt sym(L),   d_sigma = lambda tr(d_eps) I + 2 mu d_eps     (2D, plane strain)
+        d_eps = dt sym(L),   d_sigma = lambda tr(d_eps) I + 2 mu d_eps     (3D; 2D plane strain)
         d_sigma = E d_eps                                                 (1D, E alone)
         V <- det(I + dt L) V
 
-    P-wave speed c = sqrt((lambda + 2 mu) / rho) in 2D, sqrt(E / rho) in 1D.
+    P-wave speed c = sqrt((lambda + 2 mu) / rho) in 2D and 3D, sqrt(E / rho) in 1D.
     """
 
     finite_strain = False
@@ -30,7 +30,7 @@ class LinearElastic(Material):
         return f"LinearElastic(E={self.E:g}, nu={self.nu:g})"
 
     def modulus(self, dim):
-        """The P-wave modulus: E in 1D, lambda + 2 mu in 2D."""
+        """The P-wave modulus: E in 1D, lambda + 2 mu in 2D and 3D."""
         return self.E if dim == 1 else self.lam + 2 * self.mu
 
     def stress_rate(self, particles, L):
@@ -58,10 +58,15 @@ class LinearElastic(Material):
         return float(np.sqrt(self.modulus(particles.dim) / rho.min()))
 
     def strain_energy(self, particles):
-        """sum_p (1/2) sigma : eps V_p with eps = C^-1 sigma (plane strain)."""
+        """sum_p (1/2) sigma : eps V_p with eps = C^-1 sigma (plane strain in
+        2D; in 3D eps = (sigma - lambda / (3 lambda + 2 mu) tr(sigma) I) / (2 mu))."""
         s = particles.stress
         if particles.dim == 1:
             w = 0.5 * s[:, 0, 0] ** 2 / self.E
+        elif particles.dim == 3:
+            trace = np.trace(s, axis1=1, axis2=2)
+            eps = s - (self.lam / (3 * self.lam + 2 * self.mu) * trace)[:, None, None] * np.eye(3)
+            w = 0.5 * np.einsum("nij,nij->n", s, eps) / (2 * self.mu)
         else:
             E, nu = self.E, self.nu
             sxx, syy, sxy = s[:, 0, 0], s[:, 1, 1], s[:, 0, 1]

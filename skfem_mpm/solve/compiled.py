@@ -64,6 +64,8 @@ def compiled_executor_applies(state):
         return False, "backend numpy"
     if not isinstance(state.grid, SplineGrid):
         return False, "not a SplineGrid"
+    if state.grid.dim == 3:
+        return False, "3D (compiled kernels not yet generated for 3D)"
     if m.reconstruction != "none":
         why = unsupported(m, state.grid.dim)
         if why is not None:

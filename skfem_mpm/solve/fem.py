@@ -43,6 +43,7 @@ from ..kernels import resolve_backend
 from ..materials.state import split_update, state_layout
 from ..particles import Particles
 from ..quadrature import transfer_matrices
+from ..spline.grid import side_axis
 from .grid_system import Constraints, GridSystem
 from .method import Method
 from .result import Recorder
@@ -67,22 +68,28 @@ def _check_fills_grid(scene, particles):
 
 
 def _side_rule(grid, side, k):
-    """Gauss points and weights on a side of the grid."""
+    """Gauss points and weights on a side of the grid: the tensor rule of k
+    points per cell on each axis along the side."""
     if grid.dim == 1:
         lo, hi = grid.bounds[0]
-        return np.array([[lo if side == "left" else hi]]), np.ones(1)
-    axis = 0 if side in ("left", "right") else 1
-    other = 1 - axis
-    value = grid.bounds[axis][0 if side in ("left", "bottom") else 1]
-    breaks = grid.breakpoints[other]
+        return np.array([[lo if side in ("left", "xmin") else hi]]), np.ones(1)
+    axis, end = side_axis(side, grid.dim)
     ref, wref = np.polynomial.legendre.leggauss(k)
     ref, wref = 0.5 * (ref + 1.0), 0.5 * wref
-    h = np.diff(breaks)
-    s = (breaks[:-1, None] + h[:, None] * ref[None, :]).ravel()
-    w = (h[:, None] * wref[None, :]).ravel()
-    x = np.empty((s.size, 2))
-    x[:, axis] = value
-    x[:, other] = s
+    others = [a for a in range(grid.dim) if a != axis]
+    points, weights = [], []
+    for other in others:
+        breaks = grid.breakpoints[other]
+        h = np.diff(breaks)
+        points.append((breaks[:-1, None] + h[:, None] * ref[None, :]).ravel())
+        weights.append((h[:, None] * wref[None, :]).ravel())
+    mesh_points = np.meshgrid(*points, indexing="ij")
+    mesh_weights = np.meshgrid(*weights, indexing="ij")
+    x = np.empty((mesh_points[0].size, grid.dim))
+    x[:, axis] = grid.bounds[axis][end]
+    for other, values in zip(others, mesh_points):
+        x[:, other] = values.ravel()
+    w = np.prod([mw.ravel() for mw in mesh_weights], axis=0)
     return x, w
 
 

@@ -6,6 +6,10 @@ matrix (Borden et al. 2011, IJNME 87:15-47, eq. 8):
 
     N_(e, i)(xi) = sum_j C_e[i, j] B_j(xi)              (1D)
     N_(e, a + (p+1) b)(xi, eta) = N^x_(e_x, a)(xi) N^y_(e_y, b)(eta)   (2D)
+    N_(e, a + (p+1) b + (p+1)^2 c)(xi, eta, zeta)
+        = N^x_(e_x, a)(xi) N^y_(e_y, b)(eta) N^z_(e_z, c)(zeta)         (3D)
+
+with cells numbered e = e_x + n_x e_y + n_x n_y e_z (x fastest).
 
 The local-to-global dof table (the spline connectivity) is not the one
 scikit-fem derives from vertices; use the element through
@@ -14,12 +18,12 @@ mapping (``grid.basis()``, ``grid.element``, ``grid.dofs``).
 """
 import numpy as np
 from skfem.element import DiscreteField, Element
-from skfem.refdom import RefLine, RefQuad
+from skfem.refdom import RefHex, RefLine, RefQuad
 
 from .bernstein import bernstein, bernstein_derivative
 from .knots import check_breakpoints, check_degree, extraction_operators
 
-__all__ = ["ElementLineBSpline", "ElementQuadBSpline"]
+__all__ = ["ElementHexBSpline", "ElementLineBSpline", "ElementQuadBSpline"]
 
 
 def _axis_local(C, cells, p, xi):
@@ -95,7 +99,54 @@ class ElementLineBSpline(_BSplineElement):
         return (DiscreteField(value=val, grad=grad),)
 
 
-class ElementQuadBSpline(_BSplineElement):
+class _TensorBSplineElement(_BSplineElement):
+    """Tensor products of the axes' 1D B-splines (quadrilaterals, hexahedra).
+
+    Local function l = sum_d a_d (p + 1)^d (x fastest) is prod_d N^d_(a_d);
+    its reference gradient has the components
+    dN^d_(a_d) prod_(k != d) N^k_(a_k).
+    """
+
+    def __init__(self, p, breakpoints):
+        dim = self.refdom.dim()
+        if len(breakpoints) != dim:
+            raise ValueError(
+                f"{type(self).__name__} needs {dim} breakpoint arrays (one per axis), "
+                f"got {len(breakpoints)}"
+            )
+        super().__init__(p, breakpoints)
+        self.maxdeg = dim * self.degree  # total degree of Q_p, scikit-fem's convention
+
+    def gbasis(self, mapping, X, i, tind=None):
+        p = self.degree
+        dim = len(self.breakpoints)
+        if not 0 <= i < (p + 1) ** dim:
+            self._index_error()
+        cells = self._cells(mapping, tind)
+        vals, dvals = [], []
+        stride = 1
+        for axis in range(dim):
+            n = self.cells_per_axis[axis]
+            e = (cells // stride) % n
+            local = (i // (p + 1) ** axis) % (p + 1)
+            stride *= n
+            Ce = self.extraction[axis][e][:, local, :]
+            xi = X[axis]
+            if xi.ndim == 1:
+                vals.append(Ce @ bernstein(p, xi).T)
+                dvals.append(Ce @ bernstein_derivative(p, xi).T)
+            else:
+                vals.append(np.einsum("ej,eqj->eq", Ce, bernstein(p, xi)))
+                dvals.append(np.einsum("ej,eqj->eq", Ce, bernstein_derivative(p, xi)))
+        value = np.prod(vals, axis=0)
+        dref = np.stack([
+            np.prod([dvals[k] if k == d else vals[k] for k in range(dim)], axis=0)
+            for d in range(dim)])
+        grad = self._physical_gradient(mapping, X, tind, dref)
+        return (DiscreteField(value=value, grad=grad),)
+
+
+class ElementQuadBSpline(_TensorBSplineElement):
     """Tensor-product B-spline element of degree ``p`` (1, 2 or 3) on quads.
 
     ``breakpoints`` is a pair (x breakpoints, y breakpoints) of the grid whose
@@ -107,32 +158,20 @@ class ElementQuadBSpline(_BSplineElement):
     refdom = RefQuad
 
     def __init__(self, p, breakpoints=((0.0, 1.0), (0.0, 1.0))):
-        if len(breakpoints) != 2:
-            raise ValueError(
-                f"ElementQuadBSpline needs a pair of breakpoint arrays, got {len(breakpoints)}"
-            )
         super().__init__(p, breakpoints)
-        self.maxdeg = 2 * self.degree  # total degree of Q_p, scikit-fem's convention
 
-    def gbasis(self, mapping, X, i, tind=None):
-        p = self.degree
-        if not 0 <= i < (p + 1) ** 2:
-            self._index_error()
-        a, b = i % (p + 1), i // (p + 1)
-        cells = self._cells(mapping, tind)
-        nx = self.cells_per_axis[0]
-        ex, ey = cells % nx, cells // nx
-        vals, dvals = [], []
-        for C, e, local, xi in ((self.extraction[0], ex, a, X[0]),
-                                (self.extraction[1], ey, b, X[1])):
-            Ce = C[e][:, local, :]
-            if xi.ndim == 1:
-                vals.append(Ce @ bernstein(p, xi).T)
-                dvals.append(Ce @ bernstein_derivative(p, xi).T)
-            else:
-                vals.append(np.einsum("ej,eqj->eq", Ce, bernstein(p, xi)))
-                dvals.append(np.einsum("ej,eqj->eq", Ce, bernstein_derivative(p, xi)))
-        value = vals[0] * vals[1]
-        dref = np.stack((dvals[0] * vals[1], vals[0] * dvals[1]))
-        grad = self._physical_gradient(mapping, X, tind, dref)
-        return (DiscreteField(value=value, grad=grad),)
+
+class ElementHexBSpline(_TensorBSplineElement):
+    """Tensor-product B-spline element of degree ``p`` (1, 2 or 3) on hexahedra.
+
+    ``breakpoints`` is a triple (x, y, z breakpoints) of the grid whose cells
+    are numbered e = e_x + n_x e_y + n_x n_y e_z (default: one cell [0, 1]^3)
+    and mapped affinely from scikit-fem's reference cube [0, 1]^3. Local
+    function l = a + (p + 1) b + (p + 1)^2 c is N^x_a N^y_b N^z_c. p = 1 is
+    the trilinear Lagrange space of ``ElementHex1``.
+    """
+
+    refdom = RefHex
+
+    def __init__(self, p, breakpoints=((0.0, 1.0), (0.0, 1.0), (0.0, 1.0))):
+        super().__init__(p, breakpoints)

@@ -1,27 +1,51 @@
 """``SplineGrid``: a tensor-product B-spline space on a scikit-fem mesh.
 
-The grid owns the mesh (MeshLine1 or MeshQuad1 with cells numbered
-e = e_x + n_x e_y and vertices counter-clockwise), the element (Bezier
-extraction, see :mod:`skfem_mpm.spline.element`), the spline dof numbering
-(dof a + n_bx b for the function N^x_a N^y_b, n_bx = n_x + p), and fast point
-location on its breakpoints. Vector fields use the interleaved numbering
+The grid owns the mesh (MeshLine1, MeshQuad1 or MeshHex1 with cells numbered
+e = e_x + n_x e_y + n_x n_y e_z and vertices in scikit-fem's reference order),
+the element (Bezier extraction, see :mod:`skfem_mpm.spline.element`), the
+spline dof numbering (dof a + n_bx b + n_bx n_by c for the function
+N^x_a N^y_b N^z_c, n_bx = n_x + p), and fast point location on its
+breakpoints. Vector fields use the interleaved numbering
 dim * s + c of scikit-fem's ``ElementVector``.
 """
 import numpy as np
-from skfem import CellBasis, FacetBasis, MeshLine1, MeshQuad1
+from skfem import CellBasis, FacetBasis, MeshHex1, MeshLine1, MeshQuad1
 from skfem.element import ElementVector
 
 from ..kernels import resolve_backend
 from ..validation import as_points, check_positive_int
 from .bernstein import bernstein, bernstein_derivative
 from .dofs import SplineDofs
-from .element import ElementLineBSpline, ElementQuadBSpline
+from .element import ElementHexBSpline, ElementLineBSpline, ElementQuadBSpline
 from .knots import check_breakpoints, check_degree, open_knot_vector
 from .mapping import MappingRectangular
 
 __all__ = ["SplineGrid"]
 
-SIDES = {1: ("left", "right"), 2: ("left", "right", "bottom", "top")}
+# side name -> (axis, end): end 0 is the lower bound, 1 the upper
+SIDE_AXES = {
+    "left": (0, 0), "right": (0, 1), "bottom": (1, 0), "top": (1, 1),
+    "xmin": (0, 0), "xmax": (0, 1), "ymin": (1, 0), "ymax": (1, 1),
+    "zmin": (2, 0), "zmax": (2, 1),
+}
+SIDES = {dim: tuple(name for name, (axis, _) in SIDE_AXES.items() if axis < dim)
+         for dim in (1, 2, 3)}
+MESHES = {2: MeshQuad1, 3: MeshHex1}
+ELEMENTS = {1: ElementLineBSpline, 2: ElementQuadBSpline, 3: ElementHexBSpline}
+
+
+def side_axis(side, dim):
+    """(axis, end) of a side name in ``dim`` dimensions: 'left'/'xmin' is
+    (0, 0), 'right'/'xmax' (0, 1), 'bottom'/'ymin' (1, 0), 'top'/'ymax'
+    (1, 1), 'zmin' (2, 0), 'zmax' (2, 1); raises ValueError for a name that
+    is not a side of a ``dim``-dimensional grid."""
+    valid = SIDES[dim]
+    if not isinstance(side, str) or side not in valid:
+        raise ValueError(
+            f"side must be one of {', '.join(map(repr, valid))} for a "
+            f"{dim}D grid, got {side!r}"
+        )
+    return SIDE_AXES[side]
 
 
 def _is_per_axis(breakpoints):
@@ -34,18 +58,19 @@ def _is_per_axis(breakpoints):
 
 
 class SplineGrid:
-    """B-spline space of degree ``degree`` on a line or a rectangle.
+    """B-spline space of degree ``degree`` on a line, a rectangle or a box.
 
     Parameters
     ----------
     breakpoints
         The cell boundaries: one strictly increasing array for a line, or a
-        pair of arrays (x, y) for a rectangle. Non-uniform spacing is allowed.
+        tuple of arrays (x, y) for a rectangle, (x, y, z) for a box.
+        Non-uniform spacing is allowed.
     degree
         1, 2 or 3. The knot vectors are open (clamped), so the space
         interpolates at the boundary, and the functions are C^(degree-1).
 
-    Use :meth:`line` and :meth:`rectangle` for uniform grids.
+    Use :meth:`line`, :meth:`rectangle` and :meth:`box` for uniform grids.
     """
 
     def __init__(self, breakpoints, degree):
@@ -54,8 +79,8 @@ class SplineGrid:
             axes = tuple(breakpoints)
         else:
             axes = (breakpoints,)
-        if len(axes) not in (1, 2):
-            raise ValueError(f"a SplineGrid has 1 or 2 axes, got {len(axes)}")
+        if len(axes) not in (1, 2, 3):
+            raise ValueError(f"a SplineGrid has 1, 2 or 3 axes, got {len(axes)}")
         self.breakpoints = tuple(
             check_breakpoints(b, name=f"breakpoints[{i}]" if len(axes) > 1 else "breakpoints")
             for i, b in enumerate(axes)
@@ -76,8 +101,8 @@ class SplineGrid:
             bool(np.allclose(s, s.mean(), rtol=1e-9, atol=0.0)) for s in self.cell_sizes
         )
         self._build_mesh()
-        self.element = (ElementLineBSpline(p, self.breakpoints[0]) if self.dim == 1
-                        else ElementQuadBSpline(p, self.breakpoints))
+        self.element = ELEMENTS[self.dim](p, self.breakpoints if self.dim > 1
+                                          else self.breakpoints[0])
         self.extraction = self.element.extraction
         self.dofs = SplineDofs(self.mesh, self.element, self._element_dofs(), self.ndofs)
         self.vector_element = ElementVector(self.element, self.dim)
@@ -99,12 +124,29 @@ class SplineGrid:
     def rectangle(cls, xlim, ylim, cells, degree):
         """Uniform grid on [x0, x1] x [y0, y1] with ``cells = (nx, ny)``
         (an int gives the same count on both axes)."""
+        return cls._uniform_box((xlim, ylim), cells, degree)
+
+    @classmethod
+    def box(cls, xlim, ylim, zlim, cells, degree):
+        """Uniform grid on [x0, x1] x [y0, y1] x [z0, z1] with
+        ``cells = (nx, ny, nz)`` (an int gives the same count on every axis)."""
+        return cls._uniform_box((xlim, ylim, zlim), cells, degree)
+
+    @classmethod
+    def _uniform_box(cls, lims, cells, degree):
+        dim = len(lims)
         if isinstance(cells, (int, np.integer)) and not isinstance(cells, bool):
-            cells = (cells, cells)
-        if len(cells) != 2:
-            raise ValueError(f"cells must be an int or a pair (nx, ny), got {cells!r}")
+            cells = (cells,) * dim
+        try:
+            count = len(cells)
+        except TypeError:
+            count = None
+        if count != dim:
+            names = ("nx", "ny", "nz")[:dim]
+            raise ValueError(
+                f"cells must be an int or {dim} ints ({', '.join(names)}), got {cells!r}")
         axes = []
-        for name, lim, n in (("xlim", xlim, cells[0]), ("ylim", ylim, cells[1])):
+        for name, lim, n in zip(("xlim", "ylim", "zlim"), lims, cells):
             n = check_positive_int("cells", n)
             lo, hi = float(lim[0]), float(lim[1])
             if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
@@ -120,14 +162,23 @@ class SplineGrid:
             self.mesh = MeshLine1(u[None, :].copy(), t)
             self.mapping = self.mesh._mapping()
             return
-        bx, by = self.breakpoints
-        nx, ny = self.cells_per_axis
-        X, Y = np.meshgrid(bx, by, indexing="xy")
-        points = np.vstack((X.ravel(), Y.ravel()))
-        ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
-        v0 = (ix + (nx + 1) * iy).ravel()
-        t = np.vstack((v0, v0 + 1, v0 + nx + 2, v0 + nx + 1))
-        self.mesh = MeshQuad1(points, t)
+        # vertex (i_x, i_y[, i_z]) is i_x + (n_x + 1) i_y + (n_x + 1)(n_y + 1) i_z;
+        # vertex k of a cell sits at its lower corner + corner[:, k]: quads
+        # counter-clockwise (RefQuad.p), hexahedra as MeshHex1's own unit cube
+        # lists them (its doflocs, 1 - RefHex.p), which scikit-fem's meshio
+        # export turns into VTK's hexahedron order
+        mesh_type = MESHES[self.dim]
+        ref = mesh_type.elem.refdom.p
+        corner = ref if self.dim == 2 else 1.0 - ref
+        counts = [n + 1 for n in self.cells_per_axis]
+        stride = np.cumprod([1] + counts[:-1])
+        coords = np.meshgrid(*self.breakpoints, indexing="ij")
+        points = np.vstack([c.ravel(order="F") for c in coords])
+        first = np.meshgrid(*[np.arange(n) for n in self.cells_per_axis], indexing="ij")
+        v0 = sum(stride[d] * first[d].ravel(order="F") for d in range(self.dim))
+        offsets = np.rint(stride @ corner).astype(np.int64)  # (nverts,)
+        t = v0[None, :] + offsets[:, None]
+        self.mesh = mesh_type(points, t)
         self.mapping = MappingRectangular(self.mesh)
 
     def _element_dofs(self):
@@ -135,13 +186,17 @@ class SplineGrid:
         if self.dim == 1:
             cells = np.arange(self.ncells)
             return cells[None, :] + np.arange(p + 1)[:, None]
-        nx = self.cells_per_axis[0]
-        nbx = self.basis_per_axis[0]
         cells = np.arange(self.ncells)
-        ex, ey = cells % nx, cells // nx
-        a = np.tile(np.arange(p + 1), p + 1)
-        b = np.repeat(np.arange(p + 1), p + 1)
-        return (ex[None, :] + a[:, None]) + nbx * (ey[None, :] + b[:, None])
+        local = np.arange((p + 1) ** self.dim)
+        out = np.zeros((local.size, self.ncells), dtype=np.int64)
+        cell_stride, dof_stride = 1, 1
+        for axis in range(self.dim):
+            e = (cells // cell_stride) % self.cells_per_axis[axis]
+            a = (local // (p + 1) ** axis) % (p + 1)
+            out += dof_stride * (e[None, :] + a[:, None])
+            cell_stride *= self.cells_per_axis[axis]
+            dof_stride *= self.basis_per_axis[axis]
+        return out
 
     def _vector_element_dofs(self):
         scalar = self._element_dofs()
@@ -191,28 +246,19 @@ class SplineGrid:
             nb = tau.size - p - 1
             idx = np.arange(nb)[:, None] + np.arange(1, p + 1)[None, :]
             axes.append(tau[idx].mean(axis=1))
-        if self.dim == 1:
-            locs = axes[0][None, :]
-        else:
-            gx, gy = np.meshgrid(axes[0], axes[1], indexing="xy")
-            locs = np.vstack((gx.ravel(), gy.ravel()))
+        grids = np.meshgrid(*axes, indexing="ij")
+        locs = np.vstack([g.ravel(order="F") for g in grids])  # x fastest
         if vector:
             locs = np.repeat(locs, self.dim, axis=1)
         return locs
 
     def _check_side(self, side):
-        valid = SIDES[self.dim]
-        if side not in valid:
-            raise ValueError(
-                f"side must be one of {', '.join(map(repr, valid))} for a "
-                f"{self.dim}D grid, got {side!r}"
-            )
+        side_axis(side, self.dim)
         return side
 
     def _side_facets(self, side):
-        self._check_side(side)
-        axis = 0 if side in ("left", "right") else 1
-        value = self.bounds[axis][0 if side in ("left", "bottom") else 1]
+        axis, end = side_axis(side, self.dim)
+        value = self.bounds[axis][end]
         mid = self.mesh.p[:, self.mesh.facets].mean(axis=1)
         boundary = self.mesh.boundary_facets()
         on_side = np.isclose(mid[axis, boundary], value, rtol=0.0,
@@ -222,28 +268,18 @@ class SplineGrid:
     def boundary_dofs(self, side, component=None):
         """Dofs of the basis functions that are non-zero on a side.
 
-        ``side`` is ``'left'``/``'right'`` (1D) or ``'left'``, ``'right'``,
-        ``'bottom'``, ``'top'`` (2D). With ``component=None`` the indices are
+        ``side`` is ``'xmin'``, ``'xmax'``, ``'ymin'``, ``'ymax'``,
+        ``'zmin'``, ``'zmax'`` (as far as the grid has axes), or their
+        aliases ``'left'``, ``'right'`` (x), ``'bottom'``, ``'top'`` (y). With ``component=None`` the indices are
         those of the scalar space; with ``component=c`` (0 <= c < dim) they
         are the dofs of component c in the vector space (dim * s + c).
         With open knot vectors exactly one layer of functions touches a side,
         and setting those dofs fixes the field on that side.
         """
-        self._check_side(side)
-        if self.dim == 1:
-            scalar = np.array([0 if side == "left" else self.ndofs - 1])
-        else:
-            nbx, nby = self.basis_per_axis
-            a = np.arange(nbx)
-            b = np.arange(nby)
-            if side == "left":
-                scalar = nbx * b
-            elif side == "right":
-                scalar = nbx * b + nbx - 1
-            elif side == "bottom":
-                scalar = a
-            else:
-                scalar = a + nbx * (nby - 1)
+        axis, end = side_axis(side, self.dim)
+        index = np.arange(self.ndofs).reshape(self.basis_per_axis[::-1])  # [.., b, a]
+        layer = np.take(index, 0 if end == 0 else -1, axis=self.dim - 1 - axis)
+        scalar = layer.ravel()
         if component is None:
             return scalar
         if isinstance(component, bool) or not isinstance(component, (int, np.integer)) \
@@ -294,11 +330,14 @@ class SplineGrid:
         return self._locate_unchecked(x)
 
     def _locate_unchecked(self, x):
-        e0, xi0 = self._locate_axis(0, x[:, 0])
-        if self.dim == 1:
-            return e0, xi0[:, None]
-        e1, xi1 = self._locate_axis(1, x[:, 1])
-        return e0 + self.cells_per_axis[0] * e1, np.column_stack((xi0, xi1))
+        cells = np.zeros(x.shape[0], dtype=np.int64)
+        xi = np.empty(x.shape)
+        stride = 1
+        for axis in range(self.dim):
+            e, xi[:, axis] = self._locate_axis(axis, x[:, axis])
+            cells += stride * e
+            stride *= self.cells_per_axis[axis]
+        return cells, xi
 
     def axis_functions(self, axis, x_axis, backend=None):
         """The p + 1 non-zero 1D B-splines of one axis at coordinates ``x_axis``.
@@ -369,23 +408,34 @@ class SplineGrid:
         return self._tensor_product(axes, x.shape[0])
 
     def _tensor_product(self, axes, n):
+        """Products of the per-axis (first, values, derivatives) with local
+        order a + (p + 1) b + (p + 1)^2 c (x fastest)."""
         p = self.degree
+        dim = self.dim
+        k = (p + 1) ** dim
         local = np.arange(p + 1)
-        e0, v0, d0 = axes[0]
-        if self.dim == 1:
-            return e0[:, None] + local, v0, d0[:, :, None]
-        e1, v1, d1 = axes[1]
-        nbx = self.basis_per_axis[0]
-        k = (p + 1) ** 2
-        dofs = ((e0[:, None, None] + local[None, None, :])
-                + nbx * (e1[:, None, None] + local[None, :, None])).reshape(n, k)
-        values = (v1[:, :, None] * v0[:, None, :]).reshape(n, k)
-        grads = np.stack(
-            ((v1[:, :, None] * d0[:, None, :]).reshape(n, k),
-             (d1[:, :, None] * v0[:, None, :]).reshape(n, k)),
-            axis=-1,
-        )
-        return dofs, values, grads
+        dofs = np.zeros((n,) + (1,) * dim, dtype=np.int64)
+        values, derivatives = [], []
+        stride = 1
+        for axis, (e, v, d) in enumerate(axes):
+            shape = [n] + [1] * dim
+            shape[dim - axis] = p + 1  # axis 0 is the last (fastest) index
+            dofs = dofs + stride * (e[:, None] + local).reshape(shape)
+            values.append(v.reshape(shape))
+            derivatives.append(d.reshape(shape))
+            stride *= self.basis_per_axis[axis]
+        full = (n,) + (p + 1,) * dim
+
+        def product(factors):
+            out = factors[0]
+            for f in factors[1:]:
+                out = out * f
+            return np.broadcast_to(out, full).reshape(n, k)
+
+        grads = np.stack([
+            product([derivatives[a] if a == d else values[a] for a in range(dim)])
+            for d in range(dim)], axis=-1)
+        return np.broadcast_to(dofs, full).reshape(n, k), product(values), grads
 
     def evaluate(self, coeffs, x, gradient=False):
         """Values (and gradients) of a spline field at points ``x``.
@@ -423,24 +473,23 @@ class SplineGrid:
         ref, wref = np.polynomial.legendre.leggauss(k)
         ref, wref = 0.5 * (ref + 1.0), 0.5 * wref
         cells = np.arange(self.ncells) if cells is None else np.asarray(cells)
-        if self.dim == 1:
-            e = (cells,)
-        else:
-            nx = self.cells_per_axis[0]
-            e = (cells % nx, cells // nx)
-        lo = [self.breakpoints[a][e[a]] for a in range(self.dim)]
-        size = [self.cell_sizes[a][e[a]] for a in range(self.dim)]
-        if self.dim == 1:
-            x = (lo[0][:, None] + size[0][:, None] * ref[None, :]).reshape(-1, 1)
-            w = (size[0][:, None] * wref[None, :]).ravel()
-            return x, w, np.repeat(cells, k)
-        # local point (a, b) -> a + k b, x varying fastest
-        xa = lo[0][:, None] + size[0][:, None] * ref[None, :]          # (cells, k)
-        yb = lo[1][:, None] + size[1][:, None] * ref[None, :]
-        x = np.stack((np.broadcast_to(xa[:, None, :], (cells.size, k, k)),
-                      np.broadcast_to(yb[:, :, None], (cells.size, k, k))), axis=-1)
-        w = (size[0] * size[1])[:, None, None] * (wref[None, None, :] * wref[None, :, None])
-        return x.reshape(-1, 2), w.ravel(), np.repeat(cells, k * k)
+        dim = self.dim
+        e, stride = [], 1
+        for axis in range(dim):
+            e.append((cells // stride) % self.cells_per_axis[axis])
+            stride *= self.cells_per_axis[axis]
+        # local point a + k b + k^2 c (x fastest), as the cells' local functions
+        shape = (cells.size,) + (k,) * dim
+        x = np.empty(shape + (dim,))
+        w = np.ones(shape)
+        for axis in range(dim):
+            lo = self.breakpoints[axis][e[axis]]
+            size = self.cell_sizes[axis][e[axis]]
+            view = [cells.size] + [1] * dim
+            view[dim - axis] = k
+            x[..., axis] = (lo[:, None] + size[:, None] * ref[None, :]).reshape(view)
+            w = w * (size[:, None] * wref[None, :]).reshape(view)
+        return x.reshape(-1, dim), w.ravel(), np.repeat(cells, k ** dim)
 
     def vertex_values(self, coeffs):
         """Field values at the mesh vertices, for ``mesh.save(point_data=...)``."""

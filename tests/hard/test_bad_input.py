@@ -90,7 +90,7 @@ CASES = {
     "interval": (lambda: SplineGrid.line(1, 0, 4, 2), r"a < b .*got a=1.0, b=0.0"),
     "damping": (lambda: Damping(1.5), r"alpha must be a number in \[0, 1\), got 1.5"),
     "body force": (lambda: BodyForce(3.0), r"BodyForce needs a callable b\(X, t\), got 3.0"),
-    "component": (lambda: Fixed("left", component=3), r"component must be None or an integer in \[0, 1\], got 3"),
+    "component": (lambda: Fixed("left", component=3), r"component must be None or an integer in \[0, 2\], got 3"),
     "gravity type": (lambda: Gravity("down"), r"g must be a number .* got 'down'"),
     "t_end": (lambda: Scene(GRID, Body(particles(), LinearElastic(1.0)), -1.0), r"t_end must be finite and > 0"),
     "save_every": (lambda: simulate(s1_scene(), save_every=0), r"save_every must be a positive integer number of steps, got 0"),
