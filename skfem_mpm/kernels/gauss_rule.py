@@ -18,7 +18,7 @@ points agree bit for bit.
 scikit-fem numbering e = ix + nx iy), each with the tensor rule of k points
 per axis, point (a, b) at index a + k b:
 
-    x_g = (u_ix + h_ix r_a, v_iy + k_iy r_b),   w_g = (h_ix k_iy) (w_a w_b),
+    x_g = (u_ix + h_ix r_a, v_iy + k_iy r_b),   w_g = (h_ix w_a) (k_iy w_b),
 
 as :meth:`SplineGrid.gauss_rule` computes it (bit for bit). The particles'
 cells (:func:`locate_cells`) are those of :meth:`SplineGrid.locate`: on a
@@ -156,12 +156,11 @@ def gauss_rule_cells(pcell, breaks0, breaks1, ref, wref):
         ix, iy = c % nx, c // nx
         hx = breaks0[ix + 1] - breaks0[ix]
         hy = breaks1[iy + 1] - breaks1[iy]
-        area = hx * hy
         for b in range(k):
             for a in range(k):
                 xg[g, 0] = breaks0[ix] + hx * ref[a]
                 xg[g, 1] = breaks1[iy] + hy * ref[b]
-                wg[g] = area * (wref[a] * wref[b])
+                wg[g] = (hx * wref[a]) * (hy * wref[b])
                 cell[g] = c
                 g += 1
     return xg, wg, cell
