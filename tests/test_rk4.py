@@ -206,3 +206,21 @@ def test_time_to_reach_interpolates_between_the_bracketing_runs():
     assert time_to_reach(records, 1e-2)["a"] == 1.0
     table = time_to_reach_table(records, [1e-4])
     assert "| a | 4 |" in table and "| c |  |" in table
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_a_stage_that_inverts_a_particle_raises_with_the_last_good_state(backend):
+    """J = det F <= 0 inside a Runge-Kutta stage (a compressed neo-Hookean
+    body at a far too large step) stops the run naming the stage and the
+    particle, on both executors, keeping the last good state."""
+    from skfem_mpm import NeoHookean, SimulationError
+
+    grid = SplineGrid.line(0, 1, 8, 2)
+    parts = Particles.seed(grid, 2, 1.0, region=((0.25, 0.75),),
+                           velocity=lambda X: -2000.0 * (X - 0.5))
+    scene = Scene(grid, Body(parts, NeoHookean(1.0)), 0.01)
+    with pytest.raises(SimulationError, match=r"J = det F <= 0 at particle \d+ in a "
+                                              r"Runge-Kutta stage") as info:
+        simulate(scene, Method(scheme="rk4", dt=1e-3, backend=backend))
+    assert info.value.particle is not None
+    assert np.all(info.value.result.particles.F[:, 0, 0] > 0)

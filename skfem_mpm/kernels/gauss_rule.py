@@ -21,12 +21,15 @@ per axis, point (a, b) at index a + k b:
     x_g = (u_ix + h_ix r_a, v_iy + k_iy r_b),   w_g = (h_ix w_a) (k_iy w_b),
 
 as :meth:`SplineGrid.gauss_rule` computes it (bit for bit). The particles'
-cells (:func:`locate_cells`) are those of :meth:`SplineGrid.locate`: on a
-uniform axis trunc((x - u_0) (n / (u_n - u_0))), else the last breakpoint
-<= x, clamped to the grid's cells.
+cells (:func:`locate_cells`, with the transfers' own
+:func:`~skfem_mpm.kernels.weights.locate_axis_point`) are those of
+:meth:`SplineGrid.locate`: on a uniform axis floor((x - u_0) (n / (u_n -
+u_0))), else the last breakpoint <= x, clamped to the grid's cells.
 """
 import numpy as np
 from numba import njit
+
+from .weights import locate_axis_point
 
 __all__ = ["gauss_rule_1d", "gauss_rule_cells", "locate_cells"]
 
@@ -101,32 +104,18 @@ def gauss_rule_1d(x, V, gap, breaks, ref, wref):
 
 
 @njit(cache=True, error_model="numpy")
-def _locate(x, breaks, uniform):
-    n = breaks.shape[0] - 1
-    if uniform:
-        e = int((x - breaks[0]) * (n / (breaks[n] - breaks[0])))
-    else:
-        lo, hi = -1, n + 1  # the last index with breaks[lo] <= x (searchsorted right - 1)
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if breaks[mid] <= x:
-                lo = mid
-            else:
-                hi = mid
-        e = lo
-    return min(max(e, 0), n - 1)
-
-
-@njit(cache=True, error_model="numpy")
 def locate_cells(x, breaks0, breaks1, uniform0, uniform1):
     """The cell (ix + nx iy; ix in 1D) of each point x (n, d)."""
     n, dim = x.shape
     nx = breaks0.shape[0] - 1
+    ny = breaks1.shape[0] - 1
+    inv_h0 = nx / (breaks0[nx] - breaks0[0])  # the uniform axes' 1 / h, as SplineGrid.locate
+    inv_h1 = ny / (breaks1[ny] - breaks1[0])
     cell = np.empty(n, dtype=np.int64)
     for i in range(n):
-        c = _locate(x[i, 0], breaks0, uniform0)
+        c = locate_axis_point(x[i, 0], breaks0, uniform0, inv_h0)
         if dim == 2:
-            c += nx * _locate(x[i, 1], breaks1, uniform1)
+            c += nx * locate_axis_point(x[i, 1], breaks1, uniform1, inv_h1)
         cell[i] = c
     return cell
 

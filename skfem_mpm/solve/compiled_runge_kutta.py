@@ -30,8 +30,7 @@ import numpy as np
 
 from ..errors import InvalidState
 from ..kernels.staging import combine_stages
-from ..materials.base import det
-from .runge_kutta import prescribed_acceleration
+from .runge_kutta import check_stage_volumes, finite_strain_stage, prescribed_acceleration
 
 __all__ = ["CompiledRungeKutta"]
 
@@ -180,23 +179,8 @@ class CompiledRungeKutta:
                            rk.F, small, finite, out["x"], out["u"], out["v"], out["stress"],
                            out["V"], F_out, self.kernels.nthreads)
         if finite:
-            with state.timer("constitutive"):
-                for material, index in state.bodies:
-                    if not material.finite_strain:
-                        continue
-                    F_b = F_out[index]
-                    J = det(F_b)
-                    if not np.all(J > 0):
-                        k = int(np.arange(p.n)[index][np.flatnonzero(~(J > 0))[0]])
-                        raise InvalidState(f"J = det F <= 0 at particle {k} in a Runge-Kutta "
-                                           f"stage", particle=k)
-                    out["stress"][index] = material.cauchy_stress(F_b)
-                    out["V"][index] = p.V0[index] * J
-        V = out["V"]
-        if not (V > 0).all():
-            k = int(np.flatnonzero(~(V > 0))[0])
-            raise InvalidState(f"volume {V[k]:.3g} <= 0 at particle {k} in a Runge-Kutta stage",
-                               particle=k)
+            finite_strain_stage(state, F_out, out["stress"], out["V"])
+        check_stage_volumes(out["V"])
 
     def stage(self, state, rates, weights):
         """The stage particles y_n + dt sum_s w_s k_s (in reused arrays)."""

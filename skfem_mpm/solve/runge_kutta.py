@@ -199,23 +199,38 @@ def _advanced(state, rates, weights):
             stress[index], V[index] = stress_all[index], V_all[index]
     if finite:
         F = combined("F", p.F)
-        with state.timer("constitutive"):
-            for material, index in finite:
-                F_b = F[index]
-                J = det(F_b)
-                if not np.all(J > 0):
-                    k = int(np.arange(p.n)[index][np.flatnonzero(~(J > 0))[0]])
-                    raise InvalidState(f"J = det F <= 0 at particle {k} in a Runge-Kutta "
-                                       f"stage", particle=k)
-                stress[index] = material.cauchy_stress(F_b)
-                V[index] = p.V0[index] * J
+        finite_strain_stage(state, F, stress, V)
+    check_stage_volumes(V)
+    new.update(stress=stress, V=V, F=F)
+    return new
+
+
+def finite_strain_stage(state, F, stress, V):
+    """The finite-strain bodies' stage state from their staged F, written
+    into ``stress`` and ``V``: sigma = cauchy_stress(F), V = V0 det F
+    (both executors call this); InvalidState at the first J <= 0."""
+    V0 = state.particles.V0
+    with state.timer("constitutive"):
+        for material, index in state.bodies:
+            if not material.finite_strain:
+                continue
+            F_b = F[index]
+            J = det(F_b)
+            if not np.all(J > 0):
+                k = int(np.arange(V0.shape[0])[index][np.flatnonzero(~(J > 0))[0]])
+                raise InvalidState(f"J = det F <= 0 at particle {k} in a Runge-Kutta "
+                                   f"stage", particle=k)
+            stress[index] = material.cauchy_stress(F_b)
+            V[index] = V0[index] * J
+
+
+def check_stage_volumes(V):
+    """InvalidState at the first staged volume V <= 0 (or NaN)."""
     bad = ~(V > 0)
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
         raise InvalidState(f"volume {V[k]:.3g} <= 0 at particle {k} in a Runge-Kutta stage",
                            particle=k)
-    new.update(stress=stress, V=V, F=F)
-    return new
 
 
 def staged_particles(state, rates, weights):
