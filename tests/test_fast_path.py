@@ -10,7 +10,7 @@ from skfem_mpm.benchmarks import get_benchmark
 def both(scene, **method):
     ref = simulate(scene, Method(backend="numpy", **method), save_every=7)
     fast = simulate(scene, Method(backend="numba", **method), save_every=7)
-    assert fast.path == "fast" and ref.path.startswith("reference")
+    assert fast.path.startswith("fast") and ref.path.startswith("reference")
     return ref, fast
 
 
@@ -100,7 +100,7 @@ def test_consistent_mass_fast_path_matches_reference(solver, monkeypatch):
     scene = b.scene(6, 2, 2)
     ref = simulate(scene, Method(mass="consistent", backend="numpy", mass_solver="direct"))
     fast = simulate(scene, Method(mass="consistent", mass_solver=solver))
-    assert fast.path == "fast"
+    assert fast.path.startswith("fast")
     assert close(ref.particles.u, fast.particles.u, 1e-11)
     assert close(ref.particles.stress, fast.particles.stress, 1e-11)
 
@@ -548,5 +548,5 @@ def test_auto_mass_solver_never_times_a_direct_solve(monkeypatch):
     scene = Scene(grid, Body(parts, LinearElastic(1e3, 0.3)), 0.01,
                   effects=[Fixed("left"), Fixed("right"), Fixed("bottom"), Fixed("top")])
     result = simulate(scene, Method(mass="consistent", scheme="usl", mass_solver="auto"))
-    assert result.path == "fast"
+    assert result.path.startswith("fast")
     assert max(log) >= 20

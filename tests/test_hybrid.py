@@ -73,7 +73,7 @@ def test_hybrid_runs_on_the_compiled_executor_and_differs_from_both_masses():
     scene, dt = string_scene(steps=50)
     out = {mass: simulate(scene, Method(mass=mass, dt=dt)) for mass in
            ("hybrid", "lumped", "consistent")}
-    assert out["hybrid"].path == "fast"
+    assert out["hybrid"].path.startswith("fast")
     u = {k: r.particles.u[:, 0] for k, r in out.items()}
     scale = np.abs(u["hybrid"]).max()
     # measured: 9.8e-2 and 1.1e-1 of the largest displacement after 50 steps

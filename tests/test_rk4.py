@@ -18,7 +18,7 @@ def time_errors(scene, cfls, reference_cfl=0.02, **method):
     ``reference_cfl`` on the same grid and particles (the time error)."""
     def u(cfl):
         r = simulate(scene, Method(scheme="rk4", cfl=cfl, **method))
-        assert r.path == "fast", r.path  # the compiled executor's rk4
+        assert r.path.startswith("fast"), r.path  # the compiled executor's rk4
         return r.particles.u
 
     ref = u(reference_cfl)

@@ -126,7 +126,7 @@ def test_both_executors_give_the_same_state(dim, scheme, mass):
                                                           CappedPlastic(10.0, 0.3)),
                                          scene.t_end, effects=scene.effects),
                          Method(backend="numba", **method), save_every=5)
-    assert fast.path == "fast" and ref.path.startswith("reference")
+    assert fast.path.startswith("fast") and ref.path.startswith("reference")
     steps = ref.counts["steps"]
     assert sorted(ref.particles.state) == sorted(fast.particles.state) == sorted(names(dim))
     for name in names(dim):
@@ -230,7 +230,7 @@ def test_bodies_with_different_materials_join_their_state(backend):
     assert np.array_equal(r.particles.state["marker"][body == 0], marker)
     assert r.particles.state["eq_plastic"][body == 0].max() > 0
     if backend == "numba":
-        assert r.path == "fast"
+        assert r.path.startswith("fast")
         ref = simulate(scene, Method(backend="numpy"), save_every=5)
         for name in names(2):
             a, b = ref.history[name], r.history[name]
@@ -248,7 +248,7 @@ def test_two_stateful_materials_sharing_a_field_on_the_compiled_executor():
     scene = Scene(grid, bodies, 30 * prepare(scene, Method()).dt, effects=[Fixed("left")])
     ref = simulate(scene, Method(backend="numpy"), save_every=10)
     fast = simulate(scene, Method(backend="numba"), save_every=10)
-    assert fast.path == "fast"
+    assert fast.path.startswith("fast")
     for name in names(1):
         x, y = ref.history[name], fast.history[name]
         assert np.abs(x - y).max() <= 1e-12 * max(np.abs(x).max(), 1e-300), name

@@ -64,7 +64,7 @@ def test_thread_count_changing_between_steps_changes_no_bit(mass, scheme):
                          capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stderr[-3000:]
     report = json.loads(out.stdout.strip().splitlines()[-1])
-    assert report["path"] == "fast"
+    assert report["path"].startswith("fast")
     assert report["used"] == [1, 2]
     assert report["same"]
 

@@ -68,7 +68,7 @@ def test_a_body_with_tiny_masses_runs_without_the_reference_solve(monkeypatch):
     monkeypatch.setattr(compiled.CompiledExecutor, "_reference_solve",
                         lambda *a, **kw: calls.append(1) or original(*a, **kw))
     r = simulate(scene, Method(scheme="musl"))
-    assert r.path == "fast"
+    assert r.path.startswith("fast")
     assert r.counts["small_dofs_max"] > 0
     assert calls == []
 

@@ -65,7 +65,7 @@ def test_nothing_compiles_inside_the_timed_steps(bench, variant, mass, scheme):
                          capture_output=True, text=True, timeout=1500)
     assert out.returncode == 0, out.stderr[-3000:]
     report = json.loads(out.stdout.strip().splitlines()[-1])
-    assert report["path"] == "fast"
+    assert report["path"].startswith("fast")
     assert report["late"] == []
     # the generated transfers are among the kernels the warm-up compiled
     assert {name.rsplit(".", 1)[1].split("_")[0] for name in report["generated"]} \

@@ -344,16 +344,38 @@ def usl_grid(mass, momentum, force, gravity, constrained, v_values, a_values, ha
             v_new[k, c] = vo + vdt * ak
 
 
+WORK_BLOCKS = 16
+"""Fixed blocks of dofs of :func:`mass_weighted_sum` (not the thread count:
+the sum has the same bits however many threads run it)."""
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def mass_weighted_sum(mass, v, out):
-    """out[c] = sum_k m_k v_k,c (compiled: NumPy's BLAS product would leave
+    """out[c] = sum_k m_k v_k,c, summed over WORK_BLOCKS fixed blocks of
+    dofs and then block by block (compiled: NumPy's BLAS product would leave
     its threads spinning against the kernels' on a small machine)."""
     nk, dim = v.shape
+    partial = np.zeros((WORK_BLOCKS, dim))
+    for b in prange(WORK_BLOCKS):
+        for k in range(b * nk // WORK_BLOCKS, (b + 1) * nk // WORK_BLOCKS):
+            for c in range(dim):
+                partial[b, c] += mass[k] * v[k, c]
     for c in range(dim):
         s = 0.0
-        for k in prange(nk):
-            s += mass[k] * v[k, c]
+        for b in range(WORK_BLOCKS):
+            s += partial[b, c]
         out[c] = s
+
+
+@njit(cache=True, error_model="numpy")
+def work_increment(sums, dt, gravity):
+    """The work of gravity in one step, sum_c dt s_c g_c, from the sums
+    s = sum_k m_k v_k of :func:`mass_weighted_sum` (see
+    :meth:`Kernels.gravity_work`)."""
+    w = 0.0
+    for c in range(sums.shape[0]):
+        w += dt * sums[c] * gravity[c]
+    return w
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
@@ -559,13 +581,14 @@ class Kernels:
             a = self._scratch[name] = np.empty(size + 64, dtype=dtype)
         return a[:size].reshape(shape)
 
-    def mass_times_displacement(self, mass, v_grid, dt):
-        """sum_p m_p du_p of a g2p call with grid velocity v_grid: equal to
-        dt sum_k m_k v_k with m_k the lumped mass of that step's p2g, since
-        du_p = dt sum_k N_kp v_k and m_k = sum_p m_p N_kp."""
-        out = np.empty(self.dim)
-        mass_weighted_sum(mass, v_grid, out)
-        return dt * out
+    def gravity_work(self, mass, v_grid, dt, gravity):
+        """The work of the uniform acceleration ``gravity`` on the particles
+        of a g2p call with grid velocity v_grid, g . sum_p m_p du_p: equal
+        to dt g . sum_k m_k v_k with m_k the lumped mass of that step's p2g,
+        since du_p = dt sum_k N_kp v_k and m_k = sum_p m_p N_kp."""
+        sums = self.scratch("work_sums", self.dim)
+        mass_weighted_sum(mass, v_grid, sums)
+        return work_increment(sums, float(dt), gravity)
 
     def small_mass(self, lumped, tol):
         """Boolean mask of tiny-mass dofs (see grid_system) and its count.

@@ -556,8 +556,8 @@ class CompiledExecutor(CompiledRungeKutta):
             if self.gravity_work and self.recon is not None:  # grid.mass is not the particles'
                 state.external_work += float((p.m @ (new.u - p.u)) @ self.gravity)
             elif self.gravity_work:
-                state.external_work += float(self.kernels.mass_times_displacement(
-                    grid.mass, grid.velocity, dt) @ self.gravity)
+                state.external_work += self.kernels.gravity_work(grid.mass, grid.velocity, dt,
+                                                                 self.gravity)
             if grid.work_forces is not None:
                 state.external_work += float(np.sum(grid.work_forces * (new.u - p.u)))
         if grid.keep_acceleration:

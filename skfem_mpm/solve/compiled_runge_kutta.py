@@ -142,7 +142,7 @@ class CompiledRungeKutta:
         if self.gravity_work and self.recon is not None:  # mass is not the particles'
             power += float((particles.m @ rk.x[slot]) @ self.gravity)
         elif self.gravity_work:
-            power += float(self.kernels.mass_times_displacement(mass, v, 1.0) @ self.gravity)
+            power += self.kernels.gravity_work(mass, v, 1.0, self.gravity)
         if grid.work_forces is not None:
             power += float(np.sum(grid.work_forces * rk.x[slot]))
         return CompiledStageRates(slot, power)

@@ -137,6 +137,7 @@ class Recorder:
             "dofs": int(state.grid.ndofs), "steps": int(state.step),
             "removed": int(state.removed),
             "small_dofs_max": int(getattr(state, "small_dofs_max", 0)),
+            "compiled_loop_steps": int(getattr(state, "loop_steps", 0)),
         }
         fields = dict(
             particles=state.particles, times=np.array(self.times), history=history,

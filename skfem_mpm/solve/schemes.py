@@ -47,9 +47,16 @@ operations:
                            external work
 """
 
+from numba.extending import register_jitable
+
 __all__ = ["step_musl", "step_usl", "step_usf", "step_cd", "step_rk4", "SCHEME_STEPS"]
 
+# ``register_jitable``: a scheme is a plain Python function for the
+# executors of skfem_mpm.solve, and numba compiles the same function
+# against a compiled run's operations (skfem_mpm.solve.compiled_loop).
 
+
+@register_jitable
 def step_musl(ops, state):
     grid = ops.particles_to_grid(state)
     ops.solve_grid(state, grid)
@@ -61,6 +68,7 @@ def step_musl(ops, state):
     return grid
 
 
+@register_jitable
 def _usl(ops, state, velocity_factor, keep_acceleration=False):
     grid = ops.particles_to_grid(state)
     ops.solve_grid(state, grid, end_velocity=velocity_factor)
@@ -71,15 +79,18 @@ def _usl(ops, state, velocity_factor, keep_acceleration=False):
     return grid
 
 
+@register_jitable
 def step_usl(ops, state):
     return _usl(ops, state, 1.0)
 
 
+@register_jitable
 def step_cd(ops, state):
     half_step = state.step == 0
     return _usl(ops, state, 0.5 if half_step else 1.0, keep_acceleration=True)
 
 
+@register_jitable
 def step_usf(ops, state):
     grid = ops.particles_to_grid(state)
     ops.solve_velocity(state, grid)

@@ -8,6 +8,7 @@ from ..errors import InvalidState, SimulationError
 from .method import Method
 from .result import Recorder
 from .compiled import CompiledExecutor, compiled_executor_applies
+from .compiled_loop import StepLoop, loop_applies
 from .reference import ReferenceExecutor
 from .schemes import SCHEME_STEPS
 from .state import prepare
@@ -49,15 +50,27 @@ def _progress_bar(enabled, total):
     return tqdm(total=total, unit="step", disable=not sys.stderr.isatty(), leave=False)
 
 
-def warm_up(state, fast):
-    """Compile the kernels the run will use on a tiny input; returns seconds."""
+def warm_up(state, fast, loop=None):
+    """Compile the kernels the run will use on a tiny input (and the
+    compiled loop); returns seconds."""
     if state.backend != "numba":
         return 0.0
     from .warmup import warm_up_kernels
 
     t0 = time.perf_counter()
     warm_up_kernels(state.grid, fast=fast, materials=state.materials, method=state.method)
+    if loop is not None:
+        loop.compile()
     return time.perf_counter() - t0
+
+
+def _steps_to_next_event(state, save_every, checkpoint):
+    """Steps until the next save, checkpoint or the end of the run."""
+    n = state.n_steps - state.step
+    for every in (save_every, checkpoint[1] if checkpoint is not None else None):
+        if every is not None:
+            n = min(n, every - state.step % every)
+    return n
 
 
 def simulate(scene, method=None, save_every=None, progress=False, callback=None,
@@ -103,30 +116,42 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
     ops = CompiledExecutor(state) if fast else ReferenceExecutor(state, why_not)
     scheme = SCHEME_STEPS[method.scheme]
     path = ops.path
-    jit_time = warm_up(state, fast)
+    loop = None
+    if fast and callback is None and loop_applies(state, ops)[0]:
+        loop = StepLoop(state, ops)
+        path = "fast (compiled loop)"
+    jit_time = warm_up(state, fast, loop)
     bar = _progress_bar(progress, state.n_steps)
     threads = ThreadPolicy(ops.kernels.nthreads) if fast else None
     t0 = time.perf_counter()
+
+    def failed(exc, last_good):
+        state.particles = last_good
+        result = recorder.result(state, time.perf_counter() - t0, jit_time, extra={"path": path})
+        return SimulationError(
+            f"step {state.step + 1} (t = {state.t:.6g} -> {state.t + state.dt:.6g}) "
+            f"failed: {exc}", result=result, step=state.step + 1, time=state.t,
+            particle=exc.particle)
+
     try:
         while not state.done:
             if threads is not None:
                 threads.update()
-            state.next_step_size()
-            last_good = state.particles
-            try:
-                data = scheme(ops, state)
-            except InvalidState as exc:
-                state.particles = last_good
-                result = recorder.result(state, time.perf_counter() - t0, jit_time,
-                                         extra={"path": path})
-                raise SimulationError(
-                    f"step {state.step + 1} (t = {state.t:.6g} -> {state.t + state.dt:.6g}) "
-                    f"failed: {exc}", result=result, step=state.step + 1, time=state.t,
-                    particle=exc.particle) from exc
-            if data is not None and data.system is not None:
-                state.small_dofs_max = max(state.small_dofs_max, data.system.small_dofs)
+            taken = 0
+            if loop is not None:  # compiled steps up to the next save, checkpoint or end
+                taken = loop.run(state, _steps_to_next_event(state, save_every, checkpoint))
+            if taken == 0:  # one step through the executor
+                state.next_step_size()
+                last_good = state.particles
+                try:
+                    data = scheme(ops, state)
+                except InvalidState as exc:
+                    raise failed(exc, last_good) from exc
+                if data is not None and data.system is not None:
+                    state.small_dofs_max = max(state.small_dofs_max, data.system.small_dofs)
+                taken = 1
             if bar is not None:
-                bar.update(1)
+                bar.update(taken)
             if save_every is not None and state.step % save_every == 0:
                 recorder.save(state)
             if checkpoint is not None and state.step % checkpoint[1] == 0:

@@ -76,7 +76,7 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
             k.merged_solve(np.ones(grid.ndofs), zeros, np.zeros(dim),
                            np.zeros((grid.ndofs, dim), dtype=bool), values, 1e-3,
                            np.empty((grid.ndofs, dim)))
-    k.mass_times_displacement(np.ones(grid.ndofs), zeros, 0.0)
+    k.gravity_work(np.ones(grid.ndofs), zeros, 0.0, np.zeros(grid.dim))
     if needs("consistent"):
         _warm_up_consistent(k, p, grid)
     mask = np.zeros((grid.ndofs, dim), dtype=bool)

@@ -1,0 +1,293 @@
+"""The scheme operations on a compiled run: the source of the generated loop
+modules (not imported as a module).
+
+:mod:`skfem_mpm.solve.compiled_loop` writes this text, after a prelude that
+binds the kernel names used below (``P2G``, ``G2P2G``, ``G2P``,
+``REDUCE_FIELDS``, ``REDUCE_COPIES``, ``LUMPED_SOLVE``, ``MERGED_SOLVE``, ``USL_GRID``,
+``MASS_WEIGHTED_SUM``, ``WORK_INCREMENT``, ``SMALL_MASS``, ``monotonic_ns``) to the compiled
+kernels of one grid dimension, degree and threading (serial copies for
+small problems), into one generated file per variant, so that numba caches
+the loop with its kernels.
+
+A run (:class:`Run`, a numba ``structref``) holds the particle arrays (the
+current state and the one the step writes), the grid arrays and the step's
+scalars. Its methods are the operations of :mod:`skfem_mpm.solve.schemes`,
+with the meaning the reference executor's docstrings give them; the scheme
+functions themselves are compiled against them (``schemes.step_musl(run,
+run)``: the run is both the executor and the state) and looped over steps
+by :func:`run_musl` and its siblings, without Python between the steps.
+
+What a compiled run covers (:func:`skfem_mpm.solve.compiled_loop.loop_applies`
+says which runs): lumped mass, one linear elastic body (its stress update
+fused into g2p), gravity, fixed constraints. A step that would need
+anything else stops the loop before it writes the current state
+(``run.stop``): a non-finite value, J <= 0 or a particle outside the grid
+(flags of the g2p kernel), tiny-mass dofs. The Python step then takes that
+step and says what happened.
+
+Phase times (nanoseconds of the monotonic clock) add up in ``run.phase_ns``:
+0 p2g, 1 solve, 2 g2p.
+"""
+import numpy as np
+from numba import njit, types
+from numba.core.extending import overload_method
+from numba.experimental import structref
+
+from skfem_mpm.solve import schemes
+
+
+@structref.register
+class RunType(types.StructRef):
+    def preprocess_fields(self, fields):
+        return tuple((name, types.unliteral(t)) for name, t in fields)
+
+
+FIELDS = (
+    # particles: the current state and the arrays the step writes
+    "x", "v", "u", "m", "V", "stress", "x_new", "v_new", "u_new", "V_new", "stress_new",
+    "acc", "L",
+    # grid: record, lumped mass, momentum, force, per-thread copies
+    "grid", "mass", "momentum", "force", "mass_range", "copies_p2g", "touched_p2g",
+    "copies_g2p2g", "touched_g2p2g", "momentum_new", "a", "v_grid", "v_old", "mask", "gravity",
+    "no_gravity", "no_force", "small", "small_tol", "small_count", "small_max", "nbx", "nby",
+    "degree", "flags",
+    # the material (fused linear elasticity: its Lame parameters; 1D: (E, 0))
+    "lam", "mu",
+    # the step
+    "dt", "t", "step", "n_steps", "t_end", "vfactor", "store_acc", "velocities_done",
+    "gravity_work", "work", "work_sum", "stop", "phase_ns",
+)
+
+
+class Run(structref.StructRefProxy):
+    """A compiled run (see the module); built by
+    :class:`skfem_mpm.solve.compiled_loop.StepLoop`."""
+
+    def __new__(cls, *fields):
+        return structref.StructRefProxy.__new__(cls, *fields)
+
+
+structref.define_proxy(Run, RunType, list(FIELDS))
+
+
+@njit(cache=True)
+def load_state(run, x, v, u, V, stress, t, step, work):
+    """Copy a particle state (its time, step and external work) into the
+    run's current arrays (the run never writes arrays it did not allocate)."""
+    run.x[:] = x
+    run.v[:] = v
+    run.u[:] = u
+    run.V[:] = V
+    run.stress[:] = stress
+    run.t = t
+    run.step = step
+    run.work = work
+
+
+@njit(cache=True)
+def set_work(run, work):
+    run.work = work
+
+
+@njit(cache=True)
+def reset_step_records(run):
+    """Clear what a call of the loop reports: the stop flag, the most
+    tiny-mass dofs of a step and the phase times."""
+    run.stop = 0
+    run.small_max = 0
+    run.phase_ns[:] = 0
+
+
+@njit(cache=True)
+def current(run):
+    """The run's current particle arrays, time, step, external work and
+    the CD particle acceleration."""
+    return run.x, run.v, run.u, run.V, run.stress, run.t, run.step, run.work, run.acc
+
+
+@njit(cache=True)
+def grid_arrays(run):
+    """The last step's lumped mass, acceleration and force (reactions)."""
+    return run.mass, run.a, run.force
+
+
+@njit(cache=True)
+def records(run):
+    """The phase times (ns) and the most tiny-mass dofs of a step."""
+    return run.phase_ns, run.small_max
+
+
+# ------------------------------------------------------------- operations
+@overload_method(RunType, "particles_to_grid")
+def _particles_to_grid(run, state):
+    def impl(run, state):
+        t0 = monotonic_ns()
+        particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
+        P2G(particles, run.grid, run.no_force, False, run.copies_p2g, run.touched_p2g)
+        REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, run.mass, run.momentum, run.force,
+                      run.mass_range)
+        run.small_count = 0  # tiny-mass dofs (see Kernels.small_mass): merged solves
+        if run.small_tol > 0.0:
+            smallest = np.inf
+            largest = 0.0
+            for r in range(run.mass_range.shape[0]):
+                smallest = min(smallest, run.mass_range[r, 0])
+                largest = max(largest, run.mass_range[r, 1])
+            if smallest < run.small_tol * largest:
+                run.small_count = SMALL_MASS(run.mass, run.small_tol, run.small, run.nbx,
+                                             run.nby, run.degree)
+                run.small_max = max(run.small_max, run.small_count)
+        run.velocities_done = False
+        run.phase_ns[0] += monotonic_ns() - t0
+        return run
+    return impl
+
+
+@overload_method(RunType, "lumped_solve")
+def _lumped_solve(run, rhs, gravity, out):
+    def impl(run, rhs, gravity, out):
+        """out = M_lumped^-1 rhs (+ gravity), fixed dofs 0; with tiny-mass
+        dofs the compiled merge (a merge it cannot do stops the loop)."""
+        if run.small_count == 0:
+            LUMPED_SOLVE(run.mass, rhs, gravity, run.mask, rhs, False, out)
+        elif MERGED_SOLVE(run.mass, rhs, gravity, run.mask, rhs, False, run.nbx, run.nby,
+                          run.degree, run.small_tol, out) < 0:
+            run.stop = 1
+    return impl
+
+
+@overload_method(RunType, "solve_grid")
+def _solve_grid(run, state, grid, end_velocity=None):
+    if end_velocity is None or isinstance(end_velocity, (types.NoneType, types.Omitted)):
+        def impl(run, state, grid, end_velocity=None):  # MUSL: a only
+            if run.stop:
+                return run.a
+            t0 = monotonic_ns()
+            run.lumped_solve(run.force, run.gravity, run.a)
+            run.phase_ns[1] += monotonic_ns() - t0
+            return run.a
+        return impl
+
+    def impl(run, state, grid, end_velocity=None):  # USL, CD: a and v = v^n + c dt a
+        if run.stop:
+            return run.a
+        t0 = monotonic_ns()
+        vdt = end_velocity * run.dt
+        if run.small_count == 0:  # one pass
+            USL_GRID(run.mass, run.momentum, run.force, run.gravity, run.mask, run.force,
+                     run.force, False, vdt, run.a, run.v_grid)
+        else:
+            run.lumped_solve(run.force, run.gravity, run.a)
+            run.lumped_solve(run.momentum, run.no_gravity, run.v_old)
+            for k in range(run.a.shape[0]):
+                for c in range(run.a.shape[1]):
+                    run.v_grid[k, c] = run.a[k, c] * vdt + run.v_old[k, c]
+        run.phase_ns[1] += monotonic_ns() - t0
+        return run.a
+    return impl
+
+
+@overload_method(RunType, "update_particle_velocities")
+def _update_particle_velocities(run, state, grid, velocity_factor=1.0,
+                                keep_acceleration=False):
+    def impl(run, state, grid, velocity_factor=1.0, keep_acceleration=False):
+        run.vfactor = velocity_factor  # fused into the next gather kernel
+        run.store_acc = keep_acceleration
+    return impl
+
+
+@overload_method(RunType, "project_velocity")
+def _project_velocity(run, state, grid):
+    def impl(run, state, grid):
+        if run.stop:
+            return
+        t0 = monotonic_ns()
+        particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
+        G2P2G(particles, run.grid, run.a, run.vfactor * run.dt, run.v_new, run.copies_g2p2g,
+              run.touched_g2p2g)
+        REDUCE_COPIES(run.copies_g2p2g, run.touched_g2p2g, run.momentum_new)
+        run.velocities_done = True
+        t1 = monotonic_ns()
+        run.lumped_solve(run.momentum_new, run.no_gravity, run.v_grid)
+        run.phase_ns[2] += t1 - t0
+        run.phase_ns[1] += monotonic_ns() - t1
+    return impl
+
+
+@overload_method(RunType, "move_particles")
+def _move_particles(run, state, grid):
+    def impl(run, state, grid):
+        if run.stop:
+            return
+        t0 = monotonic_ns()
+        particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
+        new = (run.x_new, run.v_new, run.u_new, run.m, run.V_new, run.stress_new)
+        update = (run.dt, run.vfactor, not run.velocities_done, True, run.lam, run.mu,
+                  run.store_acc)  # kernels.records.Update
+        G2P(particles, run.grid, run.a, run.v_grid, update, new, run.L, run.acc, run.flags)
+        for t in range(run.flags.shape[0]):  # non-finite, outside, J <= 0
+            for j in range(3):
+                if run.flags[t, j] >= 0:
+                    run.stop = 2
+        run.phase_ns[2] += monotonic_ns() - t0
+    return impl
+
+
+@overload_method(RunType, "update_stress")
+def _update_stress(run, state, grid, velocity=None):
+    def impl(run, state, grid, velocity=None):
+        pass  # linear elasticity: fused into the g2p kernel
+    return impl
+
+
+@overload_method(RunType, "commit")
+def _commit(run, state, grid):
+    def impl(run, state, grid):
+        if run.stop:
+            return
+        if run.gravity_work:  # see Kernels.gravity_work
+            MASS_WEIGHTED_SUM(run.mass, run.v_grid, run.work_sum)
+            run.work += WORK_INCREMENT(run.work_sum, run.dt, run.gravity)
+        run.x, run.x_new = run.x_new, run.x
+        run.v, run.v_new = run.v_new, run.v
+        run.u, run.u_new = run.u_new, run.u
+        run.V, run.V_new = run.V_new, run.V
+        run.stress, run.stress_new = run.stress_new, run.stress
+        run.step += 1
+        run.t = run.step * run.dt if run.step < run.n_steps else run.t_end
+    return impl
+
+
+# ------------------------------------------------------------------ loops
+# One loop per scheme: each compiles only the scheme it runs.
+@njit(cache=True)
+def run_musl(run, n):
+    """Up to n MUSL steps; returns the number taken (fewer when one stopped)."""
+    for k in range(n):
+        schemes.step_musl(run, run)
+        if run.stop:
+            return k
+    return n
+
+
+@njit(cache=True)
+def run_usl(run, n):
+    """Up to n USL steps; returns the number taken."""
+    for k in range(n):
+        schemes.step_usl(run, run)
+        if run.stop:
+            return k
+    return n
+
+
+@njit(cache=True)
+def run_cd(run, n):
+    """Up to n central-difference steps; returns the number taken."""
+    for k in range(n):
+        schemes.step_cd(run, run)
+        if run.stop:
+            return k
+    return n
+
+
+LOOPS = {"musl": run_musl, "usl": run_usl, "cd": run_cd}

@@ -1,0 +1,114 @@
+"""The compiled step loop (skfem_mpm.solve.compiled_loop) gives the same bits
+as the compiled executor stepping in Python.
+
+The loop runs the schemes of skfem_mpm.solve.schemes compiled against a
+run whose operations call the executor's kernels in the same order on the
+same blocks, so every recorded quantity must agree exactly: positions,
+velocities, stresses, external work, reactions and the time of each save.
+A step the loop cannot finish (a particle leaving the grid, J <= 0, tiny
+masses) is handed to the executor, which must then do what it does
+without the loop.
+"""
+import numpy as np
+import pytest
+
+from skfem_mpm import (Body, Fixed, Gravity, LinearElastic, Method, Particles, Scene,
+                       SimulationError, SplineGrid, simulate)
+from skfem_mpm.solve import compiled_loop
+
+from test_executors import scene_for
+
+KEYS = ("x", "v", "u", "stress")
+
+
+def without_loop(monkeypatch, scene, method, **kwargs):
+    with monkeypatch.context() as m:
+        m.setattr(compiled_loop, "ENABLED", False)
+        return simulate(scene, method, **kwargs)
+
+
+def assert_same(a, b):
+    assert np.array_equal(a.times, b.times)
+    for key in KEYS:
+        assert np.array_equal(a.history[key], b.history[key]), key
+    assert np.array_equal(a.energies["external_work"], b.energies["external_work"])
+
+
+CASES = [dict(scheme=s, mass="lumped", degree=p, dim=d, material="linear", effect=e)
+         for s in ("musl", "usl", "cd") for p in (1, 2, 3) for d in (1, 2)
+         for e in ("none", "gravity")]
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: "-".join(str(v) for v in c.values()))
+def test_loop_gives_the_executors_bits(monkeypatch, case):
+    scene = scene_for(case, steps=23)
+    method = Method(scheme=case["scheme"], mass="lumped")
+    looped = simulate(scene, method, save_every=5)  # chunks of 5 and a last one of 3
+    stepped = without_loop(monkeypatch, scene, method, save_every=5)
+    assert looped.path == "fast (compiled loop)"
+    assert stepped.path == "fast"
+    assert_same(looped, stepped)
+    assert looped.counts["steps"] == looped.counts["compiled_loop_steps"] == 23
+    assert stepped.counts["compiled_loop_steps"] == 0
+
+
+def test_reactions_and_phases(monkeypatch):
+    case = dict(scheme="musl", mass="lumped", degree=2, dim=2, material="linear",
+                effect="gravity")
+    scene = scene_for(case, steps=12)
+    method = Method(scheme="musl")
+    looped = simulate(scene, method, save_every=4)
+    stepped = without_loop(monkeypatch, scene, method, save_every=4)
+    assert_same(looped, stepped)
+    assert looped.counts["compiled_loop_steps"] == 12
+    for a, b in zip(looped.reactions, stepped.reactions):
+        assert a.keys() == b.keys()
+        for key in a:
+            assert np.array_equal(a[key], b[key]), key
+    phases = looped.phase_table()
+    for phase in ("p2g", "solve", "g2p"):
+        assert phases[phase] > 0.0, phase
+    assert sum(phases.values()) <= looped.wall_time
+
+
+def falling_block(on_exit, cells=8):
+    """A block falling freely out of the bottom of the grid."""
+    grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (cells, cells), 2)
+    particles = Particles.seed(grid, 2, 1.0, region=((0.3, 0.7), (0.05, 0.4)))
+    scene = Scene(grid, Body(particles, LinearElastic(50.0, 0.3)), 0.2,
+                  effects=[Gravity((0.0, -9.81))])
+    return scene, Method(scheme="usl", on_exit=on_exit)
+
+
+def test_particles_leaving_are_removed_as_without_the_loop(monkeypatch):
+    scene, method = falling_block("remove")
+    looped = simulate(scene, method, save_every=10)
+    stepped = without_loop(monkeypatch, scene, method, save_every=10)
+    assert looped.counts["removed"] == stepped.counts["removed"] > 0
+    assert 0 < looped.counts["compiled_loop_steps"] < looped.counts["steps"]
+    assert np.array_equal(looped.times, stepped.times)
+    for a, b in zip(looped.history["x"], stepped.history["x"]):
+        assert np.array_equal(a, b)
+
+
+def test_a_failing_step_raises_as_without_the_loop(monkeypatch):
+    scene, method = falling_block("raise")
+    with pytest.raises(SimulationError) as looped:
+        simulate(scene, method, save_every=10)
+    with pytest.raises(SimulationError) as stepped:
+        without_loop(monkeypatch, scene, method, save_every=10)
+    assert str(looped.value) == str(stepped.value)
+    assert looped.value.step == stepped.value.step
+    a, b = looped.value.result, stepped.value.result
+    assert np.array_equal(a.particles.x, b.particles.x)
+    assert np.isfinite(a.particles.x).all()
+
+
+def test_the_scene_is_never_written(monkeypatch):
+    case = dict(scheme="cd", mass="lumped", degree=2, dim=1, material="linear", effect="none")
+    scene = scene_for(case, steps=10)
+    before = {k: getattr(scene.bodies[0].particles, k).copy() for k in ("x", "v", "stress")}
+    r = simulate(scene, Method(scheme="cd"))
+    assert r.path == "fast (compiled loop)"
+    for k, a in before.items():
+        assert np.array_equal(getattr(scene.bodies[0].particles, k), a), k
