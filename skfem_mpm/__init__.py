@@ -4,7 +4,7 @@ __version__ = "0.1.0"
 from .effects import BodyForce, Damping, Fixed, Gravity, Prescribed, Traction
 from .errors import SimulationError
 from .lagrange import LagrangeGrid
-from .materials import LinearElastic, NeoHookean
+from .materials import DruckerPrager, LinearElastic, MohrCoulomb, NeoHookean, VonMises
 from .particles import Particles
 from .quadrature import ParticleBasis, transfer_matrices
 from .scene import Body, Scene
@@ -20,6 +20,9 @@ __all__ = [
     "Fixed",
     "Gravity",
     "LinearElastic",
+    "MohrCoulomb",
+    "DruckerPrager",
+    "VonMises",
     "Method",
     "NeoHookean",
     "Prescribed",
