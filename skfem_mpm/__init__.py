@@ -1,7 +1,7 @@
 """skfem-mpm: the Material Point Method with B-spline bases, as a scikit-fem plugin."""
 __version__ = "0.1.0"
 
-from .effects import BodyForce, Damping, Fixed, Gravity, Prescribed, Traction
+from .effects import BodyForce, Damping, Fixed, Gravity, Prescribed, Traction, Wall
 from .errors import SimulationError
 from .lagrange import LagrangeGrid
 from .materials import DruckerPrager, LinearElastic, MohrCoulomb, NeoHookean, VonMises
@@ -17,6 +17,7 @@ __all__ = [
     "Body",
     "BodyForce",
     "Damping",
+    "Wall",
     "Fixed",
     "Gravity",
     "LinearElastic",

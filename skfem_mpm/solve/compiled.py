@@ -389,7 +389,7 @@ class CompiledExecutor(CompiledRungeKutta):
                     force = force + mass[:, None] * gravity[None, :]
                     gravity = None
                 for modifier in state.force_modifiers:
-                    force = modifier.modify_force(force, v_old)
+                    force = modifier.modify_force(force, v_old, mass, dt)
         factor = end_velocity
         v_grid = None
         with state.timer("solve"):

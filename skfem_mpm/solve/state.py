@@ -225,6 +225,8 @@ class State:
             c, mass, a, force, gravity = self._reaction_source
             self._reactions = c.reactions_at(mass, a, force, gravity)
             self._reaction_source = None
+        for e in self.scene.effects:  # walls: contact forces, not constraints
+            self._reactions.update(e.reactions())
         return self._reactions
 
     @reactions.setter

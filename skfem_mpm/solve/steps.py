@@ -328,7 +328,7 @@ def solve_grid(state, data, need_old_velocity=False, end_velocity=None):
     if state.force_modifiers:
         with state.timer("effects"):
             for modifier in state.force_modifiers:
-                force = modifier.modify_force(force, data.velocity_old)
+                force = modifier.modify_force(force, data.velocity_old, data.lumped, dt)
     with state.timer("solve"):
         system = step_system(state, data)
         c = state.constraints
