@@ -3,6 +3,7 @@ __version__ = "0.1.0"
 
 from .effects import BodyForce, Damping, Fixed, Gravity, Prescribed, Traction, Wall
 from .errors import SimulationError
+from .geostatic import geostatic_stress
 from .lagrange import LagrangeGrid
 from .materials import DruckerPrager, LinearElastic, MohrCoulomb, NeoHookean, VonMises
 from .particles import Particles
@@ -18,6 +19,7 @@ __all__ = [
     "BodyForce",
     "Damping",
     "Wall",
+    "geostatic_stress",
     "Fixed",
     "Gravity",
     "LinearElastic",

@@ -17,7 +17,8 @@ Error measure (relative to ``amplitude`` unless the name says ``_abs``):
 """
 import numpy as np
 
-from .effects import BodyForce, Fixed, Gravity, Traction
+from .effects import BodyForce, Damping, Fixed, Gravity, Traction
+from .geostatic import geostatic_stress
 from .materials import LinearElastic, NeoHookean, lame_parameters
 from .particles import Particles
 from .scene import Body, Scene
@@ -673,6 +674,83 @@ class CollidingSpheres3D(CollidingDisks):
     centres = ((0.25, 0.25, 0.25), (0.75, 0.75, 0.75))
 
 
+# ----------------------------------------------------------------------- G4
+class GeostaticStress(Benchmark):
+    """G4: an elastic soil layer of depth H between sliding side walls on a
+    fixed base, under gravity (shared/BENCHMARKS.md, G4). Exact at rest:
+    sigma_v = -rho g (H - Y), sigma_h = K0 sigma_v, K0 = nu / (1 - nu)
+    (Y the reference height; tension positive).
+
+    Variants: "loading" starts stress-free and brings the layer to rest with
+    Cundall's local damping (``damping`` = alpha, :class:`Damping`);
+    "k0-procedure" starts from :func:`geostatic_stress` (``K0``, default the
+    elastic value) with Gauss-point particles (``layout="gauss"``: with a
+    stress linear in depth the particle quadrature is then exact, so the
+    discrete equations are in equilibrium) and no damping, and must stay at
+    rest. ``transits`` sets t_end in P-wave transit times H / c,
+    c = sqrt((lambda + 2 mu) / rho). ``cells`` counts the cells over the
+    depth; the layer is ``width`` wide. :meth:`checks` reports the ratio
+    sigma_h / sigma_v over the particles at least one cell below the
+    surface (``k0_error_max``: the largest |ratio / K0 - 1|)."""
+
+    name = "geostatic-stress"
+    title = "G4 geostatic stress (K0)"
+    dim = 2
+    has_exact = False
+    defaults = {"H": 10.0, "rho": 2.0, "g": 9.81, "E": 1e4, "nu": 0.3, "width": 2.5,
+                "damping": 0.7, "transits": 20.0, "K0": None, "k0_start": 0.0,
+                "t_end": None}
+    variants = {"loading": {}, "k0-procedure": {"k0_start": 1.0, "damping": 0.0,
+                                                "transits": 10.0}}
+    amplitude = 1.0
+
+    @property
+    def k0(self):
+        return self.nu / (1 - self.nu) if self.K0 is None else float(self.K0)
+
+    @property
+    def c(self):
+        lam, mu = lame_parameters(self.E, self.nu)
+        return float(np.sqrt((lam + 2 * mu) / self.rho))
+
+    def default_t_end(self):
+        return self.transits * self.H / self.c
+
+    def scene(self, cells=20, degree=2, ppc=2, layout=None, fem=False, t_end=None):
+        h = self._h = self.H / cells
+        across = max(1, int(round(self.width / h)))
+        grid = SplineGrid.rectangle((0.0, across * h), (0.0, self.H), (across, cells), degree)
+        if layout is None:
+            layout = "gauss" if self.k0_start else "uniform"
+        particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0)
+        if self.k0_start:
+            particles = geostatic_stress(particles, self.H, self.g, K0=self.k0)
+        effects = [Fixed("left", 0), Fixed("right", 0), Fixed("bottom"),
+                   Gravity((0.0, -self.g))]
+        if self.damping:
+            effects.append(Damping(self.damping))
+        return Scene(grid, Body(particles, LinearElastic(self.E, self.nu)),
+                     self.t_end if t_end is None else t_end, effects=effects)
+
+    def checks(self, result):
+        """K0 ratio, vertical stress and speed figures of a run's last save
+        (of the scene this benchmark built last)."""
+        p = result.particles
+        X, s = p.X, p.stress
+        h = self._h  # the cell size of the last scene built
+        deep = X[:, 1] <= self.H - h * (1 - 1e-9)
+        ratio = s[deep, 0, 0] / s[deep, 1, 1]
+        exact_v = -self.rho * self.g * (self.H - X[:, 1])
+        speed = np.sqrt(np.einsum("ij,ij->i", p.v, p.v)).max()
+        return {"k0": self.k0, "k0_ratio_mean": float(ratio.mean()),
+                "k0_ratio_min": float(ratio.min()), "k0_ratio_max": float(ratio.max()),
+                "k0_error_max": float(np.abs(ratio / self.k0 - 1).max()),
+                "sigma_v_error_max": float(np.abs(s[:, 1, 1] - exact_v).max()
+                                           / (self.rho * self.g * self.H)),
+                "speed_max_over_sqrt_gH": float(speed / np.sqrt(self.g * self.H)),
+                "particles_checked": int(deep.sum())}
+
+
 def _mirror_index(X):
     from scipy.spatial import cKDTree
 
@@ -682,7 +760,8 @@ def _mirror_index(X):
 
 BENCHMARKS = {cls.name: cls for cls in (VibratingString, SoilColumn, TractionBar, NeoHookeanBar,
                                         AxisAligned2D, VibratingPlate2D, CollidingDisks,
-                                        VibratingCube3D, AxisAligned3D, CollidingSpheres3D)}
+                                        VibratingCube3D, AxisAligned3D, CollidingSpheres3D,
+                                        GeostaticStress)}
 
 
 def get_benchmark(name, variant=None, **params):
