@@ -81,3 +81,15 @@ def test_cli_runs_g4(capsys):
                  "--json"]) == 0
     record = json.loads(capsys.readouterr().out)
     assert record["k0_error_max"] <= 1e-10 and record["benchmark"] == "geostatic-stress"
+
+
+def test_cli_runs_the_column_collapse_and_reports_the_runout(capsys):
+    """G2 at a tiny size and a short time (the validation is a benchmark
+    run, not a test): the JSON record has the runout and final height
+    ratio, the column has started to spread and the grains yield."""
+    assert main(["run", "column-collapse", "--cells", "4", "--set", "a=0.5", "--t-end", "0.15",
+                 "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert {"runout", "final_height_ratio", "runout_lube_low_1.2a"} <= set(record)
+    assert 0.0 < record["runout"] < 1.0 and record["final_height_ratio"] < 1.01
+    assert record["plastic_strain_max"] > 1e-3
