@@ -19,6 +19,8 @@ The protocol (what an executor asks of every effect; the defaults of
 
     bind(particles, grid)       -> [particle forces]  (see ParticleForce)
     constraints(grid)           -> [(component, dofs, velocity(t) or None)]
+    velocity_modifiers()        -> [objects with modify_velocity(v, m) -> v]
+                                   (MUSL's re-projected grid velocity)
     force_modifiers()           -> [objects with modify_force(f, v, m, dt) -> f]
                                    (f, v (dofs, dim): grid force and velocity at
                                    the start of the step; m (dofs,) the lumped
@@ -69,6 +71,12 @@ class Effect:
     def side_traction(self):
         """(side, traction(x, t)) for a load on a named side (fem), or None."""
         return None
+
+    def velocity_modifiers(self):
+        """Objects whose ``modify_velocity(velocity, mass)`` corrects a grid
+        velocity that no force produced: MUSL's re-projected velocity, which
+        moves the particles (none by default)."""
+        return []
 
     def reactions(self):
         """{name: total force (dim,)} this effect exerted on the bodies in
@@ -479,7 +487,8 @@ class Wall(Effect):
 
     So a node in contact ends the step with zero normal velocity and its
     tangential velocity reduced by at most mu d_n (the Coulomb bound on the
-    impulse). ``friction=0`` is a smooth (sliding) wall; ``Fixed`` stays the
+    impulse). MUSL's re-projected grid velocity (which moves the particles)
+    gets the same rule with v* = v (``modify_velocity``). ``friction=0`` is a smooth (sliding) wall; ``Fixed`` stays the
     no-slip wall. The contact force is computed with the lumped mass, so
     the no-penetration condition is exact with ``mass="lumped"`` and
     approximate with consistent mass. ``reaction`` holds the total force
@@ -515,6 +524,26 @@ class Wall(Effect):
 
     def reactions(self):
         return {} if self.reaction is None else {repr(self): self.reaction.copy()}
+
+    def velocity_modifiers(self):
+        return [self]
+
+    def modify_velocity(self, velocity, mass):
+        """The same contact rule on a grid velocity that no force produced
+        (MUSL's re-projection): d_n = v . n > 0 is removed and the
+        tangential velocity t reduced by min(mu d_n, |t|)."""
+        d = self._dofs
+        v = velocity[d]
+        n = self._normal
+        d_n = np.where(mass[d] > 0, v @ n, 0.0)
+        contact = d_n > 0
+        tangent = v - d_n[:, None] * n[None, :]
+        speed = np.sqrt(np.einsum("ij,ij->i", tangent, tangent))
+        keep = np.where(contact, 1 - np.minimum(self.friction * d_n, speed)
+                        / np.where(speed > 0, speed, 1.0), 1.0)
+        out = velocity.copy()
+        out[d] = np.where(contact[:, None], tangent * keep[:, None], v)
+        return out
 
     def modify_force(self, force, velocity, mass, dt):
         """The grid force with the wall's contact force added (class docstring)."""

@@ -365,6 +365,8 @@ def project_velocity(state, data):
     if system is not None:  # CG warm start: last step's v plus this step's dt a
         system.shift_guess("velocity", state.dt * data.acceleration)
     data.velocity = grid_velocity(state, data, momentum, state.t + state.dt)
+    for modifier in state.velocity_modifiers:  # walls
+        data.velocity = modifier.modify_velocity(data.velocity, data.lumped)
 
 
 def move_particles(state, data):
