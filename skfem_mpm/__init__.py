@@ -1,10 +1,11 @@
 """skfem-mpm: the Material Point Method with B-spline bases, as a scikit-fem plugin."""
 __version__ = "0.1.0"
 
-from .effects import BodyForce, Damping, Fixed, Gravity, Prescribed, Traction
+from .effects import BodyForce, Damping, Fixed, Gravity, Prescribed, Traction, Wall
 from .errors import SimulationError
+from .geostatic import geostatic_stress
 from .lagrange import LagrangeGrid
-from .materials import LinearElastic, NeoHookean
+from .materials import DruckerPrager, LinearElastic, MohrCoulomb, NeoHookean, VonMises
 from .particles import Particles
 from .quadrature import ParticleBasis, transfer_matrices
 from .scene import Body, Scene
@@ -17,9 +18,14 @@ __all__ = [
     "Body",
     "BodyForce",
     "Damping",
+    "Wall",
+    "geostatic_stress",
     "Fixed",
     "Gravity",
     "LinearElastic",
+    "MohrCoulomb",
+    "DruckerPrager",
+    "VonMises",
     "Method",
     "NeoHookean",
     "Prescribed",

@@ -17,8 +17,9 @@ Error measure (relative to ``amplitude`` unless the name says ``_abs``):
 """
 import numpy as np
 
-from .effects import BodyForce, Fixed, Gravity, Traction
-from .materials import LinearElastic, NeoHookean, lame_parameters
+from .effects import BodyForce, Damping, Fixed, Gravity, Traction, Wall
+from .geostatic import geostatic_stress
+from .materials import LinearElastic, MohrCoulomb, NeoHookean, lame_parameters
 from .particles import Particles
 from .scene import Body, Scene
 from .spline import SplineGrid
@@ -673,6 +674,154 @@ class CollidingSpheres3D(CollidingDisks):
     centres = ((0.25, 0.25, 0.25), (0.75, 0.75, 0.75))
 
 
+# ----------------------------------------------------------------------- G4
+class GeostaticStress(Benchmark):
+    """G4: an elastic soil layer of depth H between sliding side walls on a
+    fixed base, under gravity (shared/BENCHMARKS.md, G4). Exact at rest:
+    sigma_v = -rho g (H - Y), sigma_h = K0 sigma_v, K0 = nu / (1 - nu)
+    (Y the reference height; tension positive).
+
+    Variants: "loading" starts stress-free and brings the layer to rest with
+    Cundall's local damping (``damping`` = alpha, :class:`Damping`);
+    "k0-procedure" starts from :func:`geostatic_stress` (``K0``, default the
+    elastic value) with Gauss-point particles (``layout="gauss"``: with a
+    stress linear in depth the particle quadrature is then exact, so the
+    discrete equations are in equilibrium) and no damping, and must stay at
+    rest. ``transits`` sets t_end in P-wave transit times H / c,
+    c = sqrt((lambda + 2 mu) / rho). ``cells`` counts the cells over the
+    depth; the layer is ``width`` wide. :meth:`checks` reports the ratio
+    sigma_h / sigma_v over the particles at least one cell below the
+    surface (``k0_error_max``: the largest |ratio / K0 - 1|)."""
+
+    name = "geostatic-stress"
+    title = "G4 geostatic stress (K0)"
+    dim = 2
+    has_exact = False
+    defaults = {"H": 10.0, "rho": 2.0, "g": 9.81, "E": 1e4, "nu": 0.3, "width": 2.5,
+                "damping": 0.7, "transits": 20.0, "K0": None, "k0_start": 0.0,
+                "t_end": None}
+    variants = {"loading": {}, "k0-procedure": {"k0_start": 1.0, "damping": 0.0,
+                                                "transits": 10.0}}
+    amplitude = 1.0
+
+    @property
+    def k0(self):
+        return self.nu / (1 - self.nu) if self.K0 is None else float(self.K0)
+
+    @property
+    def c(self):
+        lam, mu = lame_parameters(self.E, self.nu)
+        return float(np.sqrt((lam + 2 * mu) / self.rho))
+
+    def default_t_end(self):
+        return self.transits * self.H / self.c
+
+    def scene(self, cells=20, degree=2, ppc=2, layout=None, fem=False, t_end=None):
+        h = self._h = self.H / cells
+        across = max(1, int(round(self.width / h)))
+        grid = SplineGrid.rectangle((0.0, across * h), (0.0, self.H), (across, cells), degree)
+        if layout is None:
+            layout = "gauss" if self.k0_start else "uniform"
+        particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0)
+        if self.k0_start:
+            particles = geostatic_stress(particles, self.H, self.g, K0=self.k0)
+        effects = [Fixed("left", 0), Fixed("right", 0), Fixed("bottom"),
+                   Gravity((0.0, -self.g))]
+        if self.damping:
+            effects.append(Damping(self.damping))
+        return Scene(grid, Body(particles, LinearElastic(self.E, self.nu)),
+                     self.t_end if t_end is None else t_end, effects=effects)
+
+    def checks(self, result):
+        """K0 ratio, vertical stress and speed figures of a run's last save
+        (of the scene this benchmark built last)."""
+        p = result.particles
+        X, s = p.X, p.stress
+        h = self._h  # the cell size of the last scene built
+        deep = X[:, 1] <= self.H - h * (1 - 1e-9)
+        ratio = s[deep, 0, 0] / s[deep, 1, 1]
+        exact_v = -self.rho * self.g * (self.H - X[:, 1])
+        speed = np.sqrt(np.einsum("ij,ij->i", p.v, p.v)).max()
+        return {"k0": self.k0, "k0_ratio_mean": float(ratio.mean()),
+                "k0_ratio_min": float(ratio.min()), "k0_ratio_max": float(ratio.max()),
+                "k0_error_max": float(np.abs(ratio / self.k0 - 1).max()),
+                "sigma_v_error_max": float(np.abs(s[:, 1, 1] - exact_v).max()
+                                           / (self.rho * self.g * self.H)),
+                "speed_max_over_sqrt_gH": float(speed / np.sqrt(self.g * self.H)),
+                "particles_checked": int(deep.sum())}
+
+
+# ----------------------------------------------------------------------- G2
+class ColumnCollapse(Benchmark):
+    """G2: a column of dry cohesionless grains, width L0 and height
+    H0 = a L0, against a smooth wall on its left (``Wall("left")``, no
+    friction), released at t = 0 onto a rough floor (``Wall("bottom",
+    friction=tan(floor_angle))``) under gravity (shared/BENCHMARKS.md, G2;
+    Lube, Huppert, Sparks, Freundt 2005; Balmforth and Kerswell 2005).
+
+    Material: :class:`MohrCoulomb` with ``phi`` (30 deg), dilation 0,
+    cohesion ``c`` (0), the Hughes-Winget objective update
+    (``large_deformation=True``), E = ``stiffness`` rho g H0 (2e3: rho g H0 / E
+    = 5e-4 < 1e-3 as G2 asks), nu 0.3; started from the geostatic state with Jaky's
+    K0 = 1 - sin(phi) (or ``K0``). ``cells`` counts the cells across L0; the grid is
+    (2 + 2 a) L0 wide and H0 + L0 / cells high. t_end = ``duration``
+    sqrt(H0 / g). :meth:`checks` reports the runout (L_inf - L0) / L0 with
+    L_inf the rightmost particle (plus half a particle spacing), the final
+    height ratio H_inf / H0 (the highest particle), the experiments'
+    scalings 1.2 a and 1.9 a^(2/3), and the kinetic energy left as a
+    fraction of the potential energy released."""
+
+    name = "column-collapse"
+    title = "G2 granular column collapse"
+    dim = 2
+    has_exact = False
+    defaults = {"a": 1.0, "L0": 1.0, "rho": 1.0, "g": 9.81, "phi": 30.0, "c": 0.0,
+                "floor_angle": 30.0, "nu": 0.3, "stiffness": 2e3, "duration": 8.0,
+                "K0": None, "t_end": None}
+    variants = {"default": {}}
+    amplitude = 1.0
+
+    @property
+    def H0(self):
+        return self.a * self.L0
+
+    def default_t_end(self):
+        return self.duration * np.sqrt(self.H0 / self.g)
+
+    def scene(self, cells=16, degree=2, ppc=2, layout="uniform", fem=False, t_end=None):
+        h = self.L0 / cells
+        self._spacing = h / ppc
+        across = int(np.ceil((2 + 2 * self.a) * cells))
+        up = int(np.ceil(self.H0 / h)) + 1
+        grid = SplineGrid.rectangle((0.0, across * h), (0.0, up * h), (across, up), degree)
+        particles = Particles.seed(grid, ppc, self.rho, layout=layout, seed=0,
+                                   region=((0.0, self.L0), (0.0, self.H0)))
+        K0 = 1 - np.sin(np.radians(self.phi)) if self.K0 is None else self.K0
+        particles = geostatic_stress(particles, self.H0, self.g, K0=K0)
+        E = self.stiffness * self.rho * self.g * self.H0
+        material = MohrCoulomb(E, self.nu, self.phi, self.c, large_deformation=True)
+        effects = [Gravity((0.0, -self.g)), Wall("left", friction=0.0),
+                   Wall("bottom", friction=float(np.tan(np.radians(self.floor_angle))))]
+        return Scene(grid, Body(particles, material),
+                     self.t_end if t_end is None else t_end, effects=effects)
+
+    def checks(self, result):
+        """Runout, final height, the experiments' scalings and the kinetic
+        energy left (of the scene this benchmark built last)."""
+        p = result.particles
+        x, X = p.x, p.X
+        front = x[:, 0].max() + 0.5 * self._spacing
+        top = x[:, 1].max() + 0.5 * self._spacing
+        released = float(self.g * p.m @ (X[:, 1] - x[:, 1]))
+        kinetic = 0.5 * float(np.einsum("i,ij,ij->", p.m, p.v, p.v))
+        return {"runout": float((front - self.L0) / self.L0),
+                "final_height_ratio": float(top / self.H0),
+                "runout_lube_low_1.2a": 1.2 * self.a,
+                "runout_lube_high_1.9a^(2/3)": 1.9 * self.a ** (2 / 3),
+                "kinetic_over_released": kinetic / released if released > 0 else float("inf"),
+                "plastic_strain_max": float(p.state["plastic_strain"].max())}
+
+
 def _mirror_index(X):
     from scipy.spatial import cKDTree
 
@@ -682,7 +831,8 @@ def _mirror_index(X):
 
 BENCHMARKS = {cls.name: cls for cls in (VibratingString, SoilColumn, TractionBar, NeoHookeanBar,
                                         AxisAligned2D, VibratingPlate2D, CollidingDisks,
-                                        VibratingCube3D, AxisAligned3D, CollidingSpheres3D)}
+                                        VibratingCube3D, AxisAligned3D, CollidingSpheres3D,
+                                        GeostaticStress, ColumnCollapse)}
 
 
 def get_benchmark(name, variant=None, **params):

@@ -7,6 +7,7 @@
     Fixed(side, component=None)       v_i = 0 on the side's dofs
     Prescribed(side, component, velocity)   v_i = velocity(t) on the side's dofs
     Damping(alpha)                    f_i <- f_i - alpha |f_i| sign(v_i)   (local damping)
+    Wall(side, friction=mu)           rigid wall with Coulomb friction on the side's dofs
 
 A scene that does not declare an effect never evaluates it: there is no
 default gravity, no boundary search without a traction, no damping pass.
@@ -18,7 +19,12 @@ The protocol (what an executor asks of every effect; the defaults of
 
     bind(particles, grid)       -> [particle forces]  (see ParticleForce)
     constraints(grid)           -> [(component, dofs, velocity(t) or None)]
-    force_modifiers()           -> [objects with modify_force(f, v) -> f]
+    velocity_modifiers()        -> [objects with modify_velocity(v, m) -> v]
+                                   (MUSL's re-projected grid velocity)
+    force_modifiers()           -> [objects with modify_force(f, v, m, dt) -> f]
+                                   (f, v (dofs, dim): grid force and velocity at
+                                   the start of the step; m (dofs,) the lumped
+                                   nodal mass; dt the step)
     side_traction()             -> (side, traction(x, t)) or None  (fem loads
                                    the grid side with Gauss quadrature)
 
@@ -39,7 +45,7 @@ from .spline.grid import SIDE_AXES, side_axis
 from .validation import check_finite_array
 
 __all__ = ["Effect", "ParticleForce", "Gravity", "BodyForce", "Traction", "Fixed", "Prescribed",
-           "Damping"]
+           "Damping", "Wall"]
 
 
 class Effect:
@@ -58,13 +64,25 @@ class Effect:
         return []
 
     def force_modifiers(self):
-        """Objects whose ``modify_force(force, velocity)`` changes the grid
-        force before the solve (none by default)."""
+        """Objects whose ``modify_force(force, velocity, mass, dt)`` changes
+        the grid force before the solve (none by default)."""
         return []
 
     def side_traction(self):
         """(side, traction(x, t)) for a load on a named side (fem), or None."""
         return None
+
+    def velocity_modifiers(self):
+        """Objects whose ``modify_velocity(velocity, mass)`` corrects a grid
+        velocity that no force produced: MUSL's re-projected velocity, which
+        moves the particles (none by default)."""
+        return []
+
+    def reactions(self):
+        """{name: total force (dim,)} this effect exerted on the bodies in
+        the last step, for effects that are not constraints (a Wall); the
+        constraints' reactions come from the grid solve. None by default."""
+        return {}
 
 
 class ParticleForce:
@@ -443,5 +461,111 @@ class Damping(Effect):
     def force_modifiers(self):
         return [self]
 
-    def modify_force(self, force, velocity):
+    def modify_force(self, force, velocity, mass=None, dt=None):
         return force - self.alpha * np.abs(force) * np.sign(velocity)
+
+
+class Wall(Effect):
+    """A rigid wall at a grid side with Coulomb friction, applied on the
+    side's dofs (the functions that are non-zero there) as a contact force
+    of the step (Bardenhagen, Brackbill, Sulsky 2000, Comput. Methods Appl.
+    Mech. Eng. 187, 529-541: their frictional contact, with a rigid
+    partner at rest). With n the
+    outward normal of the side, m_i the lumped mass, f_i the grid force
+    (gravity included) and v_i the grid velocity at the start of the step:
+
+        v*_i = v_i + dt f_i / m_i                       the velocity without the wall
+        d_n  = v*_i . n                                 > 0: the node would enter the wall
+        contact (d_n > 0):
+            f_i <- f_i - (m_i d_n / dt) n               no penetration: v_i . n = 0 after
+            t   = v*_i - d_n n  (the tangential velocity)
+            f_i <- f_i - min(mu m_i d_n / dt, m_i |t| / dt) t / |t|
+                                                        friction: at most mu times
+                                                        the normal force; sticks when
+                                                        that stops the sliding
+        separation (d_n <= 0): nothing.
+
+    So a node in contact ends the step with zero normal velocity and its
+    tangential velocity reduced by at most mu d_n (the Coulomb bound on the
+    impulse). MUSL's re-projected grid velocity (which moves the particles)
+    gets the same rule with v* = v (``modify_velocity``). ``friction=0`` is a smooth (sliding) wall; ``Fixed`` stays the
+    no-slip wall. The contact force is computed with the lumped mass, so
+    the no-penetration condition is exact with ``mass="lumped"`` and
+    approximate with consistent mass. ``reaction`` holds the total force
+    the wall exerted on the bodies in the last step (dim,), the same sign
+    convention as the reactions of ``Fixed`` (``Result.reactions``).
+    """
+
+    def __init__(self, side, friction=0.0):
+        if not isinstance(side, str) or side not in SIDE_AXES:
+            raise ValueError(f"side must be one of {', '.join(map(repr, SIDE_AXES))}, "
+                             f"got {side!r}")
+        if isinstance(friction, bool) or not isinstance(friction, (int, float, np.floating)) \
+                or not (np.isfinite(friction) and friction >= 0):
+            raise ValueError(f"friction must be a finite number >= 0 (the Coulomb "
+                             f"coefficient mu), got {friction!r}")
+        self.side = side
+        self.friction = float(friction)
+        self.reaction = None
+        self._dofs = None
+
+    def __repr__(self):
+        return f"Wall({self.side!r}, friction={self.friction:g})"
+
+    def check(self, grid):
+        axis, end = side_axis(self.side, grid.dim)
+        self._dofs = np.asarray(grid.boundary_dofs(self.side))
+        self._normal = np.zeros(grid.dim)
+        self._normal[axis] = 1.0 if end == 1 else -1.0
+        self._ndofs = grid.ndofs
+
+    def force_modifiers(self):
+        return [self]
+
+    def reactions(self):
+        return {} if self.reaction is None else {repr(self): self.reaction.copy()}
+
+    def velocity_modifiers(self):
+        return [self]
+
+    def modify_velocity(self, velocity, mass):
+        """The same contact rule on a grid velocity that no force produced
+        (MUSL's re-projection): d_n = v . n > 0 is removed and the
+        tangential velocity t reduced by min(mu d_n, |t|)."""
+        d = self._dofs
+        v = velocity[d]
+        n = self._normal
+        d_n = np.where(mass[d] > 0, v @ n, 0.0)
+        contact = d_n > 0
+        tangent = v - d_n[:, None] * n[None, :]
+        speed = np.sqrt(np.einsum("ij,ij->i", tangent, tangent))
+        keep = np.where(contact, 1 - np.minimum(self.friction * d_n, speed)
+                        / np.where(speed > 0, speed, 1.0), 1.0)
+        out = velocity.copy()
+        out[d] = np.where(contact[:, None], tangent * keep[:, None], v)
+        return out
+
+    def modify_force(self, force, velocity, mass, dt):
+        """The grid force with the wall's contact force added (class docstring)."""
+        if self._dofs is None or force.shape[0] != self._ndofs:
+            raise ValueError(f"{self!r} was checked against another grid (call "
+                             f"Scene(...) with this grid first)")
+        d = self._dofs
+        m = mass[d]
+        has_mass = m > 0
+        m_safe = np.where(has_mass, m, 1.0)
+        v_free = velocity[d] + dt * force[d] / m_safe[:, None]
+        n = self._normal
+        d_n = np.where(has_mass, v_free @ n, 0.0)
+        contact = d_n > 0
+        tangent = v_free - d_n[:, None] * n[None, :]
+        speed = np.sqrt(np.einsum("ij,ij->i", tangent, tangent))
+        normal_force = np.where(contact, m * d_n / dt, 0.0)
+        friction = np.minimum(self.friction * normal_force, m * speed / dt)
+        direction = tangent / np.where(speed > 0, speed, 1.0)[:, None]
+        contact_force = -normal_force[:, None] * n[None, :] \
+            - np.where(contact, friction, 0.0)[:, None] * direction
+        out = force.copy()
+        out[d] += contact_force
+        self.reaction = contact_force.sum(axis=0)
+        return out

@@ -8,9 +8,13 @@ executor runs it without leaving compiled code; declare per-particle state
 """
 from .base import Material, det, incremental_deformation, lame_parameters
 from .compiled import point_update
+from .drucker_prager import DruckerPrager
 from .linear_elastic import LinearElastic
+from .mohr_coulomb import MohrCoulomb
 from .neo_hookean import NeoHookean
 from .state import StateLayout, state_layout
+from .von_mises import VonMises
 
-__all__ = ["Material", "LinearElastic", "NeoHookean", "lame_parameters", "det",
+__all__ = ["Material", "LinearElastic", "NeoHookean", "MohrCoulomb", "DruckerPrager",
+           "VonMises", "lame_parameters", "det",
            "incremental_deformation", "point_update", "state_layout", "StateLayout"]

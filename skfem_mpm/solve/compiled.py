@@ -389,7 +389,7 @@ class CompiledExecutor(CompiledRungeKutta):
                     force = force + mass[:, None] * gravity[None, :]
                     gravity = None
                 for modifier in state.force_modifiers:
-                    force = modifier.modify_force(force, v_old)
+                    force = modifier.modify_force(force, v_old, mass, dt)
         factor = end_velocity
         v_grid = None
         with state.timer("solve"):
@@ -449,6 +449,8 @@ class CompiledExecutor(CompiledRungeKutta):
             grid.velocity = self._grid_solve(state, grid.system, grid.mass, momentum_new,
                                              c.values(state.t + dt) if c.prescribed else None,
                                              "velocity", self._v_new, grid.small)
+            for modifier in state.velocity_modifiers:  # walls
+                grid.velocity = modifier.modify_velocity(grid.velocity, grid.mass)
 
     def move_particles(self, state, grid):
         p, dt = state.particles, state.dt

@@ -115,7 +115,7 @@ class CompiledRungeKutta:
                         force = force + mass[:, None] * gravity[None, :]
                         gravity = None
                     for modifier in state.force_modifiers:
-                        force = modifier.modify_force(force, v)
+                        force = modifier.modify_force(force, v, mass, state.dt)
             with state.timer("solve"):
                 a = self._grid_solve(state, a_system, mass, force, a_values, "acceleration",
                                      self._a, a_small, gravity)

@@ -359,7 +359,7 @@ def fem(scene, method=None, save_every=None, progress=False):
             force = force + f_ext
         if model.force_modifiers:
             for modifier in model.force_modifiers:
-                force = modifier.modify_force(force, state.v)
+                force = modifier.modify_force(force, state.v, model.lumped, dt)
         with timer("solve"):
             a_values = (values(t + dt) - values(t)) / dt if constraints.prescribed \
                 else np.zeros_like(force)

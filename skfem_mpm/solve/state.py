@@ -50,6 +50,7 @@ class State:
             raise ValueError("reconstruction='tls' is written for 1D and 2D grids; on a 3D "
                              "grid use 'spline', 'mls' or 'none'")
         self.force_modifiers = [m for e in scene.effects for m in e.force_modifiers()]
+        self.velocity_modifiers = [m for e in scene.effects for m in e.velocity_modifiers()]
         self.constraints = Constraints(self.grid, scene.effects)
         self.forces = []
         self.bodies = []
@@ -225,6 +226,8 @@ class State:
             c, mass, a, force, gravity = self._reaction_source
             self._reactions = c.reactions_at(mass, a, force, gravity)
             self._reaction_source = None
+        for e in self.scene.effects:  # walls: contact forces, not constraints
+            self._reactions.update(e.reactions())
         return self._reactions
 
     @reactions.setter

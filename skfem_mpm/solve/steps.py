@@ -328,7 +328,7 @@ def solve_grid(state, data, need_old_velocity=False, end_velocity=None):
     if state.force_modifiers:
         with state.timer("effects"):
             for modifier in state.force_modifiers:
-                force = modifier.modify_force(force, data.velocity_old)
+                force = modifier.modify_force(force, data.velocity_old, data.lumped, dt)
     with state.timer("solve"):
         system = step_system(state, data)
         c = state.constraints
@@ -365,6 +365,8 @@ def project_velocity(state, data):
     if system is not None:  # CG warm start: last step's v plus this step's dt a
         system.shift_guess("velocity", state.dt * data.acceleration)
     data.velocity = grid_velocity(state, data, momentum, state.t + state.dt)
+    for modifier in state.velocity_modifiers:  # walls
+        data.velocity = modifier.modify_velocity(data.velocity, data.lumped)
 
 
 def move_particles(state, data):
