@@ -114,9 +114,10 @@ def plastic(dim):
     return bar_scene(CappedPlasticCompiled(10.0, 0.3), dim, steps=12)
 
 
-@pytest.mark.parametrize("which, options", HANDED,
-                         ids=[f"{w}-{'-'.join(map(str, o.values())) or 'musl'}"
-                              for w, o in HANDED])
+@pytest.mark.parametrize("which, options", [
+    pytest.param(w, o, id=f"{w}-{'-'.join(map(str, o.values())) or 'musl'}",
+                 marks=() if (w, o) in (("s1", {}), ("plastic-1d", {})) else pytest.mark.slow)
+    for w, o in HANDED])
 def test_particles_handed_to_a_callback_are_never_written_again(which, options):
     scene = {"s1": s1_scene, "2d": block_2d,
              "2d-neo": lambda: block_2d(NeoHookean(100.0, 0.3)),
