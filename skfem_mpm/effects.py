@@ -42,7 +42,7 @@ import numpy as np
 
 from .errors import InvalidState
 from .spline.grid import SIDE_AXES, side_axis
-from .validation import check_finite_array
+from .validation import check_finite_array, check_positive
 
 __all__ = ["Effect", "ParticleForce", "Gravity", "BodyForce", "Traction", "Fixed", "Prescribed",
            "Damping", "Wall"]
@@ -226,8 +226,8 @@ class Traction(Effect):
         self.where = where
         self.tau = tau
         self._takes_x = _positional_count(tau) >= 2
-        if depth is not None and not (np.isfinite(depth) and depth > 0):
-            raise ValueError(f"depth must be finite and > 0, got {depth!r}")
+        if depth is not None:
+            depth = check_positive("depth", depth)
         self.depth = depth
         self.body = body
 
@@ -412,6 +412,18 @@ class Fixed(Effect):
         return [(c, dofs, None) for c in _check_component(self.component, grid.dim)]
 
 
+
+def prescribed_value(velocity, t):
+    """``velocity(t)`` of a Prescribed effect as a float; ValueError unless
+    it is one finite real number."""
+    value = velocity(t)
+    a = np.asarray(value)
+    if a.size != 1 or a.dtype.kind not in "iuf" or not np.isfinite(a).all():
+        raise ValueError(f"Prescribed velocity(t) must return one finite real number (the "
+                         f"velocity of its component), got {value!r} at t = {t!r}")
+    return float(a.reshape(()))
+
+
 class Prescribed(Effect):
     """A prescribed velocity ``velocity(t)`` of one component on a grid side
     (moving walls, loading plates)."""
@@ -420,7 +432,11 @@ class Prescribed(Effect):
         if component is not None:
             _check_component(component, 3)
         if not callable(velocity):
-            value = float(velocity)
+            value = _numbers("velocity", velocity, "a number or a callable velocity(t)")
+            if value.shape != (1,):
+                raise ValueError(f"velocity must be one number (of the prescribed component) "
+                                 f"or a callable velocity(t), got {velocity!r}")
+            value = float(value[0])
             if not np.isfinite(value):
                 raise ValueError(f"velocity must be finite or a callable velocity(t), got {value}")
             velocity = (lambda t, _v=value: _v)
@@ -436,6 +452,7 @@ class Prescribed(Effect):
         if self.component is None:
             raise ValueError(f"Prescribed needs a component (0 to {grid.dim - 1}), got None")
         _check_component(self.component, grid.dim)
+        prescribed_value(self.velocity, 0.0)  # its kind of value, before the first step
 
     def constraints(self, grid):
         return [(int(self.component), grid.boundary_dofs(self.side), self.velocity)]

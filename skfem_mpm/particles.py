@@ -67,6 +67,12 @@ def _check_state(state, n):
     return out
 
 
+def _column(values, n, dim):
+    """A 1D per-particle vector given as (n,) made (n, 1); anything else as given."""
+    a = np.asarray(values)
+    return a.reshape(n, 1) if dim == 1 and a.shape == (n,) else a
+
+
 def _positive_array(name, values, n):
     a = check_finite_array(name, values, shape=(n,))
     if np.any(a <= 0):
@@ -89,7 +95,7 @@ class Particles:
 
     def __init__(self, x, m, V, v=None, X=None, stress=None, F=None, body=None, V0=None,
                  u=None, state=None):
-        x = np.asarray(x, dtype=np.float64)
+        x = check_finite_array("x", x)
         if x.ndim == 1:
             x = x[:, None]
         if x.ndim != 2 or x.shape[1] not in (1, 2, 3):
@@ -97,13 +103,11 @@ class Particles:
         n, dim = x.shape
         self.x = check_finite_array("x", x).copy()
         self.X = (self.x.copy() if X is None
-                  else check_finite_array("X", np.reshape(X, (n, dim)) if np.ndim(X) == 1 and dim == 1 else X,
-                                          shape=(n, dim)).copy())
+                  else check_finite_array("X", _column(X, n, dim), shape=(n, dim)).copy())
         self.u = (self.x - self.X if u is None
                   else check_finite_array("u", u, shape=(n, dim)).copy())
         self.v = (np.zeros((n, dim)) if v is None
-                  else check_finite_array("v", np.reshape(v, (n, dim)) if np.ndim(v) == 1 and dim == 1 else v,
-                                          shape=(n, dim)).copy())
+                  else check_finite_array("v", _column(v, n, dim), shape=(n, dim)).copy())
         self.m = _positive_array("m", m, n).copy()
         self.V = _positive_array("V", V, n).copy()
         self.V0 = self.V.copy() if V0 is None else _positive_array("V0", V0, n).copy()
@@ -281,6 +285,10 @@ class Particles:
             mask = region
         else:
             box = _check_box(region, grid)
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)
+                                 or seed < 0):
+            raise ValueError(f"seed must be None or an integer >= 0 (the random layout's "
+                             f"generator seed), got {seed!r}")
         rng = np.random.default_rng(seed)
         x, V = _seed_box(breaks, box, ppc, layout, rng)
         info = {"layout": layout, "ppc": ppc, "region": "box" if mask is None else "callable"}
@@ -328,7 +336,11 @@ class Particles:
     def _with_fields(cls, x, V, density, velocity, stress):
         n, dim = x.shape
         if callable(density):
-            rho = np.asarray(density(x.copy()), dtype=np.float64).reshape(n)
+            rho = check_finite_array("density(X)", density(x.copy()))
+            if rho.shape not in ((n,), (n, 1)):
+                raise ValueError(f"density(X) must return one value per particle, shape "
+                                 f"({n},), got {rho.shape}")
+            rho = rho.reshape(n)
         else:
             rho = np.full(n, check_positive("density", density))
         rho = _positive_array("density", rho, n)
@@ -466,13 +478,13 @@ def _field(name, value, x, shape):
     if value is None:
         return None
     if callable(value):
-        out = np.asarray(value(x.copy()), dtype=np.float64)
+        out = check_finite_array(f"{name}(X)", value(x.copy()))
         if shape[1] == 1 and out.shape == (shape[0],):
             out = out[:, None]
         if len(shape) == 3 and shape[1] == 1 and out.shape == (shape[0],):
             out = out[:, None, None]
     else:
-        out = np.asarray(value, dtype=np.float64)
+        out = check_finite_array(name, value)
     try:
         out = np.broadcast_to(out, shape).copy()
     except ValueError:

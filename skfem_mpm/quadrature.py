@@ -30,6 +30,8 @@ import scipy.sparse as sp
 from skfem import CellBasis
 from skfem.assembly.basis.abstract_basis import AbstractBasis
 
+from .particles import Particles
+
 __all__ = ["ParticleBasis", "transfer_matrices"]
 
 
@@ -82,6 +84,10 @@ class ParticleBasis(CellBasis):
     """
 
     def __init__(self, grid, particles, vector=False):
+        if not isinstance(particles, Particles):
+            raise TypeError(f"particles must be a Particles object (positions, volumes: "
+                            f"Particles(x, m, V) or Particles.seed), got "
+                            f"{type(particles).__name__}")
         x = particles.x
         self.grid = grid
         self.particles = particles

@@ -10,6 +10,16 @@ from .validation import check_positive
 __all__ = ["Body", "Scene"]
 
 
+def _as_list(items):
+    """A list of the items of an iterable (not a string); None otherwise."""
+    if isinstance(items, (str, bytes)):
+        return None
+    try:
+        return list(items)
+    except TypeError:
+        return None
+
+
 class Body:
     """Particles of one material.
 
@@ -53,11 +63,15 @@ class Scene:
     """
 
     def __init__(self, grid, bodies, t_end, effects=()):
+        if not all(hasattr(grid, k) for k in ("dim", "locate", "mesh", "ndofs")):
+            raise TypeError(f"grid must be a SplineGrid or a LagrangeGrid, got {grid!r}")
         if isinstance(bodies, Body):
             bodies = [bodies]
-        bodies = list(bodies)
+        given = bodies
+        bodies = _as_list(bodies)
         if not bodies or not all(isinstance(b, Body) for b in bodies):
-            raise ValueError("bodies must be a Body or a non-empty list of Body objects")
+            raise ValueError(f"bodies must be a Body or a non-empty list of Body objects, "
+                             f"got {given!r}")
         for i, b in enumerate(bodies):
             if b.particles.dim != grid.dim:
                 raise ValueError(
@@ -77,6 +91,14 @@ class Scene:
         self.grid = grid
         self.bodies = bodies
         self.t_end = check_positive("t_end", t_end)
+        if isinstance(effects, Effect):
+            raise ValueError(f"effects must be a list of Effect objects, got the single "
+                             f"effect {effects!r}: write effects=[{effects!r}]")
+        given = effects
+        effects = _as_list(effects)
+        if effects is None:
+            raise ValueError(f"effects must be a list of Effect objects (Gravity, Fixed, ...), "
+                             f"got {given!r}")
         effects = tuple(effects)
         for e in effects:
             if not isinstance(e, Effect):

@@ -13,6 +13,11 @@ __all__ = [
 ]
 
 
+def _short(value, limit=80):
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def check_positive(name, value, allow_zero=False):
     """A finite real number > 0 (or >= 0 with ``allow_zero``)."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
@@ -44,7 +49,14 @@ def check_choice(name, value, choices):
 def check_finite_array(name, array, shape=None):
     """A float64 array with no NaN or Inf (and the given shape, if any;
     ``None`` in ``shape`` matches any length)."""
-    a = np.asarray(array, dtype=np.float64)
+    if np.iscomplexobj(array):
+        raise ValueError(f"{name} must be real numbers, got complex values "
+                         f"(dtype {np.asarray(array).dtype})")
+    try:
+        a = np.asarray(array, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be an array of real numbers, got "
+                         f"{_short(array)}") from None
     if shape is not None:
         ok = a.ndim == len(shape) and all(
             want is None or want == got for want, got in zip(shape, a.shape)
@@ -65,7 +77,7 @@ def check_finite_array(name, array, shape=None):
 
 def as_points(name, x, dim):
     """Points as an (n, dim) float array; (n,) is accepted when dim == 1."""
-    a = np.asarray(x, dtype=np.float64)
+    a = check_finite_array(name, x)
     if a.ndim == 1 and dim == 1:
         a = a[:, None]
     if a.ndim != 2 or a.shape[1] != dim:

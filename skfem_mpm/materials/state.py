@@ -206,6 +206,16 @@ class PackedState:
             self._buffers = [b for b in self._buffers if b is state_in] + free
         return state_in, free[0]
 
+    def release(self, state):
+        """The arrays of ``state`` were handed out (to a callback or a
+        Result): forget the buffers they view, so that no later step writes
+        into them."""
+        arrays = list(state.values())
+        self._buffers = [b for b in self._buffers
+                         if not any(np.shares_memory(a, b) for a in arrays)]
+        if self._last is not None and any(np.shares_memory(a, self._last[0]) for a in arrays):
+            self._last = None
+
     def written(self, state_out):
         """The views of ``state_out`` that become ``particles.state``."""
         views = self.layout.views(state_out)

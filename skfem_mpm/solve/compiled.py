@@ -178,6 +178,9 @@ class CompiledExecutor(CompiledRungeKutta):
         for k in self.WRITTEN:
             self._owned.discard(id(getattr(particles, k)))
         self._owned_F = [F for F in self._owned_F if F is not particles.F]
+        for packed in self._state.values():  # the material state's double buffers
+            if packed is not None:
+                packed.release(particles.state)
         if self._spare is particles:
             self._spare = None
 

@@ -43,6 +43,7 @@ from ..kernels import resolve_backend
 from ..materials.state import split_update, state_layout
 from ..particles import Particles
 from ..quadrature import transfer_matrices
+from ..scene import Scene
 from ..spline.grid import side_axis
 from .grid_system import Constraints, GridSystem
 from .method import Method
@@ -304,6 +305,9 @@ def fem(scene, method=None, save_every=None, progress=False):
     """Solve ``scene`` with Gauss-quadrature FEM on its grid (see the module
     docstring); returns the same :class:`Result` type as ``simulate``.
     The reconstruction option of ``method`` does not apply and is ignored."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"fem needs a Scene (grid, bodies, t_end, effects), got "
+                        f"{type(scene).__name__} {scene!r}"[:200])
     method = Method() if method is None else method
     if not isinstance(method, Method):
         raise ValueError(f"method must be a Method, got {method!r}")

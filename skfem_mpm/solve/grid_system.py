@@ -69,6 +69,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..errors import InvalidState
+from ..effects import prescribed_value
 
 __all__ = ["Constraints", "GridSystem", "dof_adjacency"]
 
@@ -83,6 +84,7 @@ def dof_adjacency(grid):
                       shape=(grid.ndofs, grid.ndofs))
     A.data[:] = 1
     return A
+
 
 
 class Constraints:
@@ -118,7 +120,7 @@ class Constraints:
         """Grid velocities (dofs, dim) on constrained dofs at time t (0 elsewhere)."""
         out = np.zeros((self.ndofs, self.dim))
         for c, dofs, fn in self.prescribed:
-            out[dofs, c] = float(fn(t))
+            out[dofs, c] = prescribed_value(fn, t)
         return out
 
     def reactions_at(self, mass, a, force, gravity=None):

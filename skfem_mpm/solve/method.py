@@ -1,8 +1,10 @@
 """``Method``: how a scene is solved (scheme, mass, reconstruction, dt)."""
+import inspect
 import numbers
 
 import numpy as np
 
+from ..reconstruct import RECONSTRUCTORS
 from ..validation import check_choice, check_positive
 
 __all__ = ["Method", "SCHEMES", "MASSES", "HYBRID_SCHEMES", "RECONSTRUCTIONS"]
@@ -13,6 +15,29 @@ HYBRID_SCHEMES = ("musl",)  # the schemes that re-project the velocity
 RECONSTRUCTIONS = ("none", "spline", "tls", "mls")
 ON_EXIT = ("raise", "remove")
 MASS_SOLVERS = ("auto", "direct", "cg")
+
+
+def _check_options(reconstruction, options):
+    """The reconstruction options as a dict of keyword arguments the
+    reconstruction function takes (for the named ones: its keyword
+    parameters after ``(grid, particles, values, rule)``)."""
+    if options is None:
+        return {}
+    if not isinstance(options, dict) or not all(isinstance(k, str) for k in options):
+        raise ValueError(f"reconstruction_options must be a dict of keyword arguments "
+                         f"(e.g. {{'penalty': 1e-6}}), got {options!r}")
+    if isinstance(reconstruction, str):
+        if reconstruction == "none":
+            if options:
+                raise ValueError(f"reconstruction_options {options!r} given without a "
+                                 f"reconstruction (reconstruction='none')")
+            return {}
+        params = list(inspect.signature(RECONSTRUCTORS[reconstruction]).parameters)[4:]
+        unknown = [k for k in options if k not in params]
+        if unknown:
+            raise ValueError(f"reconstruction_options: {unknown[0]!r} is not an option of "
+                             f"reconstruction={reconstruction!r}; valid: {params}")
+    return dict(options)
 
 
 class Method:
@@ -112,7 +137,7 @@ class Method:
         if backend is not None:
             check_choice("backend", backend, ("numba", "numpy"))
         self.backend = backend
-        self.reconstruction_options = dict(reconstruction_options or {})
+        self.reconstruction_options = _check_options(reconstruction, reconstruction_options)
 
     @property
     def needs_consistent_mass(self):

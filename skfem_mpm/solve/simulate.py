@@ -4,7 +4,11 @@ import os
 import sys
 import time
 
+import numpy as np
+from numpy.linalg import LinAlgError
+
 from ..errors import InvalidState, SimulationError
+from ..scene import Scene
 from .method import Method
 from .result import Recorder
 from .compiled import CompiledExecutor, compiled_executor_applies
@@ -35,11 +39,26 @@ def _check_checkpoint(checkpoint):
             from None
     if not isinstance(path, (str, os.PathLike)):
         raise ValueError(f"checkpoint path must be a str or os.PathLike, got {path!r}")
+    if os.path.isdir(os.fspath(path)):
+        raise ValueError(f"checkpoint path {os.fspath(path)!r} is a folder; give a file "
+                         f"name such as {os.path.join(os.fspath(path), 'run.npz')!r}")
     folder = os.path.dirname(os.path.abspath(os.fspath(path)))
     if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
         raise ValueError(f"checkpoint path {os.fspath(path)!r}: folder {folder!r} does not "
                          f"exist or is not writable (it is checked before the first step)")
     return path, _check_every("checkpoint every_steps", every)
+
+
+def non_finite(particles):
+    """None, or a description of the first particle array holding NaN or
+    Inf (checked after a callback, which may edit the state in place)."""
+    arrays = {k: getattr(particles, k) for k in ("x", "v", "u", "stress", "m", "V", "F")}
+    arrays.update({f"state[{k!r}]": a for k, a in particles.state.items()})
+    for name, a in arrays.items():
+        if a is not None and a.size and not np.isfinite(a).all():
+            row = int(np.flatnonzero(~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1))[0])
+            return f"a non-finite value in particles.{name} (particle {row})"
+    return None
 
 
 def _progress_bar(enabled, total):
@@ -86,7 +105,12 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
         Show a progress bar (tqdm; hidden when stderr is not a terminal).
     callback
         ``callback(step, state)`` after every step; returning ``False``
-        stops the run there (the Result ends at that step).
+        stops the run there (the Result ends at that step). The particles
+        it receives are never written by later steps (keep them if you
+        like); it may edit ``state.particles`` in place, but an edit that
+        leaves NaN or Inf stops the run with ``SimulationError`` whose
+        result holds the state as the callback received it (a copy is
+        taken before each call, so a callback costs O(particles) a step).
     checkpoint
         ``(path, every_steps)``: write a restart file every so many steps.
     restart
@@ -94,9 +118,15 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
 
     Returns a :class:`~skfem_mpm.solve.result.Result`. Raises
     :class:`~skfem_mpm.SimulationError` when the run cannot continue (NaN or
-    Inf, J <= 0, a particle leaving the grid with ``on_exit='raise'``); its
-    ``result`` holds the last good state. The scene is never modified.
+    Inf, J <= 0, a particle leaving the grid with ``on_exit='raise'``, a
+    singular or unconverged mass solve, any other arithmetic failure of a
+    step, a checkpoint that cannot be written); its ``result`` holds the
+    last good state and its time (``result.final_time``). The scene is
+    never modified.
     """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"simulate needs a Scene (grid, bodies, t_end, effects), got "
+                        f"{type(scene).__name__} {scene!r}"[:200])
     method = Method() if method is None else method
     if not isinstance(method, Method):
         raise ValueError(f"method must be a Method, got {method!r}")
@@ -104,11 +134,15 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
     checkpoint = _check_checkpoint(checkpoint)
     if callback is not None and not callable(callback):
         raise ValueError(f"callback must be callable, got {callback!r}")
+    if restart is not None and not isinstance(restart, (str, os.PathLike)):
+        raise TypeError(f"restart must be the path of a checkpoint (str or os.PathLike), "
+                        f"got {restart!r}")
     state = prepare(scene, method)
     if restart is not None:
-        from ..io import read_checkpoint, restore_state
+        from ..io import checkpoint_size_bound, read_checkpoint, restore_state
 
-        recorder = restore_state(state, read_checkpoint(restart))
+        recorder = restore_state(state, read_checkpoint(
+            restart, max_bytes=checkpoint_size_bound(state, save_every)))
     else:
         recorder = Recorder()
         recorder.save(state, share=True)
@@ -131,7 +165,7 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
         return SimulationError(
             f"step {state.step + 1} (t = {state.t:.6g} -> {state.t + state.dt:.6g}) "
             f"failed: {exc}", result=result, step=state.step + 1, time=state.t,
-            particle=exc.particle)
+            particle=getattr(exc, "particle", None))
 
     try:
         while not state.done:
@@ -145,7 +179,10 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
                 last_good = state.particles
                 try:
                     data = scheme(ops, state)
-                except InvalidState as exc:
+                except (InvalidState, ArithmeticError, LinAlgError) as exc:
+                    # InvalidState (NaN, J <= 0, a particle leaving, a singular or
+                    # unconverged mass solve) and any other arithmetic failure of
+                    # the step: the run stops with its last good state
                     raise failed(exc, last_good) from exc
                 if data is not None and data.system is not None:
                     state.small_dofs_max = max(state.small_dofs_max, data.system.small_dofs)
@@ -167,7 +204,18 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
                         result=result, step=state.step, time=state.t) from exc
             if callback is not None:
                 ops.hand_out(state.particles)
-                if callback(state.step, state) is False:
+                before = state.particles.copy()  # what the callback may edit in place
+                go_on = callback(state.step, state)
+                bad = non_finite(state.particles)
+                if bad is not None:
+                    state.particles = before
+                    result = recorder.result(state, time.perf_counter() - t0, jit_time,
+                                             extra={"path": path})
+                    raise SimulationError(
+                        f"the callback left {bad} after step {state.step} (t = {state.t:.6g}); "
+                        f"the result holds the state the callback was given",
+                        result=result, step=state.step, time=state.t)
+                if go_on is False:
                     break
     finally:
         if threads is not None:

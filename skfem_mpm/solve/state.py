@@ -158,6 +158,7 @@ class State:
         t_end = self.scene.t_end
         dt = stable_time_step(m, self.dt_crit,
                               f" (degree {self.grid.degree}, {m.mass} mass)")
+        check_step_count(dt, t_end, self.wave_speed_now, self.dt_crit)
         if self.adaptive:
             self.dt = min(dt, t_end)
             self.n_steps = None
@@ -262,6 +263,26 @@ class State:
                 strain += material.strain_energy(sub.subset(slice(start, start + block))
                                                  if sub.n > block else sub)
         return kinetic, strain
+
+
+MAX_STEPS = 10 ** 9
+"""The most steps a run may take: more is a mistake of units or values (a
+volume of 1e300 or E = 1e300 would ask for ~1e148 steps)."""
+
+
+def check_step_count(dt, t_end, wave_speed, dt_crit):
+    """ValueError when the time step is not a finite positive number or the
+    run would take more than MAX_STEPS steps, naming the wave speed and
+    dt_crit it came from."""
+    why = (f"(P-wave speed c = {wave_speed:.6g} from the materials' E, nu and the "
+           f"particles' density m / V; dt_crit = {dt_crit:.6g})")
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"the time step dt = {dt!r} is not a finite positive number {why}: "
+                         f"check the particle masses, volumes and the material's moduli")
+    if t_end / dt > MAX_STEPS:
+        raise ValueError(f"t_end = {t_end:.6g} with dt = {dt:.6g} would take "
+                         f"{t_end / dt:.3g} steps, more than {MAX_STEPS:.0e} {why}: check "
+                         f"the units of t_end, the moduli and the density")
 
 
 def prepare(scene, method):

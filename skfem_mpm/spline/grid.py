@@ -8,6 +8,8 @@ N^x_a N^y_b N^z_c, n_bx = n_x + p), and fast point location on its
 breakpoints. Vector fields use the interleaved numbering
 dim * s + c of scikit-fem's ``ElementVector``.
 """
+import numbers
+
 import numpy as np
 from skfem import CellBasis, FacetBasis, MeshHex1, MeshLine1, MeshQuad1
 from skfem.element import ElementVector
@@ -56,6 +58,26 @@ def _is_per_axis(breakpoints):
     except TypeError:
         return False
 
+
+
+def _real(name, value):
+    """A real number (not a bool or a string), as a float."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Real, np.floating,
+                                                                       np.integer)):
+        raise ValueError(f"{name} must be a real number, got {value!r}")
+    return float(value)
+
+
+def _cell_indices(cells, ncells):
+    """Flat cell indices: integers in [0, ncells)."""
+    a = np.asarray(cells)
+    if a.ndim != 1 or (a.size and a.dtype.kind not in "iu"):
+        raise ValueError(f"cells must be a 1-D array of integer cell indices, got "
+                         f"{a.dtype} of shape {a.shape}")
+    if a.size and (a.min() < 0 or a.max() >= ncells):
+        bad = a[(a < 0) | (a >= ncells)][0]
+        raise ValueError(f"cells must lie in [0, {ncells}) (the grid's cells), got {bad}")
+    return a.astype(np.int64)
 
 class SplineGrid:
     """B-spline space of degree ``degree`` on a line, a rectangle or a box.
@@ -115,7 +137,7 @@ class SplineGrid:
     def line(cls, a, b, cells, degree):
         """Uniform grid of ``cells`` cells on [a, b]."""
         cells = check_positive_int("cells", cells)
-        a, b = float(a), float(b)
+        a, b = _real("a", a), _real("b", b)
         if not (np.isfinite(a) and np.isfinite(b) and b > a):
             raise ValueError(f"the interval must satisfy a < b (finite), got a={a}, b={b}")
         return cls(np.linspace(a, b, cells + 1), degree)
@@ -148,7 +170,9 @@ class SplineGrid:
         axes = []
         for name, lim, n in zip(("xlim", "ylim", "zlim"), lims, cells):
             n = check_positive_int("cells", n)
-            lo, hi = float(lim[0]), float(lim[1])
+            if isinstance(lim, (str, bytes)) or not hasattr(lim, "__len__") or len(lim) != 2:
+                raise ValueError(f"{name} must be a pair (lo, hi) of numbers, got {lim!r}")
+            lo, hi = _real(f"{name}[0]", lim[0]), _real(f"{name}[1]", lim[1])
             if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
                 raise ValueError(f"{name} must satisfy lo < hi (finite), got {tuple(lim)}")
             axes.append(np.linspace(lo, hi, n + 1))
@@ -469,10 +493,12 @@ class SplineGrid:
         """Gauss points (n, dim), weights (n,) and cell index (n,) of the
         tensor Gauss rule with ``points_per_axis`` points per axis on the
         given cells (default: all), cell by cell."""
-        k = int(points_per_axis)
+        k = check_positive_int("points_per_axis", points_per_axis)
+        if k > 64:
+            raise ValueError(f"points_per_axis must be at most 64, got {k}")
         ref, wref = np.polynomial.legendre.leggauss(k)
         ref, wref = 0.5 * (ref + 1.0), 0.5 * wref
-        cells = np.arange(self.ncells) if cells is None else np.asarray(cells)
+        cells = np.arange(self.ncells) if cells is None else _cell_indices(cells, self.ncells)
         dim = self.dim
         e, stride = [], 1
         for axis in range(dim):

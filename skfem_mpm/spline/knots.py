@@ -52,7 +52,11 @@ def check_degree(degree):
 
 def check_breakpoints(breakpoints, name="breakpoints"):
     """Validate a strictly increasing, finite array of at least two breakpoints."""
-    u = np.asarray(breakpoints, dtype=np.float64)
+    try:
+        u = np.asarray(breakpoints, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a 1-D array of real numbers, got "
+                         f"{breakpoints!r}") from None
     if u.ndim != 1:
         raise ValueError(f"{name} must be a 1-D array, got shape {u.shape}")
     if u.size < 2:
@@ -67,6 +71,13 @@ def check_breakpoints(breakpoints, name="breakpoints"):
             f"{name} must be strictly increasing, got {u[bad]} followed by "
             f"{u[bad + 1]} at index {bad}"
         )
+    scale = np.abs(u).max()
+    tiny = steps.min()
+    if tiny < 1e-12 * scale or tiny < 1e-150 or steps.max() > 1e150:
+        raise ValueError(
+            f"{name} must have cells wider than 1e-12 of the coordinates' size and "
+            f"between 1e-150 and 1e150 (the time step divides by the squared cell size), "
+            f"got cells from {tiny:.3g} to {steps.max():.3g} at coordinates up to {scale:.3g}")
     return u
 
 
