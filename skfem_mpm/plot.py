@@ -61,13 +61,13 @@ def _style(method):
 
 
 def _reference_slopes(series):
-    """[(order, h pair, error pair)]: one reference line per observed order
+    """[(order, h pair, error pair, method)]: one reference line per observed order
     (the last two runs' order of each method, rounded to 1-4; flat methods,
     order < 0.5, get none), along the method with that order whose finest
     run has the smallest error, a factor 2 below its last two points, so
     that it runs beside the data without covering it."""
     best = {}
-    for pts in series.values():
+    for method, pts in series.items():
         if len(pts) < 2:
             continue
         (h0, e0), (h1, e1) = pts[0], pts[1]  # the two finest runs (sorted by h)
@@ -78,24 +78,26 @@ def _reference_slopes(series):
             continue
         order = min(4, max(1, round(observed)))
         if order not in best or e0 < best[order][2][0]:
-            best[order] = (order, (h0, h1), (0.5 * e0, 0.5 * e0 * (h1 / h0) ** order))
+            best[order] = (order, (h0, h1), (0.5 * e0, 0.5 * e0 * (h1 / h0) ** order), method)
     return [best[k] for k in sorted(best)]
 
 
 def plot_convergence(records, path, title=""):
     """Relative error against cell size h, with reference slopes h^p drawn a
     factor 2 below the two finest runs of a method observed at order p (each
-    labelled beside its own line, below it)."""
+    labelled beside its own line, below it, in that method's colour)."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 5))
     series = _series(records, "h")
+    colours = {}
     for method, pts in series.items():
         h, e = zip(*pts)
-        ax.loglog(h, e, label=method, **_style(method))
-    for order, hs, es in _reference_slopes(series):
-        ax.loglog(hs, es, color="0.35", linewidth=1.2, linestyle=":")
+        colours[method] = ax.loglog(h, e, label=method, **_style(method))[0].get_color()
+    for order, hs, es, method in _reference_slopes(series):
+        ax.loglog(hs, es, color=colours[method], linewidth=1.2, linestyle=":")
         ax.annotate(f"h^{order}", (math.sqrt(hs[0] * hs[1]), math.sqrt(es[0] * es[1])),
-                    xytext=(4, -12), textcoords="offset points", color="0.25", fontsize=8)
+                    xytext=(4, -12), textcoords="offset points", color=colours[method],
+                    fontsize=8)
     ax.set_xlabel("cell size h (length units of the benchmark)")
     ax.set_ylabel(_error_label(records))
     ax.set_title(f"Convergence: {title}")

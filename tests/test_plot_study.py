@@ -38,8 +38,8 @@ def test_reference_slopes_follow_the_finest_runs_of_each_observed_order():
               "p4": [(1 / 32, 3.9e-6), (1 / 16, 6.25e-5), (1 / 8, 1e-3)],
               "flat": [(1 / 32, 0.15), (1 / 16, 0.15)]}
     lines = _reference_slopes(series)
-    assert [order for order, _, _ in lines] == [2, 4]  # none for the flat method
-    for order, hs, es in lines:
+    assert [(order, m) for order, _, _, m in lines] == [(2, "p1"), (4, "p4")]  # none: flat
+    for order, hs, es, _ in lines:
         finest = {2: 6.25e-4, 4: 3.9e-6}[order]
         assert hs == (1 / 32, 1 / 16) and es[0] == pytest.approx(0.5 * finest)
         assert math.log(es[1] / es[0]) / math.log(hs[1] / hs[0]) == pytest.approx(order)
