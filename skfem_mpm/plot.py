@@ -345,7 +345,8 @@ def plot_field_snapshots(result, path, field="stress", count=4, exact=None, titl
     values = [_field_values(result, field, k, exact) for k in picks]
     lo = min(float(v.min()) for v in values)
     hi = max(float(v.max()) for v in values)
-    fig, axes = plt.subplots(1, len(picks), figsize=(3.6 * len(picks), 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(picks), figsize=(3.2 * len(picks) + 1, 3.6), squeeze=False,
+                             layout="constrained")
     for ax, k, v in zip(axes[0], picks, values):
         x = result.history["x"][k]
         if dim == 3:
@@ -359,8 +360,7 @@ def plot_field_snapshots(result, path, field="stress", count=4, exact=None, titl
         ax.set_title(f"t = {result.times[k]:.4g}", fontsize=9)
         ax.set_xlabel("x")
     axes[0][0].set_ylabel("y")
-    fig.colorbar(sc, ax=list(axes[0]), label=FIELD_LABELS.get(field, ("", field))[1],
-                 shrink=0.8)
+    fig.colorbar(sc, ax=list(axes[0]), label=FIELD_LABELS.get(field, ("", field))[1])
     fig.suptitle(title or f"{FIELD_LABELS.get(field, ('', field))[1]} at {len(picks)} times"
                  + (" (middle z-slice)" if dim == 3 else ""))
     fig.savefig(path, dpi=120)
