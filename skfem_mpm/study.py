@@ -438,7 +438,8 @@ def verdict(records, targets=REACH_TARGETS):
     e, :func:`time_to_reach`) and how robust that is: its ratio to the
     runner-up, and whether it holds at the ends of the repeats' ranges (the
     winner at its slowest repeat, ``wall_time_max_s``, against the
-    runner-up at its fastest, ``wall_time_min_s``). Returns a list of dicts
+    runner-up at its fastest, ``wall_time_min_s``; not judged, None, when
+    either was timed once, ``repeats`` 1). Returns a list of dicts
     (target, best, time, upper_bound, runner_up, runner_up_time, ratio,
     worst_ratio, holds); ``best`` is None where no method reaches e."""
     out = []
@@ -457,7 +458,9 @@ def verdict(records, targets=REACH_TARGETS):
                 fast = time_to_reach(records, e, "wall_time_min_s").get(second)
                 row.update(runner_up=second, runner_up_time=reach[second][0],
                            ratio=reach[second][0] / reach[best][0])
-                if slow and fast:
+                single = any((r.get("repeats") or 2) < 2 for r in records
+                             if r["method"] in (best, second))
+                if slow and fast and not single:  # one timed run has no range
                     row.update(worst_ratio=fast / slow, holds=fast > slow)
         out.append(row)
     return out

@@ -94,3 +94,7 @@ def test_verdict_names_the_cheapest_method_and_its_margin():
               _run("c", 8, 1e-3, 2.0, 0.01), _run("c", 16, 1e-5, 4.0, 0.01)]
     v = verdict(c_wins, [1e-4])[0]  # c: 1e-4 halfway between 2 s and 4 s in log
     assert v["best"] == "c" and v["holds"] and v["ratio"] == pytest.approx(4.0 / 2 ** 1.5)
+    for r in c_wins:  # one timed run each: nothing to judge robustness by
+        r["repeats"] = 1
+    assert verdict(c_wins, [1e-4])[0]["holds"] is None
+    assert "one timed run each" in verdict_lines(c_wins, [1e-4])[0]
