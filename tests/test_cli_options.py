@@ -53,3 +53,17 @@ def test_bad_values_are_refused_before_running(argv, fragment, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("skfem-mpm: error:") and fragment in err, err
+
+
+def test_a_study_beyond_the_exact_solutions_model_says_so(tmp_path, capsys):
+    """S2 large (10% strain) is compared with the linear exact solution: the
+    header printed and written to study.md warns; S2 small's does not."""
+    for variant, warned in (("large", True), ("small", False)):
+        out = tmp_path / variant
+        assert main(["study", "soil-column", "--variant", variant, "--methods",
+                     "fem-p1-lumped", "--cells", "4", "8", "--serial", "--out", str(out)]) == 0
+        printed = capsys.readouterr().out.splitlines()[0]
+        header = (out / "study.md").read_text()
+        for text in (printed, header):
+            assert ("WARNING, variant large: the exact solution is the linear wave equation's"
+                    in text) == warned
