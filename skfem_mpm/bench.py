@@ -300,7 +300,9 @@ def main(argv=None):
     _usl_rows(report, [("2d_usl", s2, dt2), ("1d_usl", s1, dt1)], repeat)
     report["2d_musl"] = run(s2, dt2, "musl", repeat=repeat)
     if args.reference:
-        report["2d_usl_reference"] = run(s2, dt2, "usl", backend="numpy", repeat=1)
+        report["2d_usl_reference"] = ref = run(s2, dt2, "usl", backend="numpy", repeat=1)
+        ref["ratio_compiled_to_reference"] = (report["2d_usl"]["particle_steps_per_s"]
+                                              / ref["particle_steps_per_s"])
     report["1d_musl"] = run(s1, dt1, "musl", repeat=repeat)
     if not args.quick:
         report["memory_2d_bytes_per_particle"] = memory_child(2, 128, 20)
@@ -358,8 +360,9 @@ def _print_c_reference(report):
 
 def _print_report(report, repeat):
     m = report["machine"]
-    print(f"machine: {m['cpu']}, {m['cores']} cores, {m['system']}")
-    print(f"threads: {report['threads']}, median of {repeat} run(s), JIT excluded")
+    print(f"machine: {m['cpu']}, {m['cores']} cores, {m['system']}, Python {m['python']}")
+    print(f"threads: {report['threads']} (numba), median of {repeat} run(s), JIT excluded; "
+          f"compared only with references run now, on this machine")
     for key in ("2d_usl", "2d_musl", "2d_usl_reference", "1d_usl", "1d_musl"):
         if key not in report:
             continue
@@ -369,6 +372,9 @@ def _print_report(report, repeat):
               f"path {r['path']}")
         split = ", ".join(f"{k} {v / r['wall_time_s'] * 100:.0f}%" for k, v in r["phases"].items())
         print(f"{'':18s} phases: {split}")
+        if "ratio_compiled_to_reference" in r:
+            print(f"{'':18s} the compiled 2d_usl above: {r['ratio_compiled_to_reference']:.1f}x "
+                  f"this NumPy reference path (both measured in this run)")
     _print_c_reference(report)
     if "memory_2d_bytes_per_particle" in report:
         print(f"2D peak memory: {report['memory_2d_bytes_per_particle']:.0f} bytes per particle "

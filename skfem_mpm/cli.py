@@ -3,11 +3,13 @@
     skfem-mpm list
     skfem-mpm run BENCHMARK [--variant V] [--set NAME=VALUE ...] [--degree P] [--cells N]
                             [--ppc K] [--mass M] [--reconstruction R] [--scheme S] [--cfl C]
-                            [--dt DT] [--t-end T] [--out DIR] [--json]
+                            [--dt DT] [--t-end T] [--out DIR [--field F]] [--json]
     skfem-mpm fem BENCHMARK ...            (the same options, Gauss-quadrature FEM)
-    skfem-mpm study BENCHMARK [--quick] [--methods M ...] [--cells N ...] [--out DIR]
-                              [--dask ADDRESS] [--serial]
-    skfem-mpm bench [--quick] [--json]
+    skfem-mpm study BENCHMARK [--quick] [--methods M ...] [--cells N ...] [--repeat R]
+                              [--out DIR] [--dask ADDRESS] [--serial]
+    skfem-mpm bench [--quick] [--json] [--repeat R] [--reference] [--consistent]
+
+Every option's help names its choices and default (``--help``).
 
 Bad arguments print one line ``skfem-mpm: error: ...`` and exit with code 2.
 """
@@ -58,7 +60,7 @@ def _run_options(p):
     p.add_argument("benchmark", help="a benchmark name (see 'skfem-mpm list')")
     p.add_argument("--variant", default=None, help="the benchmark's variant (default: its first)")
     p.add_argument("--set", action="append", metavar="NAME=VALUE", dest="params",
-                   help="override a benchmark parameter (repeatable)")
+                   help="override a benchmark parameter (repeatable; default: none)")
     p.add_argument("--degree", type=int, default=2, choices=(1, 2, 3),
                    help="B-spline degree (default: %(default)s)")
     p.add_argument("--cells", type=int, default=None,
@@ -78,11 +80,19 @@ def _run_options(p):
                    help="a fixed time step instead of --cfl (default: cfl * dt_crit)")
     p.add_argument("--t-end", type=float, default=None, dest="t_end",
                    help="end time (default: the benchmark's)")
-    p.add_argument("--out", default=None, help="write a ParaView series and PNG pictures here")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--out", default=None, help="write a ParaView series and PNG pictures "
+                   "into this folder (default: none)")
+    p.add_argument("--field", default="stress", choices=RUN_FIELDS,
+                   help="with --out: the field drawn at a few times in particles_FIELD.png "
+                   "(1D: a line over position; default: %(default)s)")
+    p.add_argument("--json", action="store_true", help="print one JSON object (default: a "
+                   "table)")
 
 
 def build_parser():
+    from .solve.method import MASSES, RECONSTRUCTIONS, SCHEMES
+    from .study import QUICK_METHODS
+
     parser = _Parser(prog="skfem-mpm", description="B-spline MPM and FEM benchmarks "
                      "(scikit-fem plugin): errors and what they cost in time.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -90,26 +100,56 @@ def build_parser():
     _run_options(sub.add_parser("run", help="run one MPM simulation of a benchmark"))
     _run_options(sub.add_parser("fem", help="run the FEM reference of a benchmark"))
     s = sub.add_parser("study", help="convergence and work-precision study")
-    s.add_argument("benchmark")
-    s.add_argument("--variant", default=None)
-    s.add_argument("--set", action="append", metavar="NAME=VALUE", dest="params")
-    s.add_argument("--quick", action="store_true", help="a small study (under a minute)")
-    s.add_argument("--methods", nargs="+", default=None)
-    s.add_argument("--cells", nargs="+", type=int, default=None)
-    s.add_argument("--ppc", type=int, default=None)
-    s.add_argument("--scheme", default=None)
-    s.add_argument("--cfl", type=float, default=None)
-    s.add_argument("--out", default="skfem-mpm-report")
+    s.add_argument("benchmark", help="a benchmark with an exact solution (see 'skfem-mpm list')")
+    s.add_argument("--variant", default=None, help="the benchmark's variant (default: its first)")
+    s.add_argument("--set", action="append", metavar="NAME=VALUE", dest="params",
+                   help="override a benchmark parameter (repeatable; default: none)")
+    s.add_argument("--quick", action="store_true",
+                   help=f"a small study: methods {' '.join(QUICK_METHODS)}; cells "
+                   f"{' '.join(map(str, QUICK['cells']))} in 1D, "
+                   f"{' '.join(map(str, STUDY_CELLS[2][0]))} in 2D, "
+                   f"{' '.join(map(str, STUDY_CELLS[3][0]))} in 3D; {QUICK['repeat']} timed "
+                   f"repeats (default: off, the full study)")
+    s.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
+                   help="methods named kind-pN-mass[-reconstruction][-scheme]: kind mpm or fem, "
+                   f"N 1-3, mass {{{','.join(MASSES)}}}, reconstruction "
+                   f"{{{','.join(RECONSTRUCTIONS)}}}, scheme {{{','.join(SCHEMES)}}} "
+                   "(default: the quick or the full list)")
+    s.add_argument("--cells", nargs="+", type=int, default=None, metavar="N",
+                   help="cells per axis, one run each (default: "
+                   f"{' '.join(map(str, STUDY_CELLS[1][1]))} in 1D, "
+                   f"{' '.join(map(str, STUDY_CELLS[2][1]))} in 2D, "
+                   f"{' '.join(map(str, STUDY_CELLS[3][1]))} in 3D; --quick: see there)")
+    s.add_argument("--ppc", type=int, default=None,
+                   help=f"particles per cell and axis (default: {QUICK['ppc']} in 1D, 2 in 2D "
+                   "and 3D)")
+    s.add_argument("--scheme", default=None, choices=SCHEMES,
+                   help=f"scheme of methods that name none (default: {QUICK['scheme']})")
+    s.add_argument("--cfl", type=float, default=None,
+                   help="time step as a fraction of the critical one (default: "
+                   f"{QUICK['cfl']})")
+    s.add_argument("--repeat", type=int, default=None,
+                   help="timed runs per job, the median is reported (default: "
+                   f"{QUICK['repeat']} with --quick, else 1)")
+    s.add_argument("--out", default="skfem-mpm-report",
+                   help="folder for study.csv, study.md and the PNGs (default: %(default)s)")
     s.add_argument("--dask", default=None, metavar="ADDRESS",
-                   help="run on a Dask cluster (scheduler address)")
-    s.add_argument("--serial", action="store_true", help="run in this process, one at a time")
+                   help="run on a Dask cluster (scheduler address; default: a local process "
+                   "pool, one worker per core)")
+    s.add_argument("--serial", action="store_true",
+                   help="run in this process, one at a time (default: off)")
     b = sub.add_parser("bench", help="particle-steps per second of the fast path")
-    b.add_argument("--quick", action="store_true")
-    b.add_argument("--json", action="store_true")
-    b.add_argument("--repeat", type=int, default=None)
-    b.add_argument("--reference", action="store_true", help="also time the NumPy reference path")
+    b.add_argument("--quick", action="store_true",
+                   help="smaller problems (64^2 cells in 2D, 25,000 in 1D), 20 steps, one run "
+                   "(default: off: 128^2 and 250,000 cells, 200 steps)")
+    b.add_argument("--json", action="store_true", help="print one JSON object (default: text)")
+    b.add_argument("--repeat", type=int, default=None,
+                   help="timed runs per problem, the median is reported (default: 5; 1 with "
+                   "--quick)")
+    b.add_argument("--reference", action="store_true",
+                   help="also time the NumPy reference path, with our ratio to it (default: off)")
     b.add_argument("--consistent", action="store_true",
-                   help="also compare consistent with lumped mass per step")
+                   help="also compare consistent with lumped mass per step (default: off)")
     return parser
 
 
@@ -129,6 +169,12 @@ def _cmd_list(args):
 
 
 def _check_run_args(args):
+    if args.field == "error" and args.out is not None:
+        from .benchmarks import get_benchmark
+
+        if not get_benchmark(args.benchmark, args.variant, **_parse_set(args.params)).has_exact:
+            raise _UsageError(f"--field error: {args.benchmark} has no exact solution; choose "
+                              f"one of {', '.join(RUN_FIELDS[:3])}")
     if args.degree not in (1, 2, 3):
         raise _UsageError(f"--degree must be 1, 2 or 3, got {args.degree}")
     for flag, value in (("--t-end", args.t_end), ("--dt", args.dt), ("--cfl", args.cfl)):
@@ -171,7 +217,7 @@ def _cmd_run(args, kind):
     record.update(wall_time_s=result.wall_time, jit_time_s=result.jit_time,
                   phase_times=result.phase_table())
     if args.out:
-        _write_run_pictures(result, bench, args.out)
+        _write_run_pictures(result, bench, args.out, args.field)
         record["out"] = os.path.abspath(args.out)
     if args.json:
         print(json.dumps(record, default=float))
@@ -185,81 +231,104 @@ def _cmd_run(args, kind):
     return 0
 
 
-def _write_run_pictures(result, bench, out):
-    from .plot import plot_displacement_history, plot_energy, plot_particles
+def _write_run_pictures(result, bench, out, field="stress"):
+    from .plot import (
+        plot_displacement_history,
+        plot_energy,
+        plot_field_snapshots,
+        plot_particles,
+    )
 
     result.save(out)
     exact = bench.displacement if bench.has_exact else None
-    plot_particles(result, os.path.join(out, "particles_stress.png"), field="stress")
-    plot_particles(result, os.path.join(out, "particles_velocity.png"), field="velocity")
-    if exact is not None:
+    plot_field_snapshots(result, os.path.join(out, f"particles_{field}.png"), field=field,
+                         exact=exact)
+    if exact is not None and field != "error":
         plot_particles(result, os.path.join(out, "particles_error.png"), field="error",
                        exact=exact)
     plot_energy(result, os.path.join(out, "energy.png"))
     plot_displacement_history(result, os.path.join(out, "displacement.png"), exact=exact)
 
 
+RUN_FIELDS = ("stress", "velocity", "displacement", "error")
 # default cells per axis of `run` and `fem`; 3D runs on the reference executor
 RUN_CELLS = {1: 16, 2: 16, 3: 4}
-QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.1, "scheme": "cd"}
+QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.1, "scheme": "cd", "repeat": 3}
+# a study's default cells per axis by dimension: (quick, full)
+STUDY_CELLS = {1: (QUICK["cells"], [8, 16, 32, 64, 128]), 2: ([4, 8, 16], [4, 8, 16, 32]),
+               3: ([2, 4], [2, 4, 8])}
 
 
 def _cmd_study(args):
     from .benchmarks import get_benchmark
-    from .study import FULL_METHODS, QUICK_METHODS, convergence, fastest_to, markdown_table, \
-        time_to_reach_table, write_report
+    from .study import (
+        FULL_METHODS,
+        QUICK_METHODS,
+        convergence,
+        markdown_table,
+        time_to_reach_table,
+        verdict_lines,
+        write_report,
+    )
 
     params = _parse_set(args.params)
     bench = get_benchmark(args.benchmark, args.variant, **params)
     if not bench.has_exact:
         raise _UsageError(f"{bench.name} has no exact solution to study; use 'run' for its checks")
     methods = args.methods or (QUICK_METHODS if args.quick else FULL_METHODS)
-    cells = args.cells or (QUICK["cells"] if args.quick else [8, 16, 32, 64, 128])
-    if bench.dim == 2 and args.cells is None:
-        cells = [4, 8, 16] if args.quick else [4, 8, 16, 32]
-    if bench.dim == 3 and args.cells is None:  # the reference executor in 3D
-        cells = [2, 4] if args.quick else [2, 4, 8]
+    cells = args.cells or STUDY_CELLS[bench.dim][0 if args.quick else 1]
     if any(c < 1 for c in cells):
         raise _UsageError(f"--cells must be positive integers, got {cells}")
     if args.ppc is not None and args.ppc < 1:
         raise _UsageError(f"--ppc must be a positive integer, got {args.ppc}")
     if args.cfl is not None and not args.cfl > 0:
         raise _UsageError(f"--cfl must be a positive number, got {args.cfl}")
+    if args.repeat is not None and args.repeat < 1:
+        raise _UsageError(f"--repeat must be a positive integer, got {args.repeat}")
+    repeat = args.repeat or (QUICK["repeat"] if args.quick else 1)
     _check_out(args.out)
     ppc = args.ppc if args.ppc is not None else (QUICK["ppc"] if bench.dim == 1 else 2)
     scheme = args.scheme or QUICK["scheme"]
     cfl = args.cfl if args.cfl is not None else QUICK["cfl"]
     executor = None
-    note = (f"Timed runs: a local process pool with {os.cpu_count()} workers, one thread each, "
-            f"so runs never share a core; JIT compilation is excluded (column jit_time_s).")
+    where = (f"a local process pool with {os.cpu_count()} workers, one thread each, so runs "
+             f"never share a core")
     if args.serial:
         executor = "serial"
-        note = "Timed runs: one at a time in one process; JIT compilation excluded."
+        where = "one at a time in one process"
     if args.dask:
         from dask.distributed import Client
 
         executor = Client(args.dask)
-        note = (f"Timed runs: Dask cluster at {args.dask} "
-                f"({len(executor.scheduler_info()['workers'])} workers); JIT excluded.")
+        where = (f"Dask cluster at {args.dask} "
+                 f"({len(executor.scheduler_info()['workers'])} workers)")
+    note = (f"Timed runs: {where}. Wall time: the median of {repeat} timed run(s) after an "
+            f"untimed warm-up run that compiles every kernel (its time: jit_time_s).")
     records = convergence(bench.name, methods, cells, ppc=ppc, variant=bench.variant,
-                          params=params, executor=executor, progress=True, scheme=scheme, cfl=cfl)
+                          params=params, executor=executor, progress=True, scheme=scheme, cfl=cfl,
+                          repeat=repeat)
+    leaked = sum(r.get("timed_compiles") or 0 for r in records)
+    if leaked:
+        note += f" WARNING: {leaked} kernel(s) compiled during timed runs."
     setup = (f"{bench.title}, variant {bench.variant}: ppc {ppc} per axis, scheme {scheme}, "
              f"cfl {cfl}. Errors: " + ("max over the saves of the RMS displacement error"
                                        if bench.primary_error == "error_max" else
                                        "RMS displacement error at t_end")
              + " relative to the amplitude.")
+    gap = bench.model_gaps.get(bench.variant)
+    setup += " Compared with: the benchmark's exact solution." + (
+        f" WARNING, variant {bench.variant}: {gap}." if gap else "")
     paths = write_report(records, args.out, title=f"{bench.name} ({bench.variant})",
                          timing_note=setup + "\n\n" + note)
     print(setup)
     print(note)
     print(markdown_table(records))
-    print("time to reach a relative error e [s] (interpolated between the runs that bracket "
-          "e; blank: not reached):")
+    print("time to reach a relative error e [s] (interpolated in log-log between the runs "
+          "that bracket e; <= the coarsest run already reaches e; blank: not reached):")
     print(time_to_reach_table(records))
-    fastest = fastest_to(records, 1e-4)
-    if fastest:
-        best = min(fastest, key=fastest.get)
-        print(f"fastest to a relative error of 1e-4: {best} ({fastest[best]:.3g} s)")
+    print("verdict:")
+    for line in verdict_lines(records):
+        print("  " + line)
     for key in ("csv", "md", "convergence", "work_precision"):
         print(f"wrote {paths[key]}")
     return 0
@@ -275,6 +344,8 @@ def _check_out(out):
     parent = os.path.dirname(os.path.abspath(out))
     while not os.path.exists(parent):
         parent = os.path.dirname(parent)
+    if not os.path.isdir(parent):
+        raise _UsageError(f"--out {out!r}: {parent!r} is a file, not a folder")
     target = out if os.path.isdir(out) else parent
     if not os.access(target, os.W_OK):
         raise _UsageError(f"--out {out!r}: {target!r} is not writable")

@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from .fingerprint import fingerprint_differences, run_fingerprint
-from .solve.result import ENERGY_FIELDS, HISTORY_FIELDS
+from .solve.result import ENERGY_FIELDS, HISTORY_FIELDS, OUTPUT_FIELDS
 
 __all__ = ["save_result", "write_checkpoint", "read_checkpoint", "check_checkpoint",
-           "restore_state", "checkpoint_size_bound"]
+           "restore_state", "checkpoint_size_bound", "nodal_mass_and_velocity"]
 
 FORMAT = "skfem-mpm-checkpoint-2"
 
@@ -43,7 +43,67 @@ def _tensor9(s):
 
 
 def _state_names(history):
-    return [k for k in history if k not in HISTORY_FIELDS]
+    return [k for k in history if k not in HISTORY_FIELDS + OUTPUT_FIELDS]
+
+
+def _saved(history, name, k, saves):
+    """Save k of an output field, or None when the run did not record it at
+    every save (a run restarted from a checkpoint written before it was)."""
+    values = history.get(name)
+    return None if values is None or len(values) != saves else np.asarray(values[k])
+
+
+def _write_series(out, entries, name):
+    """A ParaView collection ``out/name`` of (time, file) entries."""
+    lines = ['<?xml version="1.0"?>',
+             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
+             "  <Collection>"]
+    lines += [f'    <DataSet timestep="{t!r}" part="0" file="{f}"/>' for t, f in entries]
+    lines += ["  </Collection>", "</VTKFile>", ""]
+    path = out / name
+    path.write_text("\n".join(lines))
+    return path
+
+
+def nodal_mass_and_velocity(grid, x, m, v):
+    """The particles' lumped nodal mass and velocity on ``grid``:
+    m_i = sum_p N_i(x_p) m_p and v_i = sum_p N_i(x_p) m_p v_p / m_i (0 where
+    m_i = 0), the particle-to-grid transfer of MPM (e.g. Sulsky, Chen and
+    Schreyer 1994, eqs. 20-21) applied to a saved particle state."""
+    from .quadrature import transfer_matrices
+
+    N = transfer_matrices(grid, x)[0]
+    mass = N.T @ m
+    momentum = N.T @ (m[:, None] * v)
+    velocity = np.zeros_like(momentum)
+    has = mass > 0
+    velocity[has] = momentum[has] / mass[has, None]
+    return mass, velocity
+
+
+def _control_net(grid):
+    """(points (ndofs, 3), cells) of the grid's dofs: a spline grid's
+    Greville abscissae joined as the tensor control net (lines, quads or
+    hexahedra); a Lagrange grid's mesh itself."""
+    if not hasattr(grid, "basis_per_axis"):
+        from skfem.io.meshio import to_meshio
+
+        m = grid.mesh
+        return _points3(m.p.T), [(b.type, b.data.astype(np.int64))
+                                 for b in to_meshio(m, encode_cell_data=False).cells]
+    n = list(grid.basis_per_axis)
+    index = np.arange(grid.ndofs).reshape(n[::-1])  # [.., b, a], a fastest
+    if grid.dim == 1:
+        cells = [("line", np.stack([index[:-1], index[1:]], axis=1))]
+    elif grid.dim == 2:
+        cells = [("quad", np.stack([index[:-1, :-1], index[:-1, 1:], index[1:, 1:],
+                                    index[1:, :-1]], axis=-1).reshape(-1, 4))]
+    else:
+        i = index
+        corners = [i[:-1, :-1, :-1], i[:-1, :-1, 1:], i[:-1, 1:, 1:], i[:-1, 1:, :-1],
+                   i[1:, :-1, :-1], i[1:, :-1, 1:], i[1:, 1:, 1:], i[1:, 1:, :-1]]
+        cells = [("hexahedron", np.stack(corners, axis=-1).reshape(-1, 8))]
+    return _points3(grid.doflocs().T), cells
 
 
 def _components(a):
@@ -55,19 +115,35 @@ def _components(a):
 def save_result(result, path, grid=True):
     """Write ``path/particles_XXXX.vtu`` for every save and
     ``path/particles.pvd`` (open it in ParaView), plus ``path/grid.vtu``
-    with the background mesh. Point data: displacement, velocity, stress
-    (9 components), reference_position, index, and each material state
-    field under its own name (a scalar per particle, or its values
-    flattened as components). Returns the .pvd path."""
+    with the background mesh and, per save, ``path/grid_XXXX.vtu`` with
+    ``path/grid.pvd``: the grid's dofs (a spline grid's control net at its
+    Greville abscissae) with the saved particles' ``nodal_mass`` and
+    ``nodal_velocity`` (:func:`nodal_mass_and_velocity`).
+
+    Particle point data: displacement, velocity, stress (9 components),
+    reference_position, index, mass, volume, density (mass / volume), body
+    (the body id), and each material state field under its own name (a
+    scalar per particle, or its values flattened as components). Returns
+    the .pvd path."""
     import meshio
 
     out = Path(path)
     out.mkdir(parents=True, exist_ok=True)
     h = result.history
-    entries = []
+    saves = len(result.times)
+    mesh_grid = getattr(result, "grid", None) if grid else None
+    net = _control_net(mesh_grid) if mesh_grid is not None else None
+    entries, grid_entries = [], []
     for k, t in enumerate(result.times):
         x = h["x"][k]
         n = x.shape[0]
+        m, V, body = (_saved(h, name, k, saves) for name in OUTPUT_FIELDS)
+        extra = {}
+        if m is not None and V is not None:
+            extra.update(mass=m.astype(np.float64), volume=V.astype(np.float64),
+                         density=m / V)
+        if body is not None:
+            extra["body"] = body.astype(np.float64)
         mesh = meshio.Mesh(
             _points3(x), [("vertex", np.arange(n, dtype=np.int64)[:, None])],
             point_data={
@@ -76,25 +152,30 @@ def save_result(result, path, grid=True):
                 "stress": _tensor9(h["stress"][k]),
                 "reference_position": _vector3(h["X"][k]),
                 "index": h["index"][k].astype(np.float64),
+                **extra,
                 **{name: _components(h[name][k]) for name in _state_names(h)},
             },
         )
         name = f"particles_{k:04d}.vtu"
         meshio.write(str(out / name), mesh, file_format="vtu")
         entries.append((float(t), name))
-    pvd = out / "particles.pvd"
-    lines = ['<?xml version="1.0"?>',
-             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
-             "  <Collection>"]
-    lines += [f'    <DataSet timestep="{t!r}" part="0" file="{name}"/>' for t, name in entries]
-    lines += ["  </Collection>", "</VTKFile>", ""]
-    pvd.write_text("\n".join(lines))
-    if grid and getattr(result, "grid", None) is not None:
+        if net is not None and m is not None:
+            mass, velocity = nodal_mass_and_velocity(mesh_grid, x, m, h["v"][k])
+            name = f"grid_{k:04d}.vtu"
+            meshio.write(str(out / name), meshio.Mesh(
+                net[0], net[1], point_data={"nodal_mass": mass,
+                                            "nodal_velocity": _vector3(velocity)}),
+                file_format="vtu")
+            grid_entries.append((float(t), name))
+    pvd = _write_series(out, entries, "particles.pvd")
+    if grid_entries:
+        _write_series(out, grid_entries, "grid.pvd")
+    if mesh_grid is not None:
         from skfem.io.meshio import to_meshio
 
         # scikit-fem's own conversion: it knows each cell type's vertex order
         # (a hexahedron's differs from VTK's)
-        m = result.grid.mesh
+        m = mesh_grid.mesh
         cells = [(block.type, block.data.astype(np.int64))
                  for block in to_meshio(m, encode_cell_data=False).cells]
         meshio.write(str(out / "grid.vtu"), meshio.Mesh(_points3(m.p.T), cells),
@@ -450,10 +531,13 @@ def _check_records(c, data, state, fresh, n0, dim, known):
         c.fail("rec_state_names", f"are {rec_names!r}, not {sorted(fresh.state)}")
     shapes = {"index": (), "X": (dim,), "x": (dim,), "u": (dim,), "v": (dim,),
               "stress": (dim, dim)}
+    # the output fields (mass, volume, body id) of checkpoints that hold them
+    shapes.update({name: () for name in OUTPUT_FIELDS if f"rec_n_{name}" in data})
     shapes.update({name: fresh.state[name].shape[1:] for name in rec_names})
     sizes0 = None
     for name, shape in shapes.items():
-        prefix = ("rec_n_", "rec_") if name in HISTORY_FIELDS else ("rec_state_n.", "rec_state.")
+        prefix = ("rec_n_", "rec_") if name in HISTORY_FIELDS + OUTPUT_FIELDS \
+            else ("rec_state_n.", "rec_state.")
         sizes = c.array(prefix[0] + name, "i", (k,), low=1, high=n0)
         if sizes0 is not None and not np.array_equal(sizes, sizes0):
             c.fail(prefix[0] + name, "differs from the other fields' save sizes")
@@ -461,6 +545,11 @@ def _check_records(c, data, state, fresh, n0, dim, known):
         total = int(sizes.sum())
         if name == "index":
             values = c.array(prefix[1] + name, "i", (total,), low=0, high=n0 - 1)
+        elif name == "body":
+            values = c.array(prefix[1] + name, "i", (total,), low=0,
+                             high=len(state.scene.bodies) - 1)
+        elif name in ("m", "V"):
+            values = c.array(prefix[1] + name, "f", (total,), positive=True)
         else:
             values = c.array(prefix[1] + name, "f", (total,) + shape)
         known.update(prefix[0] + name for _ in (0,))

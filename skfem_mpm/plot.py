@@ -3,6 +3,7 @@
 Studies: :func:`plot_convergence` (error against cell size with reference
 slopes) and :func:`plot_work_precision` (error against wall time).
 Runs: :func:`plot_particles` (particles coloured by a field over the grid),
+:func:`plot_field_snapshots` (a field at a few times; 1D: over position),
 :func:`plot_energy` (energy history), :func:`plot_displacement_history`
 (displacement of chosen particles against the exact solution).
 """
@@ -10,8 +11,15 @@ import math
 
 import numpy as np
 
-__all__ = ["plot_convergence", "plot_work_precision", "plot_particles", "plot_energy",
-           "plot_displacement_history"]
+__all__ = [
+    "cheapest_envelope",
+    "plot_convergence",
+    "plot_displacement_history",
+    "plot_energy",
+    "plot_field_snapshots",
+    "plot_particles",
+    "plot_work_precision",
+]
 
 
 def _pyplot():
@@ -52,25 +60,44 @@ def _style(method):
     return {"linestyle": "--" if fem else "-", "marker": "s" if fem else "o"}
 
 
+def _reference_slopes(series):
+    """[(order, h pair, error pair, method)]: one reference line per observed order
+    (the last two runs' order of each method, rounded to 1-4; flat methods,
+    order < 0.5, get none), along the method with that order whose finest
+    run has the smallest error, a factor 2 below its last two points, so
+    that it runs beside the data without covering it."""
+    best = {}
+    for method, pts in series.items():
+        if len(pts) < 2:
+            continue
+        (h0, e0), (h1, e1) = pts[0], pts[1]  # the two finest runs (sorted by h)
+        if h0 == h1 or e0 <= 0 or e1 <= 0:
+            continue
+        observed = math.log(e1 / e0) / math.log(h1 / h0)
+        if observed < 0.5:
+            continue
+        order = min(4, max(1, round(observed)))
+        if order not in best or e0 < best[order][2][0]:
+            best[order] = (order, (h0, h1), (0.5 * e0, 0.5 * e0 * (h1 / h0) ** order), method)
+    return [best[k] for k in sorted(best)]
+
+
 def plot_convergence(records, path, title=""):
-    """Relative RMS error at t_end against cell size h, with slopes 1-4."""
+    """Relative error against cell size h, with reference slopes h^p drawn a
+    factor 2 below the two finest runs of a method observed at order p (each
+    labelled beside its own line, below it, in that method's colour)."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 5))
     series = _series(records, "h")
+    colours = {}
     for method, pts in series.items():
         h, e = zip(*pts)
-        ax.loglog(h, e, label=method, **_style(method))
-    if series:
-        h_all = np.array([h for pts in series.values() for h, _ in pts])
-        e_all = np.array([e for pts in series.values() for _, e in pts])
-        h0, h1 = h_all.min(), h_all.max()
-        anchor = np.exp(np.mean(np.log(e_all)))
-        for order in (1, 2, 3, 4):
-            hs = np.array([h0, h1])
-            ax.loglog(hs, anchor * (hs / math.sqrt(h0 * h1)) ** order, color="0.6",
-                      linewidth=0.8, linestyle=":")
-            ax.annotate(f"h^{order}", (h1, anchor * (h1 / math.sqrt(h0 * h1)) ** order),
-                        color="0.4", fontsize=8)
+        colours[method] = ax.loglog(h, e, label=method, **_style(method))[0].get_color()
+    for order, hs, es, method in _reference_slopes(series):
+        ax.loglog(hs, es, color=colours[method], linewidth=1.2, linestyle=":")
+        ax.annotate(f"h^{order}", (math.sqrt(hs[0] * hs[1]), math.sqrt(es[0] * es[1])),
+                    xytext=(4, -12), textcoords="offset points", color=colours[method],
+                    fontsize=8)
     ax.set_xlabel("cell size h (length units of the benchmark)")
     ax.set_ylabel(_error_label(records))
     ax.set_title(f"Convergence: {title}")
@@ -80,18 +107,66 @@ def plot_convergence(records, path, title=""):
     return path
 
 
+def cheapest_envelope(records, levels=200):
+    """The lower-left envelope of the work-precision picture: at ``levels``
+    error levels e (log-spaced over the study's errors), the cheapest method
+    and its time to reach e (:func:`skfem_mpm.study.time_to_reach`: the
+    log-log interpolation between a method's runs, a method's coarsest run
+    for every e above its error). Returns [(e, time, method)]."""
+    from .study import time_to_reach
+
+    errors = [r["error"] for r in records if r.get("status", "ok") == "ok" and r.get("error")]
+    if not errors:
+        return []
+    out = []
+    for e in np.geomspace(min(errors), max(errors), levels):
+        reach = {m: t for m, t in time_to_reach(records, float(e)).items() if t is not None}
+        if reach:
+            best = min(reach, key=reach.get)
+            out.append((float(e), reach[best], best))
+    return out
+
+
 def plot_work_precision(records, path, title=""):
-    """Relative RMS error at t_end against wall time (JIT excluded)."""
+    """Error against wall time (median of the repeats, compilation
+    excluded), with the lower-left envelope drawn under the curves: a wide
+    band in the colour of the cheapest method at each error level, and the
+    name of the cheapest method at each decade of error it spans."""
+    from .study import REACH_TARGETS
+
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 5))
+    fig, ax = plt.subplots(figsize=(7.5, 5.5))
+    colours = {}
     for method, pts in _series(records, "wall_time_s").items():
         t, e = zip(*pts)
-        ax.loglog(t, e, label=method, **_style(method))
-    ax.set_xlabel("wall time of the run [s] (JIT compilation excluded)")
+        line, = ax.loglog(t, e, label=method, **_style(method))
+        colours[method] = line.get_color()
+    envelope = cheapest_envelope(records)
+    # the band: one segment per run of levels with the same cheapest method
+    start = 0
+    for k in range(1, len(envelope) + 1):
+        if k == len(envelope) or envelope[k][2] != envelope[start][2]:
+            seg = envelope[start:min(k + 1, len(envelope))]
+            ax.loglog([s[1] for s in seg], [s[0] for s in seg], color=colours[seg[0][2]],
+                      linewidth=9, alpha=0.25, solid_capstyle="butt", zorder=0)
+            start = k
+    if envelope:
+        ax.plot([], [], color="0.5", linewidth=9, alpha=0.3,
+                label="cheapest method per error (envelope)")
+        lo, hi = envelope[0][0], envelope[-1][0]
+        for e in REACH_TARGETS:
+            if not lo <= e <= hi:
+                continue
+            level, t, method = min(envelope, key=lambda s: abs(math.log(s[0] / e)))
+            ax.annotate(f"{e:.0e}: {method}", (t, level), xytext=(-6, 0),
+                        textcoords="offset points", ha="right", va="center", fontsize=7,
+                        color=colours[method])
+            ax.plot([t], [level], marker="|", color=colours[method], markersize=10)
+    ax.set_xlabel("wall time of the run [s] (median of repeats, compilation excluded)")
     ax.set_ylabel(_error_label(records))
     ax.set_title(f"Work-precision: {title}")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     _save(plt, fig, path)
     return path
 
@@ -186,25 +261,108 @@ def plot_energy(result, path, title=""):
 
 def plot_displacement_history(result, path, exact=None, particles=None, component=0, title=""):
     """Displacement of chosen particles (default: three spread over the body)
-    against time, with the exact solution when given."""
+    against time, each labelled by its reference position X; the exact
+    solution, when given, as a dashed black curve drawn over the computed
+    one (which is drawn as markers on a thin line)."""
     plt = _pyplot()
     h = result.history
     n = h["u"][0].shape[0]
     chosen = particles if particles is not None else [n // 4, n // 2, (3 * n) // 4]
     fig, ax = plt.subplots(figsize=(7, 4))
     t = result.times
+    X0 = np.asarray(h["X"][0])
     for i in chosen:
         series = [h["u"][k][i, component] for k in range(len(t))]
-        line, = ax.plot(t, series, "o-", markersize=3, label=f"particle {i}")
+        where = ", ".join(f"{c:.3g}" for c in X0[i])
+        ax.plot(t, series, "o-", markersize=3, linewidth=0.6, alpha=0.8,
+                        label=f"X = ({where})" if X0.shape[1] > 1 else f"X = {where}")
         if exact is not None:
             ts = np.linspace(t[0], t[-1], 200)
-            X = h["X"][0][i:i + 1]
-            ax.plot(ts, [exact(X, s)[0, component] for s in ts], "--", color=line.get_color(),
-                    linewidth=0.8)
+            ax.plot(ts, [exact(X0[i:i + 1], s)[0, component] for s in ts], "--",
+                    color="black", linewidth=1.0, zorder=3)
+    if exact is not None:
+        ax.plot([], [], "--", color="black", linewidth=1.0, label="exact")
     ax.set_xlabel("time")
     ax.set_ylabel(f"displacement u_{component}")
-    ax.set_title(title or "Displacement of particles (dashed: exact)")
+    ax.set_title(title or "Displacement of particles at reference position X"
+                 + (" (dashed: exact)" if exact is not None else ""))
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
     _save(plt, fig, path)
+    return path
+
+
+def _line_values(result, field, save, exact=None):
+    """A 1D field with its sign: sigma_xx, v_x, u_x or u_x - exact."""
+    h = result.history
+    if field == "stress":
+        return h["stress"][save][:, 0, 0]
+    if field in ("velocity", "displacement"):
+        return h["v" if field == "velocity" else "u"][save][:, 0]
+    if field == "error":
+        if exact is None:
+            raise ValueError("field='error' needs exact(X, t)")
+        return (h["u"][save] - exact(h["X"][save], result.times[save]))[:, 0]
+    return _field_values(result, field, save, exact)
+
+
+FIELD_LABELS = {"stress": ("sigma_xx", "von Mises stress"), "velocity": ("v_x", "|v|"),
+                "displacement": ("u_x", "|u|"), "error": ("u_x - exact", "|u - exact|")}
+
+
+def plot_field_snapshots(result, path, field="stress", count=4, exact=None, title=""):
+    """``field`` (stress, velocity, displacement or error) at ``count`` saves
+    spread over the run (the first and the last included). 1D: one line per
+    time over the particles' current position x (the signed value:
+    sigma_xx, v_x, u_x; with ``exact`` and the displacement, the exact u_x
+    dashed); 2D and 3D: one panel per time, particles coloured on one
+    shared scale (as :func:`plot_particles`, 3D as its middle z-slice)."""
+    plt = _pyplot()
+    saves = len(result.times)
+    picks = sorted(set(np.linspace(0, saves - 1, min(count, saves)).round().astype(int)))
+    dim = result.history["x"][0].shape[1]
+    if dim == 1:
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for k in picks:
+            x = result.history["x"][k][:, 0]
+            order = np.argsort(x)
+            ax.plot(x[order], _line_values(result, field, k, exact)[order], "-",
+                            linewidth=1.2, label=f"t = {result.times[k]:.4g}")
+            if exact is not None and field == "displacement":
+                X = result.history["X"][k]
+                ax.plot(x[order], exact(X, result.times[k])[order, 0], "--", color="black",
+                        linewidth=0.8, zorder=3)
+        if exact is not None and field == "displacement":
+            ax.plot([], [], "--", color="black", linewidth=0.8, label="exact")
+        ax.set_xlabel("position x")
+        ax.set_ylabel(FIELD_LABELS.get(field, (field,))[0])
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+        ax.set_title(title or f"{FIELD_LABELS.get(field, (field,))[0]} over x at "
+                     f"{len(picks)} times")
+        _save(plt, fig, path)
+        return path
+    values = [_field_values(result, field, k, exact) for k in picks]
+    lo = min(float(v.min()) for v in values)
+    hi = max(float(v.max()) for v in values)
+    fig, axes = plt.subplots(1, len(picks), figsize=(3.2 * len(picks) + 1, 3.6), squeeze=False,
+                             layout="constrained")
+    for ax, k, v in zip(axes[0], picks, values):
+        x = result.history["x"][k]
+        if dim == 3:
+            grid = result.grid
+            middle = 0.5 * sum(grid.bounds[2])
+            layer = x[np.argmin(np.abs(x[:, 2] - middle)), 2]
+            keep = np.abs(x[:, 2] - layer) < 0.25 * grid.h[2]
+            x, v = x[keep], v[keep]
+        sc = ax.scatter(x[:, 0], x[:, 1], c=v, s=4, cmap="viridis", vmin=lo, vmax=hi)
+        ax.set_aspect("equal")
+        ax.set_title(f"t = {result.times[k]:.4g}", fontsize=9)
+        ax.set_xlabel("x")
+    axes[0][0].set_ylabel("y")
+    fig.colorbar(sc, ax=list(axes[0]), label=FIELD_LABELS.get(field, ("", field))[1])
+    fig.suptitle(title or f"{FIELD_LABELS.get(field, ('', field))[1]} at {len(picks)} times"
+                 + (" (middle z-slice)" if dim == 3 else ""))
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
     return path

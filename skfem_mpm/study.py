@@ -23,24 +23,51 @@ first, alone in its worker, the other runs once those are done: each set
 compiles once and different sets compile side by side, instead of every
 worker compiling the same kernels at the same time (the later runs load
 them from numba's cache).
+
+Timing a run (:func:`run_one`): first an untimed warm-up run of the same
+scene and method, stopped after :data:`WARM_UP_STEPS` steps, compiles or
+loads every kernel the run calls (the consistent-mass assembly and CG and
+the reconstruction included, whatever ``warm_up_kernels`` covers); then
+``repeat`` timed runs, whose median is ``wall_time_s`` (the range in
+``wall_time_min_s``/``wall_time_max_s``). ``timed_compiles`` counts the
+numba kernels compiled or loaded during the timed runs: 0 means no
+compilation leaked into the figures.
 """
 import csv
 import math
 import multiprocessing
 import os
+import statistics
+import time
 from concurrent.futures import Executor, ProcessPoolExecutor
 from itertools import zip_longest
-
-import numpy as np
 
 from .benchmarks import get_benchmark
 from .solve.method import HYBRID_SCHEMES, MASSES, RECONSTRUCTIONS, SCHEMES, Method
 from .solve.timing import PHASES
 from .testing import observed_orders
 
-__all__ = ["parse_method", "run_one", "convergence", "work_precision", "write_report",
-           "QUICK_METHODS", "FULL_METHODS", "markdown_table", "time_to_reach",
-           "time_to_reach_table"]
+__all__ = [
+    "FULL_METHODS",
+    "QUICK_METHODS",
+    "REACH_TARGETS",
+    "WARM_UP_STEPS",
+    "convergence",
+    "markdown_table",
+    "parse_method",
+    "run_one",
+    "time_to_reach",
+    "time_to_reach_table",
+    "verdict",
+    "verdict_lines",
+    "work_precision",
+    "write_report",
+]
+
+# the error levels of the "time to reach e" table and the verdict
+REACH_TARGETS = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7)
+# steps of the untimed run that compiles a job's kernels before it is timed
+WARM_UP_STEPS = 3
 
 QUICK_METHODS = ("mpm-p1-lumped", "mpm-p2-lumped", "mpm-p2-consistent", "mpm-p3-consistent",
                  "mpm-p2-consistent-spline", "mpm-p3-consistent-spline", "fem-p2-consistent")
@@ -57,7 +84,8 @@ FIELDS = ("benchmark", "variant", "method", "kind", "degree", "mass", "reconstru
           "cells", "h", "ppc", "dofs", "particles", "steps", "dt", "error", "error_measure",
           "error_rms", "error_max",
           "error_rms_abs", "velocity_error_rms", "stress_error_rms", "order", "wall_time_s",
-          "jit_time_s") + tuple(f"phase_{p}_s" for p in PHASES) + ("status",)
+          "wall_time_min_s", "wall_time_max_s", "repeats", "jit_time_s", "timed_compiles") \
+    + tuple(f"phase_{p}_s" for p in PHASES) + ("status",)
 
 
 def parse_method(name, scheme="musl", cfl=0.5):
@@ -112,13 +140,43 @@ def _limit_threads():
         pass
 
 
+def _compiled_kernels():
+    """{id: number of compiled signatures} of every live numba dispatcher
+    (found among the objects the garbage collector tracks)."""
+    import gc
+
+    from numba.core.dispatcher import Dispatcher
+
+    return {id(d): len(d.overloads) for d in gc.get_objects() if isinstance(d, Dispatcher)}
+
+
+def _kernels_added(before):
+    """How many signatures were compiled or loaded since ``before``."""
+    now = _compiled_kernels()
+    return sum(max(0, n - before.get(k, 0)) for k, n in now.items())
+
+
+def _stop_after(steps):
+    return lambda step, state: step < steps
+
+
 def run_one(job):
-    """Run one (benchmark, method, cells) job; returns a record (dict)."""
+    """Run one (benchmark, method, cells) job; returns a record (dict).
+
+    An untimed warm-up run (``WARM_UP_STEPS`` steps of the same scene and
+    method; for fem, the scene at a thousandth of its end time) compiles
+    everything the job calls, then ``job["repeat"]`` (default 1) timed runs
+    give the median ``wall_time_s`` and its range. ``jit_time_s`` is the
+    warm-up run's whole time (compilation, cache loads, first-use set-up),
+    ``timed_compiles`` the kernels compiled or loaded during the timed runs."""
     from .errors import SimulationError
     from .solve import fem, simulate
 
     bench = get_benchmark(job["benchmark"], job.get("variant"), **job.get("params", {}))
     spec = job["method"]
+    repeat = int(job.get("repeat", 1))
+    if repeat < 1:
+        raise ValueError(f"repeat must be a positive integer, got {repeat}")
     method = Method(scheme=spec["scheme"], mass=spec["mass"],
                     reconstruction=spec["reconstruction"], cfl=spec["cfl"], dt=job.get("dt"))
     fem_run = spec["kind"] == "fem"
@@ -137,13 +195,27 @@ def run_one(job):
               "cells": job["cells"], "h": float(min(scene.grid.h)), "ppc": job["ppc"],
               "dofs": scene.grid.ndofs, "status": "ok"}
     try:
-        result = (fem(scene, method, save_every=save_every) if fem_run
-                  else simulate(scene, method, save_every=save_every))
+        t0 = time.perf_counter()
+        if fem_run:
+            fem(bench.scene(job["cells"], spec["degree"], job["ppc"], fem=True,
+                            t_end=1e-3 * scene.t_end), method)
+        else:
+            simulate(scene, method, callback=_stop_after(WARM_UP_STEPS))
+        first_use = time.perf_counter() - t0
+        times, compiles = [], 0
+        for _ in range(repeat):
+            before = _compiled_kernels()
+            result = (fem(scene, method, save_every=save_every) if fem_run
+                      else simulate(scene, method, save_every=save_every))
+            compiles += _kernels_added(before)
+            times.append(result.wall_time)
     except (SimulationError, ValueError) as exc:
         record["status"] = f"failed: {str(exc).splitlines()[0][:200]}"
         return record
     record.update(particles=result.counts["particles"], steps=result.counts["steps"],
-                  dt=result.dt, wall_time_s=result.wall_time, jit_time_s=result.jit_time)
+                  dt=result.dt, wall_time_s=statistics.median(times),
+                  wall_time_min_s=min(times), wall_time_max_s=max(times), repeats=repeat,
+                  jit_time_s=first_use, timed_compiles=compiles)
     for p, s in result.timings.items():
         record[f"phase_{p}_s"] = s
     if bench.has_exact:
@@ -168,18 +240,21 @@ def _executor(executor):
 
 
 def convergence(benchmark, methods, cells, ppc=2, variant=None, params=None, executor=None,
-                progress=False, scheme="musl", cfl=0.5, t_end=None):
+                progress=False, scheme="musl", cfl=0.5, t_end=None, repeat=1):
     """Run every method at every resolution; returns a list of records with
     errors, observed orders (between successive resolutions of a method),
-    wall time and per-phase times. ``executor`` as in the module docstring;
-    ``"serial"`` runs in this process, one run at a time."""
+    wall time (the median of ``repeat`` timed runs, compilation excluded,
+    see :func:`run_one`) and per-phase times. ``executor`` as in the module
+    docstring; ``"serial"`` runs in this process, one run at a time."""
+    if isinstance(repeat, bool) or not isinstance(repeat, int) or repeat < 1:
+        raise ValueError(f"repeat must be a positive integer, got {repeat!r}")
     specs = [m if isinstance(m, dict) else parse_method(m, scheme, cfl) for m in methods]
     cells = [int(c) for c in cells]
     if not cells or any(c < 1 for c in cells):
         raise ValueError(f"cells must be positive integers, got {cells}")
     get_benchmark(benchmark, variant, **(params or {}))  # validate early
     jobs = [{"benchmark": benchmark, "variant": variant, "params": dict(params or {}),
-             "method": spec, "cells": n, "ppc": ppc, "t_end": t_end}
+             "method": spec, "cells": n, "ppc": ppc, "t_end": t_end, "repeat": repeat}
             for spec in specs for n in cells]
     if executor == "serial":
         records = [run_one(job) for job in _progress(jobs, progress)]
@@ -280,34 +355,48 @@ def fastest_to(records, target):
     return out
 
 
-def time_to_reach(records, target):
+def _reach(rows, target, key):
+    """(time, bounded) for one method's ok runs ``rows`` in order of
+    resolution, or None: see :func:`time_to_reach`."""
+    for k, r in enumerate(rows):
+        if r["error"] > target:
+            continue
+        if k == 0:
+            return r[key], True
+        a, b = rows[k - 1], r
+        s = (math.log(target) - math.log(a["error"])) / \
+            (math.log(b["error"]) - math.log(a["error"]))
+        return math.exp(math.log(a[key]) + s * (math.log(b[key]) - math.log(a[key]))), False
+    return None
+
+
+def _by_method(records, key="wall_time_s"):
+    """{method: its ok runs with a positive error and time, by resolution}."""
+    by_method = {}
+    for r in records:
+        by_method.setdefault(r["method"], [])
+        if r["status"] == "ok" and r.get("error", 0) > 0 and (r.get(key) or 0) > 0:
+            by_method[r["method"]].append(r)
+    for rows in by_method.values():
+        rows.sort(key=lambda r: r["cells"])
+    return by_method
+
+
+def time_to_reach(records, target, key="wall_time_s", bounds=False):
     """{method: the wall time at which it reaches the relative error
     ``target``, or None when no run of it does}. Along a method's runs in
     order of resolution, the first run with error <= target and the one
     before it bracket the target; log(time) is interpolated linearly in
-    log(error) between them. When the coarsest run already reaches it, its
-    own time is reported (an upper bound)."""
-    by_method = {}
-    for r in records:
-        by_method.setdefault(r["method"], [])
-        if r["status"] == "ok" and r.get("error", 0) > 0 and r.get("wall_time_s", 0) > 0:
-            by_method[r["method"]].append(r)
+    log(error) between them (a straight segment of the log-log
+    work-precision curve; never extrapolated beyond the measured runs).
+    When the coarsest run already reaches it, its own time is reported: an
+    upper bound, flagged with ``bounds=True``, which returns
+    {method: (time, is_upper_bound) or None}. ``key`` picks the time
+    column (``wall_time_min_s``, ``wall_time_max_s`` for the range)."""
     out = {}
-    for method, rows in by_method.items():
-        rows.sort(key=lambda r: r["cells"])
-        out[method] = None
-        for k, r in enumerate(rows):
-            if r["error"] > target:
-                continue
-            if k == 0:
-                out[method] = r["wall_time_s"]
-            else:
-                a, b = rows[k - 1], r
-                s = (math.log(target) - math.log(a["error"])) / \
-                    (math.log(b["error"]) - math.log(a["error"]))
-                out[method] = math.exp(math.log(a["wall_time_s"]) + s * (
-                    math.log(b["wall_time_s"]) - math.log(a["wall_time_s"])))
-            break
+    for method, rows in _by_method(records, key).items():
+        reach = _reach(rows, target, key)
+        out[method] = reach if bounds or reach is None else reach[0]
     return out
 
 
@@ -323,18 +412,84 @@ def reach_targets(records):
     return [10.0 ** k for k in range(low, high + 1)][:6][::-1]
 
 
-def time_to_reach_table(records, targets=None):
-    """A Markdown table: per method, the time to reach each target error
-    (interpolated, see :func:`time_to_reach`; blank: not reached)."""
+def time_to_reach_table(records, targets=REACH_TARGETS):
+    """A Markdown table: per method, the time [s] to reach each target error
+    (interpolated, see :func:`time_to_reach`; ``<=`` marks the coarsest
+    run's time when it already reaches e, an upper bound; blank: not
+    reached). ``targets=None``: the decades the study spans."""
     targets = reach_targets(records) if targets is None else list(targets)
     methods = list(dict.fromkeys(r["method"] for r in records))
-    times = [time_to_reach(records, e) for e in targets]
+    times = [time_to_reach(records, e, bounds=True) for e in targets]
+
+    def cell(reach):
+        if reach is None:
+            return ""
+        return ("<= " if reach[1] else "") + _fmt(reach[0])
+
     lines = ["| method | " + " | ".join(f"e = {e:.0e}" for e in targets) + " |",
              "|" + "---|" * (len(targets) + 1)]
     for m in methods:
-        lines.append(f"| {m} | " + " | ".join(_fmt(t[m]) if t.get(m) is not None else ""
-                                                for t in times) + " |")
+        lines.append(f"| {m} | " + " | ".join(cell(t.get(m)) for t in times) + " |")
     return "\n".join(lines)
+
+
+def verdict(records, targets=REACH_TARGETS):
+    """Per target error e, the cheapest method (the smallest time to reach
+    e, :func:`time_to_reach`) and how robust that is: its ratio to the
+    runner-up, and whether it holds at the ends of the repeats' ranges (the
+    winner at its slowest repeat, ``wall_time_max_s``, against the
+    runner-up at its fastest, ``wall_time_min_s``; not judged, None, when
+    either was timed once, ``repeats`` 1). Returns a list of dicts
+    (target, best, time, upper_bound, runner_up, runner_up_time, ratio,
+    worst_ratio, holds); ``best`` is None where no method reaches e."""
+    out = []
+    for e in targets:
+        reach = {m: t for m, t in time_to_reach(records, e, bounds=True).items()
+                 if t is not None}
+        row = {"target": e, "best": None}
+        if reach:
+            ranked = sorted(reach, key=lambda m: reach[m][0])
+            best = ranked[0]
+            row.update(best=best, time=reach[best][0], upper_bound=reach[best][1],
+                       runner_up=None, ratio=None, worst_ratio=None, holds=None)
+            if len(ranked) > 1:
+                second = ranked[1]
+                slow = time_to_reach(records, e, "wall_time_max_s").get(best)
+                fast = time_to_reach(records, e, "wall_time_min_s").get(second)
+                row.update(runner_up=second, runner_up_time=reach[second][0],
+                           ratio=reach[second][0] / reach[best][0])
+                single = any((r.get("repeats") or 2) < 2 for r in records
+                             if r["method"] in (best, second))
+                if slow and fast and not single:  # one timed run has no range
+                    row.update(worst_ratio=fast / slow, holds=fast > slow)
+        out.append(row)
+    return out
+
+
+def verdict_lines(records, targets=REACH_TARGETS):
+    """The verdict (:func:`verdict`) as sentences, one per target error."""
+    lines = []
+    for v in verdict(records, targets):
+        e = f"{v['target']:.0e}"
+        if v["best"] is None:
+            lines.append(f"e = {e}: no method reaches it in this study")
+            continue
+        bound = "<= " if v["upper_bound"] else ""
+        text = f"e = {e}: cheapest {v['best']} ({bound}{v['time']:.3g} s)"
+        if v["runner_up"] is None:
+            lines.append(text + ", the only method that reaches it")
+            continue
+        text += (f", {v['ratio']:.2f}x faster than the runner-up {v['runner_up']} "
+                 f"({v['runner_up_time']:.3g} s)")
+        if v["holds"] is None:
+            text += "; one timed run each, no range to judge it by"
+        elif v["holds"]:
+            text += f"; holds over the repeats' range (worst case {v['worst_ratio']:.2f}x)"
+        else:
+            text += (f"; NOT robust: within the repeats' range (worst case "
+                     f"{v['worst_ratio']:.2f}x)")
+        lines.append(text)
+    return lines
 
 
 # ------------------------------------------------------------------ reports
@@ -349,7 +504,8 @@ def _fmt(value):
 
 
 def markdown_table(records, columns=("method", "cells", "particles", "steps", "error",
-                                     "order", "wall_time_s", "jit_time_s")):
+                                     "order", "wall_time_s", "wall_time_min_s",
+                                     "wall_time_max_s", "jit_time_s")):
     """A Markdown table of the chosen columns."""
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     for r in records:
@@ -382,9 +538,12 @@ def write_report(records, out, title=None, timing_note=None):
         if timing_note:
             f.write(timing_note + "\n\n")
         f.write(markdown_table(records) + "\n\n## Time to reach a relative error e [s]\n\n")
-        f.write("Wall time interpolated in log-log between the two runs that bracket e "
-                "(blank: not reached).\n\n")
-        f.write(time_to_reach_table(records) + "\n\n## Time per phase [s]\n\n")
+        f.write("Wall time (median of the repeats) interpolated in log-log between the two "
+                "runs that bracket e; `<=`: the coarsest run already reaches e (its time, an "
+                "upper bound); blank: not reached. Never extrapolated.\n\n")
+        f.write(time_to_reach_table(records) + "\n\n## Verdict\n\n")
+        f.write("".join(f"- {line}\n" for line in verdict_lines(records)))
+        f.write("\n## Time per phase [s]\n\n")
         f.write(markdown_table(records, phase_cols) + "\n")
     plot_convergence(records, paths["convergence"], title)
     plot_work_precision(records, paths["work_precision"], title)

@@ -113,3 +113,30 @@ def test_a_c_run_that_computed_something_else_gets_no_ratio(capsys):
     out = capsys.readouterr().out
     assert "WARNING: the C reference did not end in our final state" in out
     assert "no ratio" in out and "x C" not in out
+
+
+def test_the_numpy_path_ratio_is_computed_from_this_runs_figures(monkeypatch, capsys):
+    """--reference: the compiled/NumPy ratio divides the two throughputs of
+    the same report, and the machine line names CPU, cores and threads."""
+    from skfem_mpm.bench import _print_report
+
+    monkeypatch.setenv("CC", "/nonexistent")
+    assert main(["bench", "--quick", "--reference", "--json"]) == 0
+    measured = json.loads(capsys.readouterr().out)
+    ours, numpy_path = measured["2d_usl"], measured["2d_usl_reference"]
+    assert numpy_path["ratio_compiled_to_reference"] == pytest.approx(
+        ours["particle_steps_per_s"] / numpy_path["particle_steps_per_s"], rel=1e-12)
+
+    phases = {"p2g": 0.5}
+    row = lambda rate: {"particle_steps_per_s": rate, "particles": 10, "steps": 2,
+                        "jit_time_s": 0.0, "path": "p", "phases": phases, "wall_time_s": 1.0}
+    report = {"machine": {"cpu": "Test CPU 9000", "cores": 2, "system": "Linux",
+                          "python": "3.x"}, "threads": 2,
+              "2d_usl": row(8e6), "2d_usl_reference": dict(row(2e6)),
+              "c_reference": {"available": False, "reason": "none here"}}
+    report["2d_usl_reference"]["ratio_compiled_to_reference"] = 4.0
+    _print_report(report, 1)
+    out = capsys.readouterr().out
+    assert "machine: Test CPU 9000, 2 cores" in out and "threads: 2 (numba)" in out
+    assert "4.0x this NumPy reference path (both measured in this run)" in out
+    assert "x C" not in out

@@ -46,3 +46,19 @@ def test_particle_forms_match_gauss_at_gauss_points():
     out = load("particle_forms").main(cells=4)
     assert out["gauss"][0] < 1e-13 and out["gauss"][1] < 1e-13
     assert out["uniform"][0] > 1e-8  # uniform particles are not an exact rule
+
+
+def test_readme_first_example_prints_mpm_and_fem_errors_side_by_side(capsys):
+    """The README's first Python block runs as written and prints both
+    errors on one line, each small."""
+    import re
+
+    text = (EXAMPLES.parent / "README.md").read_text()
+    code = re.search(r"```python\n(.*?)```", text, re.DOTALL).group(1)
+    exec(compile(code, "README.md", "exec"), {})  # noqa: S102 (the README block runs as written)
+    line = next(ln for ln in capsys.readouterr().out.splitlines()
+                if ln.startswith("relative error"))
+    mpm, fem = (float(v) for v in re.findall(r"(?:MPM|FEM) ([0-9.e+-]+)", line))
+    assert 0 < mpm < 1e-3 and 0 < fem < 1e-3
+    # the figures the README quotes are the ones it prints
+    assert f"MPM {mpm:.2e}, FEM {fem:.2e}" in " ".join(text.split())

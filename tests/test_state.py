@@ -147,7 +147,8 @@ def test_a_material_without_state_keeps_none():
     scene = bar_scene(LinearElastic(10.0, 0.3), 2)
     assert scene.particles().state == {}
     r = simulate(scene, Method(backend="numba"), save_every=5)
-    assert r.particles.state == {} and set(r.history) == {"X", "x", "u", "v", "stress", "index"}
+    assert r.particles.state == {} and set(r.history) == {"X", "x", "u", "v", "stress", "index",
+                                                          "m", "V", "body"}
 
 
 # ------------------------------------------------------------------ removal

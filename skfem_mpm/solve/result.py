@@ -8,6 +8,8 @@ from .timing import PHASES
 __all__ = ["Result", "Recorder"]
 
 HISTORY_FIELDS = ("X", "x", "u", "v", "stress", "index")
+# also saved, for output (ParaView); optional in a checkpoint written before them
+OUTPUT_FIELDS = ("m", "V", "body")
 ENERGY_FIELDS = ("kinetic", "strain", "external_work", "total")
 
 
@@ -24,6 +26,7 @@ class Result:
         Per save: ``X`` reference positions, ``x`` positions, ``u``
         displacements, ``v`` velocities, ``stress``, ``index`` (each
         particle's index in the initial set; differs only after removals),
+        ``m`` masses, ``V`` volumes, ``body`` body ids,
         and each material state field by its name (``particles.state``,
         e.g. ``history["plastic_strain"]``). Stacked into arrays of shape
         (saves, n, ...) when no particle was removed, otherwise lists.
@@ -101,7 +104,7 @@ class Recorder:
 
     def __init__(self):
         self.times = []
-        self.history = {k: [] for k in HISTORY_FIELDS}
+        self.history = {k: [] for k in HISTORY_FIELDS + OUTPUT_FIELDS}
         self.energies = {k: [] for k in ENERGY_FIELDS}
         self.reactions = []
         self.last_step_saved = None
@@ -119,6 +122,9 @@ class Recorder:
         self.history["u"].append(keep(p.u))
         self.history["v"].append(keep(v))
         self.history["stress"].append(keep(p.stress))
+        self.history["m"].append(p.m)  # constant while the particle set is
+        self.history["body"].append(p.body)
+        self.history["V"].append(keep(p.V))
         for name, values in p.state.items():  # the material state, by field name
             self.history.setdefault(name, []).append(keep(values))
         kinetic, strain = state.energies()
@@ -157,13 +163,13 @@ class Recorder:
     def _keys(name):
         """The checkpoint keys of a history entry: (sizes, values); a
         material state field's keys hold a dot, which no other key has."""
-        if name in HISTORY_FIELDS:
+        if name in HISTORY_FIELDS + OUTPUT_FIELDS:
             return f"rec_n_{name}", f"rec_{name}"
         return f"rec_state_n.{name}", f"rec_state.{name}"
 
     def state_arrays(self):
         last = self.last_step_saved
-        state_names = [k for k in self.history if k not in HISTORY_FIELDS]
+        state_names = [k for k in self.history if k not in HISTORY_FIELDS + OUTPUT_FIELDS]
         out = {"rec_times": np.array(self.times),
                "rec_last_step": np.array(-1 if last is None else last, dtype=np.int64),
                "rec_state_names": np.array(json.dumps(state_names))}
@@ -184,7 +190,8 @@ class Recorder:
         last = int(data["rec_last_step"]) if "rec_last_step" in data else -1
         rec.last_step_saved = None if last < 0 else last
         names = json.loads(str(data["rec_state_names"])) if "rec_state_names" in data else []
-        for k in HISTORY_FIELDS + tuple(names):
+        present = tuple(k for k in OUTPUT_FIELDS if cls._keys(k)[0] in data)
+        for k in HISTORY_FIELDS + present + tuple(names):
             sizes_key, values_key = cls._keys(k)
             sizes = data[sizes_key]
             flat = data[values_key]
