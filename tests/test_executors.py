@@ -258,7 +258,7 @@ def test_executors_agree_with_rk4(case):
 
 
 # reconstructions on the compiled executor: 1D spline (particle knots),
-# tls (the published default) in 1D and 2D; ppc 3 exercises TLS's quadratic
+# tls (the published default) and mls in 1D and 2D; ppc 3 exercises TLS's quadratic
 # level, 2 its linear fallback. In 2D the body fills whole cells
 # ("aligned") but in one case: in a partly filled cell the conserving fit
 # of a constant density is not constant (on this scene rho_h reaches -1.7
@@ -295,7 +295,18 @@ RECONSTRUCTED = [dict(scheme=scheme, mass=mass, degree=degree, dim=1, material=m
         (2, "rk4", "lumped", 2, "custom-staged", "prescribed", 3, True),
         (2, "rk4", "consistent", 3, "linear", "none", 2, True),
         (2, "musl", "hybrid", 3, "custom", "gravity", 3, True),
-        (2, "usl", "consistent", 2, "linear", "prescribed", 3, True))]
+        (2, "usl", "consistent", 2, "linear", "prescribed", 3, True))] + [
+    dict(scheme=scheme, mass=mass, degree=degree, dim=dim, material=material, effect=effect,
+         reconstruction="mls", ppc=ppc)
+    for dim, scheme, mass, degree, material, effect, ppc in (
+        (1, "musl", "lumped", 2, "linear", "gravity", 2),
+        (1, "usl", "consistent", 3, "neo-hookean", "traction", 3),
+        (1, "rk4", "lumped", 2, "custom-staged", "damping", 2),
+        (2, "musl", "lumped", 2, "linear", "body-force", 2),
+        (2, "musl", "consistent", 3, "custom", "gravity", 3),
+        (2, "cd", "lumped", 2, "neo-hookean", "traction", 2),
+        (2, "rk4", "consistent", 2, "linear", "prescribed", 2),
+        (2, "musl", "hybrid", 2, "custom-compiled", "none", 3))]
 
 
 @pytest.mark.parametrize("case", RECONSTRUCTED, ids=_id)

@@ -21,13 +21,15 @@ in 2D the cells holding particles
 (:func:`skfem_mpm.kernels.gauss_rule.gauss_rule_cells`), p + 2 points per
 axis, both bit for bit those of :func:`skfem_mpm.reconstruct.integration_rule`.
 The reconstructions: the particle-knot spline in 1D
-(:mod:`skfem_mpm.kernels.spline_1d`) and the published TLS (default
-options) in 1D and 2D (:mod:`skfem_mpm.kernels.tls`). Which run here is
+(:mod:`skfem_mpm.kernels.spline_1d`), the published TLS (default
+options) in 1D and 2D (:mod:`skfem_mpm.kernels.tls`) and mls in 1D and 2D
+(:mod:`skfem_mpm.kernels.mls`). Which run here is
 :func:`unsupported`'s answer; the rest stays on the reference executor.
 """
 import numpy as np
 
 from ..kernels.gauss_rule import gauss_rule_1d, gauss_rule_cells, locate_cells
+from ..kernels.mls import mls_reconstruct
 from ..kernels.spline_1d import not_a_knot_spline
 from ..kernels.tls import tls_reconstruct
 
@@ -48,6 +50,10 @@ def unsupported(method, dim):
             return "reconstruction spline with knots='grid'"
         if set(options) - {"knots", "penalty"}:
             return "reconstruction options"
+        return None
+    if recon == "mls" and dim in (1, 2):
+        if set(options) - {"radius"}:
+            return "reconstruction mls options other than radius"
         return None
     if recon == "tls":
         for name, value in options.items():
@@ -94,10 +100,13 @@ class CompiledReconstruction:
         self.uniform = (bool(grid._uniform[0]), bool(grid._uniform[-1]))
         self.gap = float(grid.cell_sizes[0].max())
         self._zero_a = np.zeros((grid.ndofs, grid.dim))
+        if self.name == "mls":  # the reference's kernel radius: radius cells of the smallest
+            self.radius = float(state.method.reconstruction_options.get("radius", 1.5)) \
+                * min(grid.h)
 
     def rule(self, p):
         pcell = None
-        if self.name == "tls":
+        if self.name == "tls" or self.dim == 2:
             pcell = locate_cells(p.x, self.breaks, self.breaks1, *self.uniform)
         if self.dim == 1:
             order, pp, pg, xg, wg, cell = gauss_rule_1d(p.x[:, 0], p.V, self.gap, self.breaks,
@@ -113,6 +122,9 @@ class CompiledReconstruction:
         if self.name == "tls":
             tls_reconstruct(p.x, p.V, values, rule.pcell, rule.x, rule.w, rule.cell,
                             self.breaks, self.breaks1, out)
+            return out
+        if self.name == "mls":
+            mls_reconstruct(p.x, values, rule.x, self.radius, out)
             return out
         not_a_knot_spline(p.x[:, 0], values, rule.order, rule.piece_particles,
                           rule.piece_points, rule.x[:, 0], out)
