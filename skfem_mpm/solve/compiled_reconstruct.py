@@ -30,6 +30,7 @@ import numpy as np
 
 from ..kernels.gauss_rule import gauss_rule_1d, gauss_rule_cells, locate_cells
 from ..kernels.mls import mls_reconstruct
+from ..kernels.spline_2d import WIDTH, spline_evaluate, spline_ls_system
 from ..kernels.spline_1d import not_a_knot_spline
 from ..kernels.tls import tls_reconstruct
 
@@ -45,6 +46,10 @@ def unsupported(method, dim):
     if callable(recon):
         return "reconstruction: a user's callable"
     options = dict(method.reconstruction_options)
+    if recon == "spline" and dim == 2:
+        if set(options) - {"knots", "penalty"}:
+            return "reconstruction options"
+        return None
     if recon == "spline" and dim == 1:
         if options.get("knots", "particles") != "particles":
             return "reconstruction spline with knots='grid'"
@@ -83,15 +88,93 @@ class Rule:
         self.order, self.piece_particles, self.piece_points = order, piece_particles, piece_points
 
 
+class SplineLeastSquares:
+    """The 2D spline reconstruction (:mod:`skfem_mpm.kernels.spline_2d`):
+    the compiled assembly of (A + P) c = B^T W f in the cubic B-spline
+    space of the grid, its sparse LU factorisation (SuperLU, as the
+    reference's ``splu``; one per set of particle positions and volumes,
+    reused by every reconstruction on them: a step's fields and its MUSL
+    projection, a power iteration's products) and the compiled evaluation
+    at the Gauss points."""
+
+    def __init__(self, grid, penalty=1e-6):
+        from ..spline import SplineGrid
+
+        cubic = SplineGrid(grid.breakpoints, 3)
+        self.axes = tuple((np.ascontiguousarray(u, dtype=np.float64), bool(cubic._uniform[a]),
+                           (u.size - 1) / (u[-1] - u[0]), cubic.extraction[a])
+                          for a, u in enumerate(cubic.breakpoints))
+        self.nbx, self.nby = cubic.basis_per_axis
+        self.penalty = float(penalty)
+        nd = self.nbx * self.nby
+        dof = np.arange(nd)
+        a, b = dof % self.nbx, dof // self.nbx
+        offsets = np.arange(WIDTH) - WIDTH // 2
+        aa = a[:, None] + np.tile(offsets, WIDTH)[None, :]
+        bb = b[:, None] + np.repeat(offsets, WIDTH)[None, :]
+        valid = (aa >= 0) & (aa < self.nbx) & (bb >= 0) & (bb < self.nby)
+        self.slots = np.flatnonzero(valid.ravel())
+        self.cols = (bb * self.nbx + aa).ravel()[self.slots].astype(np.int32)
+        self.indptr = np.concatenate(([0], np.cumsum(valid.sum(axis=1)))).astype(np.int32)
+        self.A = np.zeros((nd, WIDTH * WIDTH))
+        self.ndofs = nd
+
+    def factor(self, x, V, values):
+        """(LU of A + P, B^T W f) for the particles (x, V)."""
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as spla
+
+        rhs = np.empty((self.ndofs, values.shape[1]))
+        spline_ls_system(x, V, values, *self.axes, self.nbx, self.nby, self.penalty, True,
+                         self.A, rhs)
+        # A + P is symmetric: its CSR arrays are those of its CSC form
+        matrix = sp.csc_matrix((self.A.ravel()[self.slots], self.cols, self.indptr),
+                               shape=(self.ndofs, self.ndofs))
+        return spla.splu(matrix), rhs
+
+    def __call__(self, x, V, values, xg, out, lu=None):
+        """out = the fit at xg; returns the factorisation (pass it back as
+        ``lu`` for other values on the same particles)."""
+        if lu is None:
+            lu, rhs = self.factor(x, V, values)
+        else:
+            rhs = np.empty((self.ndofs, values.shape[1]))
+            spline_ls_system(x, V, values, *self.axes, self.nbx, self.nby, self.penalty,
+                             False, self.A, rhs)
+        spline_evaluate(xg, np.ascontiguousarray(lu.solve(rhs)), *self.axes, self.nbx, out)
+        return lu
+
+
 class CompiledReconstruction:
     """The Gauss rule, the reconstruction and the Gauss-side integration of
     one run on a :class:`skfem_mpm.kernels.mpm.Kernels` set."""
 
     def __init__(self, state, kernels):
-        grid = state.grid
+        self._setup(state.grid, state.method.reconstruction, state.method.reconstruction_options)
         self.kernels = kernels
+
+    @classmethod
+    def reconstructor(cls, grid, name, options):
+        """The compiled reconstruction ``name`` with the reference's
+        signature ``(grid, particles, values, rule)`` on a reference
+        :class:`~skfem_mpm.reconstruct.IntegrationRule` of a 2D grid (what
+        :class:`skfem_mpm.solve.timestep.ReconstructedOperator` applies;
+        the 2D spline factorises once per rule)."""
+        self = cls.__new__(cls)
+        self._setup(grid, name, options)
+        self.kernels = None
+        breaks = (self.breaks, self.breaks1)
+
+        def reconstruct(grid, particles, values, rule):
+            if getattr(rule, "pcell", None) is None:
+                rule.pcell = locate_cells(particles.x, *breaks, *self.uniform)
+            return self.reconstruct(particles, np.asarray(values, dtype=np.float64), rule)
+
+        return reconstruct
+
+    def _setup(self, grid, name, options):
         self.dim = grid.dim
-        self.name = state.method.reconstruction
+        self.name = name
         ref, wref = np.polynomial.legendre.leggauss(grid.degree + 2)
         self.ref, self.wref = 0.5 * (ref + 1), 0.5 * wref
         axes = [np.ascontiguousarray(b, dtype=np.float64) for b in grid.breakpoints]
@@ -100,9 +183,10 @@ class CompiledReconstruction:
         self.uniform = (bool(grid._uniform[0]), bool(grid._uniform[-1]))
         self.gap = float(grid.cell_sizes[0].max())
         self._zero_a = np.zeros((grid.ndofs, grid.dim))
+        if self.name == "spline" and self.dim == 2:
+            self.spline_ls = SplineLeastSquares(grid, options.get("penalty", 1e-6))
         if self.name == "mls":  # the reference's kernel radius: radius cells of the smallest
-            self.radius = float(state.method.reconstruction_options.get("radius", 1.5)) \
-                * min(grid.h)
+            self.radius = float(options.get("radius", 1.5)) * min(grid.h)
 
     def rule(self, p):
         pcell = None
@@ -125,6 +209,9 @@ class CompiledReconstruction:
             return out
         if self.name == "mls":
             mls_reconstruct(p.x, values, rule.x, self.radius, out)
+            return out
+        if self.dim == 2:  # spline: one factorisation per rule (the particles' positions)
+            rule.lu = self.spline_ls(p.x, p.V, values, rule.x, out, getattr(rule, "lu", None))
             return out
         not_a_knot_spline(p.x[:, 0], values, rule.order, rule.piece_particles,
                           rule.piece_points, rule.x[:, 0], out)
