@@ -91,8 +91,8 @@ class Rule:
 class SplineLeastSquares:
     """The 2D spline reconstruction (:mod:`skfem_mpm.kernels.spline_2d`):
     the compiled assembly of (A + P) c = B^T W f in the cubic B-spline
-    space of the grid, its sparse LU factorisation (SuperLU, as the
-    reference's ``splu``; one per set of particle positions and volumes,
+    space of the grid, its sparse LU factorisation (SuperLU as the
+    reference's ``splu``, with a minimum-degree ordering; one per set of particle positions and volumes,
     reused by every reconstruction on them: a step's fields and its MUSL
     projection, a power iteration's products) and the compiled evaluation
     at the Gauss points."""
@@ -130,7 +130,10 @@ class SplineLeastSquares:
         # A + P is symmetric: its CSR arrays are those of its CSC form
         matrix = sp.csc_matrix((self.A.ravel()[self.slots], self.cols, self.indptr),
                                shape=(self.ndofs, self.ndofs))
-        return spla.splu(matrix), rhs
+        # minimum degree on A^T + A (the matrix is symmetric): 16 x 16 quadratic
+        # cells (361 cubic dofs) 1.9 ms against 12.5 ms with splu's default
+        # COLAMD; 128 x 128 (17,161 dofs) 1.6 s against 8.2 s
+        return spla.splu(matrix, permc_spec="MMD_AT_PLUS_A"), rhs
 
     def __call__(self, x, V, values, xg, out, lu=None):
         """out = the fit at xg; returns the factorisation (pass it back as
