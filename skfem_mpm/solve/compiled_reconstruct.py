@@ -27,9 +27,13 @@ options) in 1D and 2D (:mod:`skfem_mpm.kernels.tls`) and mls in 1D and 2D
 :func:`unsupported`'s answer; the rest stays on the reference executor.
 """
 import numpy as np
+from numba import get_num_threads
 
+from ..errors import InvalidState
 from ..kernels.gauss_rule import gauss_rule_1d, gauss_rule_cells, locate_cells
+from ..kernels.kronecker import KroneckerData, axis_mass_bands
 from ..kernels.mls import mls_reconstruct
+from ..kernels.mpm import ell_pcg
 from ..kernels.spline_2d import WIDTH, spline_evaluate, spline_ls_system
 from ..kernels.spline_1d import not_a_knot_spline
 from ..kernels.tls import tls_reconstruct
@@ -88,6 +92,47 @@ class Rule:
         self.order, self.piece_particles, self.piece_points = order, piece_particles, piece_points
 
 
+DIRECT_DOFS = 4000
+"""The 2D spline solves its least-squares system by sparse LU below this
+many cubic dofs, by Kronecker-preconditioned CG from the last solution
+above (:class:`KroneckerCG`)."""
+
+
+class KroneckerCG:
+    """Solves (A + P) c = b by the consistent mass's CG
+    (:func:`skfem_mpm.kernels.mpm.ell_pcg`) with its Kronecker
+    preconditioner (:mod:`skfem_mpm.kernels.kronecker`): A is the cubic
+    space's mass matrix of unit density integrated by the particles, which
+    the Kronecker product of the 1D Gauss mass matrices approximates where
+    particles fill cells. Started from the previous solution with the same
+    number of columns; rtol per column (``problem`` = column)."""
+
+    def __init__(self, fit, A, previous, rtol):
+        self.fit, self.A, self.rtol = fit, A, rtol
+        lumped = A.sum(axis=1)
+        self.kron = KroneckerData(fit.bands, fit.row_sums, (3, fit.nbx, fit.nby, 2),
+                                  fit.rows, lumped, previous=previous)
+        self.inv_diag = 1.0 / A[:, WIDTH * WIDTH // 2]
+        self.iterations = 0
+
+    def solve(self, rhs):
+        nd, nc = rhs.shape
+        fit = self.fit
+        x = fit.warm.get(nc)
+        x = np.zeros((nd, nc)) if x is None else x.copy()
+        work = np.empty((6, nd, nc))
+        nt = get_num_threads()
+        its = ell_pcg(self.A, fit.ell_cols, self.inv_diag, self.kron.args(nc, nt), None,
+                      np.ascontiguousarray(rhs), x, np.arange(nc), self.rtol, 10 * nd + 100,
+                      nt, work)
+        if its < 0:
+            raise InvalidState(f"2D spline reconstruction: CG stopped above its tolerance "
+                               f"{self.rtol:g} after {-its} iterations")
+        self.iterations += its
+        fit.warm[nc] = x
+        return x
+
+
 class SplineLeastSquares:
     """The 2D spline reconstruction (:mod:`skfem_mpm.kernels.spline_2d`):
     the compiled assembly of (A + P) c = B^T W f in the cubic B-spline
@@ -97,7 +142,7 @@ class SplineLeastSquares:
     projection, a power iteration's products) and the compiled evaluation
     at the Gauss points."""
 
-    def __init__(self, grid, penalty=1e-6):
+    def __init__(self, grid, penalty=1e-6, iterative=None):
         from ..spline import SplineGrid
 
         cubic = SplineGrid(grid.breakpoints, 3)
@@ -118,6 +163,17 @@ class SplineLeastSquares:
         self.indptr = np.concatenate(([0], np.cumsum(valid.sum(axis=1)))).astype(np.int32)
         self.A = np.zeros((nd, WIDTH * WIDTH))
         self.ndofs = nd
+        self.iterative = nd >= DIRECT_DOFS if iterative is None else bool(iterative)
+        self.rtol = 1e-13
+        if self.iterative:
+            own = np.repeat(dof, WIDTH * WIDTH).reshape(nd, WIDTH * WIDTH)
+            self.ell_cols = np.where(valid, bb * self.nbx + aa, own).astype(np.int64)
+            pairs = [axis_mass_bands(cubic, axis) for axis in range(2)]
+            self.bands = [bnd for bnd, _ in pairs]
+            self.row_sums = [rs for _, rs in pairs]
+            self.rows = dof.astype(np.int64)
+            self.warm = {}
+            self._kron = None
 
     def factor(self, x, V, values):
         """(LU of A + P, B^T W f) for the particles (x, V)."""
@@ -127,6 +183,10 @@ class SplineLeastSquares:
         rhs = np.empty((self.ndofs, values.shape[1]))
         spline_ls_system(x, V, values, *self.axes, self.nbx, self.nby, self.penalty, True,
                          self.A, rhs)
+        if self.iterative:
+            solver = KroneckerCG(self, self.A, self._kron, self.rtol)
+            self._kron = solver.kron
+            return solver, rhs
         # A + P is symmetric: its CSR arrays are those of its CSC form
         matrix = sp.csc_matrix((self.A.ravel()[self.slots], self.cols, self.indptr),
                                shape=(self.ndofs, self.ndofs))
