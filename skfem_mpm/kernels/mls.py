@@ -110,7 +110,7 @@ def mls_reconstruct(x, values, xg, r, out):
     """out[g] (ng, k) = the linear MLS fit of the particle ``values`` (n, k)
     at the point xg[g] (see the module docstring); ``x`` (n, d) particle
     positions, ``r`` the kernel radius."""
-    n, dim = x.shape
+    dim = x.shape[1]
     k = values.shape[1]
     m = dim + 1
     lower, nbox, order, start = _boxes(x, r)

@@ -27,7 +27,7 @@ from numba import njit
 
 from .stencil import axis_functions
 
-__all__ = ["WIDTH", "spline_ls_system", "spline_evaluate"]
+__all__ = ["WIDTH", "spline_evaluate", "spline_ls_system"]
 
 P = 3  # cubic
 WIDTH = 2 * P + 1  # stencil offsets -3..3 per axis

@@ -34,8 +34,8 @@ from ..kernels.gauss_rule import gauss_rule_1d, gauss_rule_cells, locate_cells
 from ..kernels.kronecker import KroneckerData, axis_mass_bands
 from ..kernels.mls import mls_reconstruct
 from ..kernels.mpm import ell_pcg
-from ..kernels.spline_2d import WIDTH, spline_evaluate, spline_ls_system
 from ..kernels.spline_1d import not_a_knot_spline
+from ..kernels.spline_2d import WIDTH, spline_evaluate, spline_ls_system
 from ..kernels.tls import tls_reconstruct
 
 TLS_DEFAULTS = {"degree": 2, "neighbour_weight": 0.0}
