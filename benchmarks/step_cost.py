@@ -10,6 +10,11 @@ per step of:
   both with the spline reconstruction (particle knots);
 * D2 small, the vibrating plate: 16 x 16 quadratic cells, 2 x 2 particles
   per cell, MUSL, lumped and consistent mass;
+* D2 small at 16 x 16 and 128 x 128 quadratic cells with 3 x 3 particles
+  per cell (``d2-<cells>-ppc3-...``: 40 and 5 steps of the lumped step size),
+  MUSL: lumped, consistent, and consistent with each of spline, tls and
+  mls; each also as the ratio to the lumped step of the same scene (issue
+  18's target: <= 4), pair by pair (the cases' runs alternate);
 
 and, in the same run, a minimal compiled lumped MUSL step of the S1 problem
 (one numba function, four passes over the particles: particles to grid,
@@ -18,6 +23,9 @@ figure is printed also as a ratio to that minimal step, so the targets hold
 as ratios on another machine.
 
     python benchmarks/step_cost.py [--repeat 5] [--json] [--only NAME ...]
+
+(``--only d2-16-ppc3-lumped-musl d2-16-ppc3-consistent-tls-musl`` gives
+that case's same-scene ratio; ``--list`` prints the case names.)
 """
 import argparse
 import json
@@ -167,12 +175,38 @@ def _api_dt(scene):
 
 
 # ------------------------------------------------------- the product's steps
+D2_PPC3_STEPS = {16: 40, 128: 5}
+D2_PPC3_VARIANTS = {"lumped": dict(mass="lumped"), "consistent": dict(mass="consistent"),
+                    **{f"consistent-{r}": dict(mass="consistent", reconstruction=r)
+                       for r in ("spline", "tls", "mls")}}
+
+
+def _d2_ppc3(cells):
+    """D2 small, quadratic, 3 x 3 particles per cell, lasting
+    D2_PPC3_STEPS[cells] lumped steps."""
+    from skfem_mpm.benchmarks import get_benchmark
+
+    d2 = get_benchmark("vibrating-plate-2d", "small")
+    return d2.scene(cells, 2, 3, t_end=D2_PPC3_STEPS[cells] * _api_dt(d2.scene(cells, 2, 3)))
+
+
+def same_scene_lumped(name):
+    """The lumped case of the same scene as case ``name`` (a D2 ppc3 case),
+    or None."""
+    for variant in D2_PPC3_VARIANTS:
+        if name.endswith(f"-{variant}-musl") and name.startswith("d2-") and "-ppc3-" in name:
+            return name[:-len(f"{variant}-musl")] + "lumped-musl"
+    return None
+
+
 def cases():
     from skfem_mpm.benchmarks import get_benchmark
 
     s1 = get_benchmark("vibrating-string", "small")
     d2 = get_benchmark("vibrating-plate-2d", "small")
     period = 2 * np.pi / s1.omega
+    ppc3 = {f"d2-{cells}-ppc3-{variant}-musl": ((lambda cells=cells: _d2_ppc3(cells)), margs)
+            for cells in D2_PPC3_STEPS for variant, margs in D2_PPC3_VARIANTS.items()}
     return {
         "s1-lumped-musl": (lambda: s1.scene(32, 2, 4, t_end=period), dict(mass="lumped")),
         "s1-consistent-musl": (lambda: s1.scene(32, 2, 4, t_end=period),
@@ -183,22 +217,30 @@ def cases():
                                   dict(mass="lumped", reconstruction="spline")),
         "d2-16-lumped-musl": (lambda: d2.scene(16, 2, 2), dict(mass="lumped")),
         "d2-16-consistent-musl": (lambda: d2.scene(16, 2, 2), dict(mass="consistent")),
+        **ppc3,
     }
 
 
-def step_us(make_scene, method_args, repeat):
-    """Median microseconds per step through ``simulate`` (JIT excluded)."""
+def step_runs(selected, repeat):
+    """{name: (runs, path)}: microseconds per step through ``simulate`` (JIT
+    and the run's preparation excluded) of each selected case (name ->
+    (make_scene, method_args)), ``repeat`` runs each, the cases in turn
+    (A B C A B C ...) so that same-scene ratios are taken pair by pair."""
     from skfem_mpm import Method, simulate
 
-    scene = make_scene()
-    method = Method(scheme="musl", **method_args)
-    simulate(scene, method)  # compile or load every kernel the run uses
-    runs, path = [], None
+    prepared = {}
+    for name, (make_scene, method_args) in selected.items():
+        scene = make_scene()
+        method = Method(scheme="musl", **method_args)
+        simulate(scene, method)  # compile or load every kernel the run uses
+        prepared[name] = (scene, method)
+    out = {name: ([], None) for name in selected}
     for _ in range(repeat):
-        r = simulate(scene, method)
-        runs.append(r.wall_time / r.counts["steps"] * 1e6)
-        path = r.path
-    return statistics.median(runs), runs, path
+        for name, (scene, method) in prepared.items():
+            r = simulate(scene, method)
+            out[name][0].append(r.wall_time / r.counts["steps"] * 1e6)
+            out[name] = (out[name][0], r.path)
+    return out
 
 
 def main(argv=None):
@@ -206,26 +248,43 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=5, help="runs per figure (default 5)")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON")
     ap.add_argument("--only", nargs="*", default=None, help="case names to run (default all)")
+    ap.add_argument("--list", action="store_true", help="print the case names and stop")
     args = ap.parse_args(argv)
+    if args.list:
+        print("\n".join(cases()))
+        return 0
+    unknown = sorted(set(args.only or ()) - set(cases()))
+    if unknown:
+        ap.error(f"--only: unknown case names {unknown}; valid: {sorted(cases())}")
     if args.repeat < 1:
         ap.error(f"--repeat must be >= 1, got {args.repeat}")
     base, base_runs = minimal_step_us(args.repeat)
     out = {"minimal-step-us": base, "minimal-step-runs": base_runs,
            "minimal-step-agreement": minimal_step_agreement(), "cases": {}}
-    for name, (make, margs) in cases().items():
-        if args.only and name not in args.only:
-            continue
-        us, runs, path = step_us(make, margs, args.repeat)
+    selected = {name: case for name, case in cases().items()
+                if not args.only or name in args.only}
+    measured = step_runs(selected, args.repeat)
+    for name, (runs, path) in measured.items():
+        us = statistics.median(runs)
         out["cases"][name] = {"us_per_step": us, "ratio_to_minimal": us / base, "runs": runs,
                               "path": path}
+        lumped = same_scene_lumped(name)
+        if lumped in measured and lumped != name:
+            ratios = [a / b for a, b in zip(runs, measured[lumped][0])]
+            out["cases"][name]["ratio_to_lumped"] = statistics.median(ratios)
+            out["cases"][name]["ratios_to_lumped"] = ratios
     if args.json:
         print(json.dumps(out, indent=1))
         return 0
     print(f"minimal compiled lumped MUSL step (S1, 128 particles): {base:8.2f} us "
           f"(agrees with simulate to {out['minimal-step-agreement']:.1e})")
     for name, c in out["cases"].items():
-        print(f"{name:24s} {c['us_per_step']:9.1f} us/step  {c['ratio_to_minimal']:7.1f}x minimal"
-              f"   [{c['path']}]")
+        same = ""
+        if "ratio_to_lumped" in c:
+            same = (f"  {c['ratio_to_lumped']:5.2f}x lumped ({min(c['ratios_to_lumped']):.2f}-"
+                    f"{max(c['ratios_to_lumped']):.2f})")
+        print(f"{name:30s} {c['us_per_step']:9.1f} us/step  {c['ratio_to_minimal']:7.1f}x minimal"
+              f"{same}   [{c['path']}]")
     return 0
 
 

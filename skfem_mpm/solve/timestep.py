@@ -28,7 +28,9 @@ operator of the current particles (:class:`ReconstructedOperator`). It
 replaces a fixed factor 0.6 measured on one problem; measured exactly (all
 eigenvalues, 8 x 8 cells, D1): tls R/G = 1.000 (3 and 2 particles per
 axis: the fit reproduces the linear gradients), spline 0.993 (3 per axis)
-and 1.022 (2 per axis). In 1D no factor applies.
+and 1.022 (2 per axis). In 1D no factor applies. The reconstruction in the
+power iterations is the compiled one wherever the compiled executor runs
+it (:func:`compiled_twin`), on either executor.
 """
 from functools import lru_cache
 
@@ -37,11 +39,13 @@ from scipy.linalg import eigh
 from skfem import BilinearForm, asm
 from skfem.helpers import dot, grad
 
+from .compiled_reconstruct import CompiledReconstruction, unsupported
+
 __all__ = ["spectral_radius", "interior_rayleigh_quotient", "critical_time_step", "STABILITY_LIMIT",
            "stable_time_step",
            "fast_dof_limit", "full_grid_quotients", "full_grid_mass_ratios", "fast_dof_weights",
            "covered_weights", "lumping_fraction", "ReconstructedOperator", "power_iteration",
-           "reconstruction_factor"]
+           "compiled_twin", "reconstruction_factor"]
 
 
 @BilinearForm
@@ -297,13 +301,34 @@ RECONSTRUCTION_ITERATIONS_NEXT = 3
 RECONSTRUCTION_EVERY = 25
 """Adaptive runs (finite strain) re-estimate the factor every this many
 steps, RECONSTRUCTION_ITERATIONS_NEXT iterations from the previous vectors.
-Measured on D1 at 16 x 16 cells, 3 particles per axis, load average 7.7 on
-2 cores: first estimate 4.8 s (tls), 5.5 s (spline); each later one
-0.31-0.35 s (tls), 1.09-1.16 s (spline), i.e. 0.013 and 0.045 s per step
-amortised against 0.18-0.24 s per step of the runs themselves."""
+Measured on D1 at 16 x 16 cells, 3 particles per axis, load average 12 on
+2 cores, with the compiled reconstructions (NumPy ones in brackets): first
+estimate 0.11-0.13 s (0.48-0.49) tls, 0.13-0.18 s (1.0-1.3) spline,
+0.8-1.1 s (9.1-9.7) mls; each later one 0.03-0.04 s (0.09-0.12) tls,
+0.04-0.05 s (0.31-0.35) spline, 0.16-0.26 s (1.3-1.6) mls."""
 
 
-def reconstruction_factor(grid, particles, reconstruct, options, vectors=None, iterations=None):
+def compiled_twin(grid, reconstruct, options):
+    """The compiled twin of a built-in reconstruction function (of
+    :data:`skfem_mpm.reconstruct.RECONSTRUCTORS`) with these options on this
+    grid (:meth:`CompiledReconstruction.reconstructor`), or None where the
+    compiled executor does not run it (:func:`unsupported`) or
+    ``reconstruct`` is a user's callable."""
+    from types import SimpleNamespace
+
+    from ..reconstruct import RECONSTRUCTORS
+
+    names = [n for n, f in RECONSTRUCTORS.items() if f is reconstruct]
+    if not names or grid.dim != 2:
+        return None
+    method = SimpleNamespace(reconstruction=names[0], reconstruction_options=dict(options))
+    if unsupported(method, grid.dim) is not None:
+        return None
+    return CompiledReconstruction.reconstructor(grid, names[0], dict(options))
+
+
+def reconstruction_factor(grid, particles, reconstruct, options, vectors=None, iterations=None,
+                          compiled=True):
     """(f, vectors): the factor f <= 1 on the Gauss critical step of a
     reconstructed method, and the two power-iteration vectors (kept for the
     next estimate).
@@ -321,7 +346,16 @@ def reconstruction_factor(grid, particles, reconstruct, options, vectors=None, i
     quadrature f = 1: the Gauss step applies unchanged. Both estimates start
     from the same vector and take the same number of iterations, so their
     approach from below (20 iterations: 0.96-0.98 of the exact value on D1
-    at 8 x 8 cells, 3 particles per axis) largely cancels in the ratio."""
+    at 8 x 8 cells, 3 particles per axis) largely cancels in the ratio.
+
+    ``compiled``: a built-in reconstruction that the compiled executor runs
+    is applied by its compiled twin (:func:`compiled_twin`; the 2D spline
+    factorises its matrix once per estimate), on either executor, so both
+    take the same step; the NumPy reconstruction (``compiled=False``) gives
+    the same estimate to rounding (test_reconstruction_timestep)."""
+    twin = compiled_twin(grid, reconstruct, options) if compiled else None
+    if twin is not None:
+        reconstruct, options = twin, {}
     op = ReconstructedOperator(grid, particles, reconstruct, options)
     if vectors is None or vectors[0].shape != op.lumped.shape:
         start = op.start_vector()

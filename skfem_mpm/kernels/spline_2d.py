@@ -1,0 +1,132 @@
+"""Least squares in the cubic B-spline space of a 2D grid, compiled: the
+assembly and evaluation of the 2D ``spline`` reconstruction of
+:mod:`skfem_mpm.reconstruct` (``_spline_ls``, the oracle).
+
+With N_i the cubic tensor B-splines on the grid's breakpoints (C2; dofs
+numbered x fastest) and the particles' volumes V_p, the coefficients c
+(ndofs, k) of all k value columns solve
+
+    (A + P) c = B^T W f,    A_ij = sum_p V_p N_i(x_p) N_j(x_p),
+                            (B^T W f)_i = sum_p V_p N_i(x_p) f_p,
+
+where P regularises the functions the particles barely see: with
+t = median of the positive diagonal entries of A and "weak" dofs those with
+A_ii < t / 10, P = penalty t (D_w^T D_w + diag(A_ii == 0)), D_w the rows of
+the second differences (c_j - 2 c_(j+1) + c_(j+2) along either axis) that
+touch a weak dof; P = 0 when no dof is weak. The fit at the Gauss points is
+f_h(x_g) = sum_i N_i(x_g) c_i.
+
+:func:`spline_ls_system` assembles A + P as a stencil array (ndofs, 49):
+entry s = (dy + 3) 7 + (dx + 3) of row i is the coupling with the dof at
+offset (dx, dy); A is bitwise symmetric (each particle adds the same
+products to (i, j) and (j, i)). The sparse factorisation is the caller's
+(:mod:`skfem_mpm.solve.compiled_reconstruct`).
+"""
+import numpy as np
+from numba import njit
+
+from .stencil import axis_functions
+
+__all__ = ["WIDTH", "spline_evaluate", "spline_ls_system"]
+
+P = 3  # cubic
+WIDTH = 2 * P + 1  # stencil offsets -3..3 per axis
+CENTRE = P * WIDTH + P
+
+
+@njit(cache=True, error_model="numpy")
+def _functions(x, i, ax, ay, wx, wy):
+    """The cells (ex, ey) of point i and its 4 + 4 axis values into wx, wy."""
+    bx, ux, ihx, Cx = ax
+    by, uy, ihy, Cy = ay
+    ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = axis_functions(x[i, 0], bx, ux, ihx, Cx, P)
+    ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = axis_functions(x[i, 1], by, uy, ihy, Cy, P)
+    return ex, ey
+
+
+@njit(cache=True, error_model="numpy")
+def spline_ls_system(x, V, values, ax, ay, nbx, nby, penalty, with_matrix, A, rhs):
+    """rhs (ndofs, k) = B^T W f and, ``with_matrix``, A (ndofs, 49) = the
+    stencil of A + P (see the module docstring); ``ax``, ``ay`` the cubic
+    grid's axes (breakpoints, uniform, 1/h, extraction)."""
+    k = values.shape[1]
+    if with_matrix:
+        A[:] = 0.0
+    rhs[:] = 0.0
+    wx = np.empty(4)
+    wy = np.empty(4)
+    for i in range(x.shape[0]):
+        ex, ey = _functions(x, i, ax, ay, wx, wy)
+        for b in range(4):
+            for a in range(4):
+                row = (ey + b) * nbx + ex + a
+                wr = V[i] * wx[a] * wy[b]
+                for col in range(k):
+                    rhs[row, col] += wr * values[i, col]
+                if not with_matrix:
+                    continue
+                for d in range(4):
+                    for c in range(4):
+                        A[row, (d - b + P) * WIDTH + (c - a + P)] += wr * (wx[c] * wy[d])
+    if not with_matrix:
+        return
+    ndofs = nbx * nby
+    npos = 0
+    diag = np.empty(ndofs)
+    for i in range(ndofs):
+        if A[i, CENTRE] > 0.0:
+            diag[npos] = A[i, CENTRE]
+            npos += 1
+    if npos == 0:
+        return
+    typical = np.median(diag[:npos])
+    weak = np.empty(ndofs, dtype=np.bool_)
+    unseen = np.empty(ndofs, dtype=np.bool_)
+    anyweak = False
+    for i in range(ndofs):
+        weak[i] = A[i, CENTRE] < 0.1 * typical
+        unseen[i] = not A[i, CENTRE] > 0.0
+        anyweak = anyweak or weak[i]
+    if not anyweak:
+        return
+    scale = penalty * typical
+    stencil = np.array([1.0, -2.0, 1.0])
+    for axis in range(2):
+        n = nbx if axis == 0 else nby
+        other = nby if axis == 0 else nbx
+        step = 1 if axis == 0 else nbx
+        if n < 3:
+            continue
+        for o in range(other):
+            for j in range(n - 2):
+                first = o * nbx + j if axis == 0 else j * nbx + o
+                touches = False
+                for q in range(3):
+                    touches = touches or weak[first + q * step]
+                if not touches:
+                    continue
+                for q in range(3):
+                    for r in range(3):
+                        off = (r - q) * (WIDTH if axis == 1 else 1)
+                        A[first + q * step, CENTRE + off] += scale * stencil[q] * stencil[r]
+    for i in range(ndofs):
+        if unseen[i]:
+            A[i, CENTRE] += scale
+
+
+@njit(cache=True, error_model="numpy")
+def spline_evaluate(xg, coef, ax, ay, nbx, out):
+    """out[g] (ng, k) = sum_i N_i(xg[g]) coef[i] for the cubic grid's axes."""
+    k = coef.shape[1]
+    wx = np.empty(4)
+    wy = np.empty(4)
+    for g in range(xg.shape[0]):
+        ex, ey = _functions(xg, g, ax, ay, wx, wy)
+        for col in range(k):
+            out[g, col] = 0.0
+        for b in range(4):
+            for a in range(4):
+                row = (ey + b) * nbx + ex + a
+                w = wx[a] * wy[b]
+                for col in range(k):
+                    out[g, col] += w * coef[row, col]
