@@ -75,6 +75,7 @@ def loop_applies(state, executor):
         (bool(executor.other_forces) if executor is not None else True,
          "particle forces other than gravity"),
         (bool(state.force_modifiers), "grid force modifiers"),
+        (bool(getattr(state, "velocity_modifiers", ())), "grid velocity modifiers"),
         (bool(state.constraints.prescribed), "prescribed velocities"),
         (state.adaptive, "an adaptive time step"),
         (state.grid.dim not in (1, 2), f"{state.grid.dim}D"),
