@@ -33,8 +33,8 @@ def compiled():
 after_warm_up = {}
 original = sim_module.warm_up
 
-def warm_up(state, fast):
-    seconds = original(state, fast)
+def warm_up(state, fast, loop=None):
+    seconds = original(state, fast, loop)
     after_warm_up.update(compiled())
     return seconds
 
