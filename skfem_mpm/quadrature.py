@@ -109,6 +109,20 @@ class ParticleBasis(CellBasis):
         self._basis = None
         self._transfer = None
 
+    def interpolate(self, w):
+        """scikit-fem's interpolation of a dof vector ``w`` (ndofs,) to the
+        particles; a per-particle array of another length, passed to a form
+        without its trailing quadrature axis, raises naming the fix (with as
+        many particles as dofs the two cannot be told apart)."""
+        w = np.asarray(w)
+        if w.shape[0] != self.N:
+            hint = (f"; per-particle data in a form needs a trailing quadrature axis "
+                    f"(rho[:, None], shape ({self.nelems}, 1))" if w.shape[0] == self.nelems
+                    else "")
+            raise ValueError(f"a 1-D array passed to a form is taken as a dof vector of "
+                             f"length {self.N}, got shape {w.shape}{hint}")
+        return super().interpolate(w)
+
     @property
     def basis(self):
         if self._basis is None:

@@ -129,6 +129,19 @@ each("seed stress", "stress", [np.ones((2, 2)), lambda X: np.ones((len(X), 2, 2)
      lambda v: Particles.seed(g1(), 2, 1.0, stress=v))
 each("seed seed", "seed", [-1, 2.5, "a", True],
      lambda v: Particles.seed(g1(), 2, 1.0, layout="random", seed=v))
+def _form_without_axis(values):
+    from skfem import LinearForm, asm
+
+    @LinearForm
+    def load(v, w):
+        return w["rho"] * v
+
+    p = Particles.seed(g1(), 3, 1.0)  # 12 particles, 6 dofs (equal counts cannot be told apart)
+    return asm(load, ParticleBasis(g1(), p), rho=values(p))
+
+
+each("form data without the quadrature axis", r"trailing quadrature axis|dof vector",
+     [lambda p: p.m / p.V, lambda p: np.ones(p.n + 1)], _form_without_axis)
 each("ParticleBasis particles", "particles", [np.array([[0.5]]), None, "a", g1()],
      lambda v: ParticleBasis(g1(), v))
 

@@ -32,7 +32,8 @@ class Result:
         (saves, n, ...) when no particle was removed, otherwise lists.
     energies
         Per save: ``kinetic``, ``strain``, ``external_work`` (work done by
-        the declared forces since t = 0) and ``total`` = kinetic + strain.
+        the declared forces since t = 0) and ``total`` = kinetic + strain;
+        see also :attr:`energy_balance`.
     reactions
         Per save, {effect: total reaction force (dim,)} of Fixed/Prescribed.
     timings
@@ -55,6 +56,19 @@ class Result:
         time after a failure (which need not be a saved time)."""
         time = getattr(self, "time", None)
         return float(self.times[-1]) if time is None else float(time)
+
+    @property
+    def energy_balance(self):
+        """Per save: E_0 + W_ext - E (E = kinetic + strain energy, E_0 its
+        value at the first save, W_ext the work of the declared forces,
+        gravity, body forces and tractions, since then). Zero for a run
+        that conserves energy; positive: energy dissipated by the method
+        (or taken out by a moving Prescribed side, whose work is not
+        counted); negative: energy the method created, e.g. an elastic
+        block bouncing on a fixed floor with linear MPM. Divide by
+        ``energies["total"][0] + abs(external_work)`` for a relative figure."""
+        e = self.energies
+        return e["total"][0] + e["external_work"] - e["total"]
 
     def phase_table(self):
         return {p: float(self.timings.get(p, 0.0)) for p in PHASES}
