@@ -46,7 +46,7 @@ CASES = {
                    r"stress must be finite, got inf at index 0"),
     "F NaN": (lambda: particles(F=np.full((1, 1, 1), np.nan)), r"F must be finite, got nan at index 0"),
     "seed velocity NaN": (lambda: Particles.seed(GRID, 2, 1.0, velocity=lambda X: X * np.nan),
-                          r"velocity must be finite, got nan"),
+                          r"velocity\(X\) must be finite, got nan"),
     "gravity Inf": (lambda: Gravity(np.inf), r"g must be finite, got inf"),
     "traction Inf": (lambda: Traction("left", np.inf), r"tau must be finite, got inf"),
     "prescribed NaN": (lambda: Prescribed("left", 0, np.nan), r"velocity must be finite .* got nan"),
