@@ -115,7 +115,11 @@ def assert_identical(a, b):
         assert len(ha) == len(hb) and all(np.array_equal(p, q) for p, q in zip(ha, hb)), k
     for k, values in a.energies.items():
         assert np.array_equal(values, b.energies[k]), k
-    assert a.counts == b.counts
+    # how many steps the compiled loop took says how the steps ran (a run
+    # with a callback steps in Python), not what they computed
+    ignore = {"compiled_loop_steps"}
+    assert {k: v for k, v in a.counts.items() if k not in ignore} == \
+        {k: v for k, v in b.counts.items() if k not in ignore}
 
 
 @pytest.mark.parametrize("backend, scene, options, save_every, every", _params())
