@@ -107,6 +107,8 @@ def test_bad_reconstruction_options():
         reconstruct_tls(g, p, np.ones((p.n, 1)), rule, degree=3)
     with pytest.raises(ValueError, match="knots must be"):
         reconstruct_spline(g, p, np.ones((p.n, 1)), rule, knots="cells")
+    with pytest.raises(ValueError, match="tls constraint must be 'integral', 'mean' or 'none', got 'sum'"):
+        reconstruct_tls(g, p, np.ones((p.n, 1)), rule, constraint="sum")
 
 
 def test_a_custom_reconstruction_callable_is_used():
@@ -326,3 +328,47 @@ def test_tls_bound_test_keeps_a_constant_density_positive_on_a_mismatched_rule()
     assert out.min() > 0.0 and out.max() <= 2.5 * (1 + 1e-12)
     gauss, part = cell_integrals(g, p, rho, rule, out)
     assert np.abs(gauss - part).max() < 1e-13
+
+
+def test_tls_mean_constraint_matches_cell_means_not_integrals():
+    """constraint="mean": each cell's Gauss mean of the fit is the particles'
+    volume-weighted mean, (1/|e|) int_e f_h = sum V_p f_p / sum V_p, so a
+    cell holding more particle volume than its size (particles crossing in)
+    does not raise the field; "integral" (published) keeps int_e f_h =
+    sum V_p f_p. On 3 x 3 particles per cell with one extra particle moved
+    into cell 0 the two differ by that particle's share."""
+    g = grid2d()
+    p = Particles.seed(g, 3, 1.0, layout="random", seed=4)
+    x = p.x.copy()
+    x[-1] = [0.1, 0.1]  # from the last cell into cell 0
+    p = Particles(x, p.m, p.V)
+    rule = integration_rule(g, p, g.degree + 2)
+    values = np.column_stack((np.ones(p.n), np.cos(3 * x[:, 0]) + x[:, 1]))
+    out = reconstruct_tls(g, p, values, rule, constraint="mean")
+    gauss, part = cell_integrals(g, p, values, rule, out)
+    cells = g.locate(x)[0]
+    volume = np.bincount(cells, weights=p.V, minlength=g.ncells)
+    size = np.bincount(rule.cell, weights=rule.w, minlength=g.ncells)
+    held = volume > 0
+    assert np.abs(gauss[held] / size[held, None] - part[held] / volume[held, None]).max() < 1e-13
+    assert np.abs(out[:, 0] - 1.0).max() < 1e-12  # a constant is kept whatever the volumes
+    published = reconstruct_tls(g, p, values, rule)
+    gauss, part = cell_integrals(g, p, values, rule, published)
+    assert np.abs(gauss - part).max() < 1e-13
+
+
+def test_tls_without_constraint_reproduces_quadratics_on_random_layouts():
+    """constraint="none" is the plain least-squares quadratic per cell: it
+    reproduces a quadratic from randomly placed particles (whose sums do not
+    integrate it), where the published constraint, a particle quadrature of
+    the cell integral, does not."""
+    g = grid2d()
+    p = Particles.seed(g, 3, 1.0, layout="random", seed=6)
+    rule = integration_rule(g, p, g.degree + 2)
+    f = poly(2, 2)
+    values = f(p.x)[:, None]
+    exact = f(rule.x)
+    free = reconstruct_tls(g, p, values, rule, constraint="none")[:, 0]
+    assert np.abs(free - exact).max() < 1e-10
+    published = reconstruct_tls(g, p, values, rule)[:, 0]
+    assert np.abs(published - exact).max() > 1e-4
