@@ -100,8 +100,9 @@ def table(lines):
         if r["status"] == "ran":
             text = "ran" + (f", {r['error']:.3g}" if "error" in r else "") + f" ({r['steps']} steps)"
         elif r["status"] == "failed":
-            text = f"fails at t = {r['t']:.3g}: {r['why'][:60]}" if r.get("t") is not None \
-                else f"fails: {r['why'][:60]}"
+            step, _, why = r["why"].partition(" failed: ")
+            text = f"fails, {step.split(' (')[0]}, t = {r['t']:.3g}: {why.split(' at ')[0][:40]}" \
+                if r.get("t") is not None else f"fails: {r['why'][:60]}"
         else:
             text = r["status"]
         cell[r["case"], name] = text
