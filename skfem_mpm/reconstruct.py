@@ -77,7 +77,12 @@ degree-p functions).
 ``mls``     Moving least squares with a linear basis and the cubic B-spline
             weight of radius ``radius`` (default 1.5 cells); where fewer than
             dim + 1 particles are in reach it falls back to the weighted mean
-            (Shepard). Reproduces linear polynomials.
+            (Shepard). Reproduces linear polynomials. What it is for: a
+            reconstruction that needs no cell structure (any grid, any
+            dimension) and reference for the others; not accuracy: at
+            16 x 16 (p2, 3 x 3 ppc, consistent MUSL) it is less accurate
+            than particle quadrature on D2 small (3.5e-4 against 3.2e-4)
+            and on D1 large (1.4e-2 against 3.9e-3); spline or tls there.
 """
 import numpy as np
 import scipy.sparse as sp
