@@ -131,7 +131,10 @@ def main():
     options = {}
     for item in a.option:
         name, _, value = item.partition("=")
-        options[name] = value
+        try:
+            options[name] = json.loads(value)  # numbers
+        except json.JSONDecodeError:
+            options[name] = value
     if a.one:
         print(json.dumps(one(a.one[0], a.one[1], a.ppc, a.cfl, options, a.backend)), flush=True)
         return
