@@ -6,7 +6,11 @@ its own process with a time limit; prints one JSON line per run: ran or
 failed (the exception), steps, wall time, final time, and the case's error
 where it has an exact solution.
 
-    python benchmarks/robustness.py [--cases d1,block,...] [--recon none,tls]
+    python benchmarks/robustness.py [--cases d1,block,...] [--recon none,tls] > runs.jsonl
+    python benchmarks/robustness.py --table runs.jsonl     # the note's markdown table
+
+``--option name=value`` passes a reconstruction option (e.g.
+``constraint=mean`` for tls), ``--backend numpy`` the reference executor.
 """
 import argparse
 import json
@@ -19,8 +23,15 @@ RECONS = ("none", "spline", "tls", "mls")
 
 
 def scene(case, ppc):
-    import numpy as np
-    from skfem_mpm import Body, Fixed, Gravity, LinearElastic, Particles, Scene, SplineGrid
+    from skfem_mpm import (
+        Body,
+        Fixed,
+        Gravity,
+        LinearElastic,
+        Particles,
+        Scene,
+        SplineGrid,
+    )
     from skfem_mpm.benchmarks import get_benchmark
 
     if case == "d1":      # D1 large, 16 x 16
@@ -50,14 +61,19 @@ def scene(case, ppc):
     raise ValueError(f"case must be one of {CASES}, got {case!r}")
 
 
-def one(case, recon, ppc, cfl):
+def one(case, recon, ppc, cfl, options=None, backend=None):
     from skfem_mpm import Method, simulate
     from skfem_mpm.errors import SimulationError
 
     s, b = scene(case, ppc)
-    m = Method(mass="consistent", scheme="musl", reconstruction=recon, cfl=cfl)
+    m = Method(mass="consistent", scheme="musl", reconstruction=recon, cfl=cfl,
+               reconstruction_options=options or None, backend=backend)
     t0 = time.perf_counter()
     out = {"case": case, "reconstruction": recon, "ppc": ppc, "cfl": cfl}
+    if options:
+        out["options"] = options
+    if backend:
+        out["backend"] = backend
     try:
         r = simulate(s, m, save_every=20)
         out.update(status="ran", steps=r.counts["steps"], t=r.final_time)
@@ -71,6 +87,31 @@ def one(case, recon, ppc, cfl):
     return out
 
 
+def table(lines):
+    """Markdown table, one row per case and one column per reconstruction:
+    "ran, error e (steps)" or "fails: why" from the JSON lines of runs."""
+    runs = [json.loads(line) for line in lines if line.strip().startswith("{")]
+    cases = list(dict.fromkeys(r["case"] for r in runs))
+    recons = list(dict.fromkeys(r["reconstruction"] + (
+        "".join(f" {k}={v}" for k, v in r.get("options", {}).items())) for r in runs))
+    cell = {}
+    for r in runs:
+        name = r["reconstruction"] + "".join(f" {k}={v}" for k, v in r.get("options", {}).items())
+        if r["status"] == "ran":
+            text = "ran" + (f", {r['error']:.3g}" if "error" in r else "") + f" ({r['steps']} steps)"
+        elif r["status"] == "failed":
+            step, _, why = r["why"].partition(" failed: ")
+            text = f"fails, {step.split(' (')[0]}, t = {r['t']:.3g}: {why.split(' at ')[0][:40]}" \
+                if r.get("t") is not None else f"fails: {r['why'][:60]}"
+        else:
+            text = r["status"]
+        cell[r["case"], name] = text
+    rows = ["| case | " + " | ".join(recons) + " |", "|---" * (len(recons) + 1) + "|"]
+    for case in cases:
+        rows.append(f"| {case} | " + " | ".join(cell.get((case, n), "") for n in recons) + " |")
+    return "\n".join(rows)
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", default=",".join(CASES))
@@ -79,16 +120,31 @@ def main():
     ap.add_argument("--cfl", type=float, default=0.5)
     ap.add_argument("--timeout", type=float, default=1200.0)
     ap.add_argument("--one", nargs=2)
+    ap.add_argument("--option", action="append", default=[])
+    ap.add_argument("--backend", default=None)
+    ap.add_argument("--table")
     a = ap.parse_args()
+    if a.table:
+        with open(a.table) as f:
+            print(table(f.readlines()))
+        return
+    options = {}
+    for item in a.option:
+        name, _, value = item.partition("=")
+        try:
+            options[name] = json.loads(value)  # numbers
+        except json.JSONDecodeError:
+            options[name] = value
     if a.one:
-        print(json.dumps(one(a.one[0], a.one[1], a.ppc, a.cfl)), flush=True)
+        print(json.dumps(one(a.one[0], a.one[1], a.ppc, a.cfl, options, a.backend)), flush=True)
         return
     for case in a.cases.split(","):
         for recon in a.recon.split(","):
             cmd = [sys.executable, __file__, "--one", case, recon, "--ppc", str(a.ppc),
-                   "--cfl", str(a.cfl)]
+                   "--cfl", str(a.cfl)] + [f"--option={o}" for o in a.option] + (
+                       ["--backend", a.backend] if a.backend else [])
             try:
-                p = subprocess.run(cmd, capture_output=True, text=True, timeout=a.timeout)
+                p = subprocess.run(cmd, capture_output=True, text=True, timeout=a.timeout, check=False)
                 line = p.stdout.strip().splitlines()[-1] if p.stdout.strip() else json.dumps(
                     {"case": case, "reconstruction": recon, "status": "error",
                      "why": p.stderr.strip().splitlines()[-1][:200]})

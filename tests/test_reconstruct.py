@@ -107,6 +107,8 @@ def test_bad_reconstruction_options():
         reconstruct_tls(g, p, np.ones((p.n, 1)), rule, degree=3)
     with pytest.raises(ValueError, match="knots must be"):
         reconstruct_spline(g, p, np.ones((p.n, 1)), rule, knots="cells")
+    with pytest.raises(ValueError, match="tls constraint must be 'integral', 'mean' or 'none', got 'sum'"):
+        reconstruct_tls(g, p, np.ones((p.n, 1)), rule, constraint="sum")
 
 
 def test_a_custom_reconstruction_callable_is_used():
@@ -287,3 +289,100 @@ def test_tls_falls_back_on_under_populated_cells():
     const_cells = np.isin(rule.cell, g.locate(x[[0, 1, 6]])[0])
     per_cell = out[const_cells, 1].reshape(-1, 16)
     assert np.abs(per_cell - per_cell[:, :1]).max() < 1e-15
+
+
+def cut_cells():
+    """6 x 5 cells with the body's free surfaces inside cells: x = 0.1 and
+    0.7 cut columns to 0.4 and 0.2 of a cell, y = 0.62 the top row to 0.1
+    (ppc 3: the cut parts are seeded 3 x 3 too, with thinner particles)."""
+    g = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (6, 5), 2)
+    return g, Particles.seed(g, 3, 2.5, region=((0.1, 0.7), (0.0, 0.62)))
+
+
+def test_tls_in_partly_filled_cells_reconstructs_a_constant_density():
+    """Where a free surface parallel to a grid line crosses a cell, the rule
+    covers the body's part of the cell (body_boxes) and a constant density
+    is the fit there: rho_h = rho at every Gauss point, the rule's volume is
+    the particles' volume. On whole cells the conserving quadratic dipped to
+    rho_h = -1.7 rho (negative lumped masses)."""
+    g, p = cut_cells()
+    rule = integration_rule(g, p, g.degree + 2)
+    assert rule.w.sum() == pytest.approx(p.V.sum(), rel=1e-13)
+    rho = p.m / p.V
+    out = reconstruct_tls(g, p, np.column_stack((rho, 3.0 * rho)), rule)
+    assert np.abs(out - [2.5, 7.5]).max() < 1e-12
+
+
+def test_tls_bound_test_keeps_a_constant_density_positive_on_a_mismatched_rule():
+    """The bound test: on a rule over whole cells (not the body's part, as
+    where a surface cuts a cell diagonally) the quadratic and linear fits of
+    a constant density leave the particles' range and the conserving
+    constant is taken: rho_h > 0 and cell integrals still exact."""
+    g, p = cut_cells()
+    cells = np.unique(g.locate(p.x)[0])
+    x, w, cell = g.gauss_rule(g.degree + 2, cells)
+    from skfem_mpm.reconstruct import IntegrationRule
+    rule = IntegrationRule(x, w, cell)
+    rho = (p.m / p.V)[:, None]
+    out = reconstruct_tls(g, p, rho, rule)
+    assert out.min() > 0.0 and out.max() <= 2.5 * (1 + 1e-12)
+    gauss, part = cell_integrals(g, p, rho, rule, out)
+    assert np.abs(gauss - part).max() < 1e-13
+
+
+def test_tls_mean_constraint_matches_cell_means_not_integrals():
+    """constraint="mean": each cell's Gauss mean of the fit is the particles'
+    volume-weighted mean, (1/|e|) int_e f_h = sum V_p f_p / sum V_p, so a
+    cell holding more particle volume than its size (particles crossing in)
+    does not raise the field; "integral" (published) keeps int_e f_h =
+    sum V_p f_p. On 3 x 3 particles per cell with one extra particle moved
+    into cell 0 the two differ by that particle's share."""
+    g = grid2d()
+    p = Particles.seed(g, 3, 1.0, layout="random", seed=4)
+    x = p.x.copy()
+    x[-1] = [0.1, 0.1]  # from the last cell into cell 0
+    p = Particles(x, p.m, p.V)
+    rule = integration_rule(g, p, g.degree + 2)
+    values = np.column_stack((np.ones(p.n), np.cos(3 * x[:, 0]) + x[:, 1]))
+    out = reconstruct_tls(g, p, values, rule, constraint="mean")
+    gauss, part = cell_integrals(g, p, values, rule, out)
+    cells = g.locate(x)[0]
+    volume = np.bincount(cells, weights=p.V, minlength=g.ncells)
+    size = np.bincount(rule.cell, weights=rule.w, minlength=g.ncells)
+    held = volume > 0
+    assert np.abs(gauss[held] / size[held, None] - part[held] / volume[held, None]).max() < 1e-13
+    assert np.abs(out[:, 0] - 1.0).max() < 1e-12  # a constant is kept whatever the volumes
+    published = reconstruct_tls(g, p, values, rule)
+    gauss, part = cell_integrals(g, p, values, rule, published)
+    assert np.abs(gauss - part).max() < 1e-13
+
+
+def test_tls_without_constraint_reproduces_quadratics_on_random_layouts():
+    """constraint="none" is the plain least-squares quadratic per cell: it
+    reproduces a quadratic from randomly placed particles (whose sums do not
+    integrate it), where the published constraint, a particle quadrature of
+    the cell integral, does not."""
+    g = grid2d()
+    p = Particles.seed(g, 3, 1.0, layout="random", seed=6)
+    rule = integration_rule(g, p, g.degree + 2)
+    f = poly(2, 2)
+    values = f(p.x)[:, None]
+    exact = f(rule.x)
+    free = reconstruct_tls(g, p, values, rule, constraint="none")[:, 0]
+    assert np.abs(free - exact).max() < 1e-10
+    published = reconstruct_tls(g, p, values, rule)[:, 0]
+    assert np.abs(published - exact).max() > 1e-4
+
+
+@pytest.mark.parametrize("dim", (1, 2))
+def test_mls_with_a_quadratic_basis_reproduces_quadratics(dim):
+    """mls degree=2 reproduces quadratics where the moment matrix is well
+    conditioned everywhere (radius 2.5 cells here; the linear default does not)."""
+    g = grid1d() if dim == 1 else grid2d()
+    p = Particles.seed(g, 3, 1.0)
+    check(reconstruct_mls, p, g, poly(2, dim), 1e-9, degree=2, radius=2.5)  # 1D: wide end cell
+    rule = integration_rule(g, p, g.degree + 2)
+    linear = reconstruct_mls(g, p, poly(2, dim)(p.x)[:, None], rule)[:, 0]
+    assert np.abs(linear - poly(2, dim)(rule.x)).max() > 1e-4
+    with pytest.raises(ValueError, match="mls degree must be 1 or 2, got 3"):
+        reconstruct_mls(g, p, np.ones((p.n, 1)), rule, degree=3)

@@ -16,11 +16,13 @@ points agree bit for bit.
 
 2D (:func:`gauss_rule_cells`): the cells that hold particles (ascending
 scikit-fem numbering e = ix + nx iy), each with the tensor rule of k points
-per axis, point (a, b) at index a + k b:
+per axis on the part of the cell the body covers, the box
+[l_x, l_x + b_x] x [l_y, l_y + b_y] of :func:`body_boxes_2d` (the whole
+cell inside the body), point (a, b) at index a + k b:
 
-    x_g = (u_ix + h_ix r_a, v_iy + k_iy r_b),   w_g = (h_ix w_a) (k_iy w_b),
+    x_g = (l_x + b_x r_a, l_y + b_y r_b),   w_g = (b_x w_a) (b_y w_b),
 
-as :meth:`SplineGrid.gauss_rule` computes it (bit for bit). The particles'
+as :func:`skfem_mpm.reconstruct.integration_rule` computes it (bit for bit). The particles'
 cells (:func:`locate_cells`, with the transfers' own
 :func:`~skfem_mpm.kernels.weights.locate_axis_point`) are those of
 :meth:`SplineGrid.locate`: on a uniform axis floor((x - u_0) (n / (u_n -
@@ -31,7 +33,7 @@ from numba import njit
 
 from .weights import locate_axis_point
 
-__all__ = ["gauss_rule_1d", "gauss_rule_cells", "locate_cells"]
+__all__ = ["body_boxes_2d", "gauss_rule_1d", "gauss_rule_cells", "locate_cells"]
 
 
 @njit(cache=True, error_model="numpy")
@@ -121,11 +123,89 @@ def locate_cells(x, breaks0, breaks1, uniform0, uniform1):
 
 
 @njit(cache=True, error_model="numpy")
-def gauss_rule_cells(pcell, breaks0, breaks1, ref, wref):
-    """(xg, wg, cell) of the 2D tensor Gauss rule on the cells in ``pcell``
-    (ascending, each once; see the module docstring)."""
+def body_boxes_2d(x, V, pcell, breaks0, breaks1):
+    """(lo, hi), each (ncells, 2): the box of each held cell that the body
+    covers (rows of cells without particles are not set), the twin of
+    :func:`skfem_mpm.reconstruct.body_boxes` in 2D (same arithmetic, so
+    the same boxes bit for bit; see its docstring for the rule)."""
     nx = breaks0.shape[0] - 1
-    ncells = nx * (breaks1.shape[0] - 1)
+    ny = breaks1.shape[0] - 1
+    ncells = nx * ny
+    held = np.zeros(ncells, dtype=np.bool_)
+    pmin = np.full((ncells, 2), np.inf)
+    pmax = np.full((ncells, 2), -np.inf)
+    hmax = np.zeros((ncells, 2))
+    volume = np.zeros(ncells)
+    size = np.empty(2)
+    for i in range(pcell.shape[0]):
+        c = pcell[i]
+        held[c] = True
+        ix, iy = c % nx, c // nx
+        size[0] = breaks0[ix + 1] - breaks0[ix]
+        size[1] = breaks1[iy + 1] - breaks1[iy]
+        scale = np.sqrt(V[i] / (size[0] * size[1]))
+        for a in range(2):
+            half = 0.5 * (size[a] * scale)
+            pmin[c, a] = min(pmin[c, a], x[i, a] - half)
+            pmax[c, a] = max(pmax[c, a], x[i, a] + half)
+            hmax[c, a] = max(hmax[c, a], half)
+        volume[c] += V[i]
+    lo = np.zeros((ncells, 2))
+    hi = np.zeros((ncells, 2))
+    lower = np.empty(2)
+    upper = np.empty(2)
+    closed_lo = np.empty(2, dtype=np.bool_)
+    closed_hi = np.empty(2, dtype=np.bool_)
+    est_lo = np.empty(2)
+    est_hi = np.empty(2)
+    for c in range(ncells):
+        if not held[c]:
+            continue
+        e = (c % nx, c // nx)
+        n_open = 0
+        est_volume = 1.0
+        for a in range(2):
+            breaks = breaks0 if a == 0 else breaks1
+            n = nx if a == 0 else ny
+            stride = 1 if a == 0 else nx
+            lower[a] = breaks[e[a]]
+            upper[a] = breaks[e[a] + 1]
+            below = e[a] > 0 and held[c - stride]
+            above = e[a] < n - 1 and held[c + stride]
+            gap_lo = pmin[c, a] - lower[a]
+            gap_hi = upper[a] - pmax[c, a]
+            closed_lo[a] = below or gap_lo < hmax[c, a] + (max(gap_hi, 0.0) if above else 0.0)
+            closed_hi[a] = above or gap_hi < hmax[c, a] + (max(gap_lo, 0.0) if below else 0.0)
+            est_lo[a] = lower[a] if closed_lo[a] else max(lower[a], pmin[c, a])
+            est_hi[a] = upper[a] if closed_hi[a] else min(upper[a], pmax[c, a])
+            if not (closed_lo[a] and closed_hi[a]):
+                n_open += 1
+            est_volume = est_volume * (est_hi[a] - est_lo[a])
+        ratio = volume[c] / est_volume
+        factor = ratio if n_open == 1 else np.sqrt(ratio)
+        for a in range(2):
+            if closed_lo[a] and closed_hi[a]:
+                lo[c, a] = lower[a]
+                hi[c, a] = upper[a]
+                continue
+            width = min(upper[a] - lower[a], factor * (est_hi[a] - est_lo[a]))
+            if closed_lo[a]:
+                lo[c, a] = lower[a]
+            elif closed_hi[a]:
+                lo[c, a] = upper[a] - width
+            else:
+                lo[c, a] = min(max(lower[a], 0.5 * (est_lo[a] + est_hi[a]) - 0.5 * width),
+                               upper[a] - width)
+            hi[c, a] = upper[a] if closed_hi[a] else lo[c, a] + width
+    return lo, hi
+
+
+@njit(cache=True, error_model="numpy")
+def gauss_rule_cells(pcell, lo, hi, ref, wref):
+    """(xg, wg, cell) of the 2D tensor Gauss rule on the boxes lo[c]..hi[c]
+    (:func:`body_boxes_2d`) of the cells c in ``pcell`` (ascending, each
+    once; see the module docstring)."""
+    ncells = lo.shape[0]
     k = ref.shape[0]
     held = np.zeros(ncells, dtype=np.bool_)
     for i in range(pcell.shape[0]):
@@ -142,13 +222,12 @@ def gauss_rule_cells(pcell, breaks0, breaks1, ref, wref):
     for c in range(ncells):
         if not held[c]:
             continue
-        ix, iy = c % nx, c // nx
-        hx = breaks0[ix + 1] - breaks0[ix]
-        hy = breaks1[iy + 1] - breaks1[iy]
+        hx = hi[c, 0] - lo[c, 0]
+        hy = hi[c, 1] - lo[c, 1]
         for b in range(k):
             for a in range(k):
-                xg[g, 0] = breaks0[ix] + hx * ref[a]
-                xg[g, 1] = breaks1[iy] + hy * ref[b]
+                xg[g, 0] = lo[c, 0] + hx * ref[a]
+                xg[g, 1] = lo[c, 1] + hy * ref[b]
                 wg[g] = (hx * wref[a]) * (hy * wref[b])
                 cell[g] = c
                 g += 1

@@ -4,8 +4,9 @@
 
 The method (Wobbes, Moller, Galavi, Vuik 2019, IJNME 117:271-290, Sec. 3):
 for each cell e that holds Gauss points of the rule, in the local
-coordinates xi = (x - c_e) / h_e (c_e = u_e + h_e / 2 the cell centre, h_e
-its sizes per axis) and the monomials
+coordinates xi = (x - c_e) / h_e (c_e the centre and h_e the sizes per axis
+of the box spanned by the cell's Gauss points, as the oracle) and the
+monomials
 
     phi = (1, xi_1, .., xi_d, xi_a xi_b for a <= b)      (m = 3 in 1D, 6 in 2D),
 
@@ -21,7 +22,11 @@ so that the Gauss integral of the fit over the cell is the cell's particle
 integral. Fallback levels (never a singular solve): the quadratic when the
 leading m x m block of A, scaled to unit diagonal, has its smallest
 eigenvalue above TLS_RANK_TOL; else the same with the 1 + d linear
-monomials; else the conserving constant S / G_0. The eigenvalue test is
+monomials; else the conserving constant S / G_0. A level's fit is kept
+for value column c only when its values at the cell's Gauss points stay
+within [min_p f_pc - s_c, max_p f_pc + s_c], s_c = TLS_BOUND_TOL (max - min)
++ TLS_BOUND_ABS max |f_pc| over the cell's particles; the columns that
+leave it take the next level (the bound test of the oracle). The eigenvalue test is
 made as a Cholesky factorisation of D^(-1/2) A D^(-1/2) - TLS_RANK_TOL I
 (D = diag A, all > 0): it succeeds exactly when the smallest eigenvalue
 exceeds TLS_RANK_TOL. The Lagrange system (symmetric indefinite) is solved
@@ -34,9 +39,11 @@ Gauss points likewise; the fit of cell e is then evaluated at its points.
 import numpy as np
 from numba import njit
 
-__all__ = ["TLS_RANK_TOL", "tls_reconstruct"]
+__all__ = ["TLS_BOUND_ABS", "TLS_BOUND_TOL", "TLS_RANK_TOL", "tls_reconstruct"]
 
 TLS_RANK_TOL = 1e-8  # the value of skfem_mpm.reconstruct.TLS_RANK_TOL (a test checks)
+TLS_BOUND_TOL = 1.0  # skfem_mpm.reconstruct.TLS_BOUND_TOL and TLS_BOUND_ABS (a test checks)
+TLS_BOUND_ABS = 1e-9
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -147,12 +154,10 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
     ncells = nx * (breaks1.shape[0] - 1 if dim == 2 else 1)
     m = 1 + dim + dim * (dim + 1) // 2
     slot = np.full(ncells, -1, dtype=np.int64)
-    cells = np.empty(ncells, dtype=np.int64)
     nact = 0
     for g in range(gcell.shape[0]):
         if slot[gcell[g]] < 0:
             slot[gcell[g]] = nact
-            cells[nact] = gcell[g]
             nact += 1
     porder, pstart = _bins(pcell, slot, nact)
     gorder, gstart = _bins(gcell, slot, nact)
@@ -167,20 +172,28 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
     work = np.empty((m + 1, m + 1))
     K = np.empty((m + 1, m + 1))
     R = np.empty((m + 1, k))
+    fmin = np.empty(k)
+    fmax = np.empty(k)
+    slack = np.empty(k)
+    low = np.empty(k)
+    high = np.empty(k)
+    pending = np.empty(k, dtype=np.bool_)
     for s in range(nact):  # serial: a few microseconds per cell
-        c = cells[s]
-        ix = c % nx
-        size[0] = breaks0[ix + 1] - breaks0[ix]
-        centre[0] = breaks0[ix] + 0.5 * size[0]
-        if dim == 2:
-            iy = c // nx
-            size[1] = breaks1[iy + 1] - breaks1[iy]
-            centre[1] = breaks1[iy] + 0.5 * size[1]
+        for a in range(dim):  # the frame: the box spanned by the cell's Gauss points
+            lo = np.inf
+            hi = -np.inf
+            for i in range(gstart[s], gstart[s + 1]):
+                lo = min(lo, xg[gorder[i], a])
+                hi = max(hi, xg[gorder[i], a])
+            centre[a] = 0.5 * (lo + hi)
+            size[a] = hi - lo
         A[:] = 0.0
         b[:] = 0.0
         G[:] = 0.0
         S[:] = 0.0
         coef[:] = 0.0
+        fmin[:] = np.inf
+        fmax[:] = -np.inf
         for i in range(pstart[s], pstart[s + 1]):
             q = porder[i]
             _monomials(x, q, centre, size, phi)
@@ -192,14 +205,20 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
                     b[r, col] += wr * values[q, col]
             for col in range(k):
                 S[col] += V[q] * values[q, col]
+                fmin[col] = min(fmin[col], values[q, col])
+                fmax[col] = max(fmax[col], values[q, col])
         for i in range(gstart[s], gstart[s + 1]):
             g = gorder[i]
             _monomials(xg, g, centre, size, phi)
             for r in range(m):
                 G[r] += wg[g] * phi[r]
-        solved = False
+        for col in range(k):
+            slack[col] = TLS_BOUND_TOL * (fmax[col] - fmin[col]) + TLS_BOUND_ABS * max(
+                abs(fmin[col]), abs(fmax[col]))
+            pending[col] = True
+        npending = k
         for n in (m, 1 + dim):
-            if solved or not _well_posed(A, n, TLS_RANK_TOL, work):
+            if npending == 0 or not _well_posed(A, n, TLS_RANK_TOL, work):
                 continue
             for r in range(n):
                 for t in range(n):
@@ -212,12 +231,26 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
             for col in range(k):
                 R[n, col] = S[col]
             _solve(K, R, n + 1)
-            for r in range(n):
+            for col in range(k):  # the bound test, column by column
+                low[col] = np.inf
+                high[col] = -np.inf
+            for i in range(gstart[s], gstart[s + 1]):
+                _monomials(xg, gorder[i], centre, size, phi)
                 for col in range(k):
-                    coef[r, col] = R[r, col]
-            solved = True
-        if not solved:  # the conserving constant
+                    acc = 0.0
+                    for r in range(m):
+                        acc += phi[r] * (R[r, col] if r < n else 0.0)
+                    low[col] = min(low[col], acc)
+                    high[col] = max(high[col], acc)
             for col in range(k):
+                if pending[col] and low[col] >= fmin[col] - slack[col] \
+                        and high[col] <= fmax[col] + slack[col]:
+                    for r in range(n):
+                        coef[r, col] = R[r, col]
+                    pending[col] = False
+                    npending -= 1
+        for col in range(k):  # the conserving constant
+            if pending[col]:
                 coef[0, col] = S[col] / G[0]
         for i in range(gstart[s], gstart[s + 1]):
             g = gorder[i]

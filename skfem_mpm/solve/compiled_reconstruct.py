@@ -17,8 +17,9 @@ MUSL re-projection P_i = sum_g w_g (rho v^new)_h N_i reconstructs the
 updated particle momentum with the same rule (g2p2g on points of mass w_g).
 
 The rule: in 1D the body's pieces (:func:`skfem_mpm.kernels.gauss_rule.gauss_rule_1d`),
-in 2D the cells holding particles
-(:func:`skfem_mpm.kernels.gauss_rule.gauss_rule_cells`), p + 2 points per
+in 2D the part of each cell holding particles that the body covers
+(:func:`skfem_mpm.kernels.gauss_rule.body_boxes_2d`,
+:func:`skfem_mpm.kernels.gauss_rule.gauss_rule_cells`), p + 2 points per
 axis, both bit for bit those of :func:`skfem_mpm.reconstruct.integration_rule`.
 The reconstructions: the particle-knot spline in 1D
 (:mod:`skfem_mpm.kernels.spline_1d`), the published TLS (default
@@ -30,7 +31,7 @@ import numpy as np
 from numba import get_num_threads
 
 from ..errors import InvalidState
-from ..kernels.gauss_rule import gauss_rule_1d, gauss_rule_cells, locate_cells
+from ..kernels.gauss_rule import body_boxes_2d, gauss_rule_1d, gauss_rule_cells, locate_cells
 from ..kernels.kronecker import KroneckerData, axis_mass_bands
 from ..kernels.mls import mls_reconstruct
 from ..kernels.mpm import ell_pcg
@@ -259,7 +260,8 @@ class CompiledReconstruction:
             order, pp, pg, xg, wg, cell = gauss_rule_1d(p.x[:, 0], p.V, self.gap, self.breaks,
                                                         self.ref, self.wref)
             return Rule(xg[:, None], wg, cell, pcell, order, pp, pg)
-        xg, wg, cell = gauss_rule_cells(pcell, self.breaks, self.breaks1, self.ref, self.wref)
+        lo, hi = body_boxes_2d(p.x, p.V, pcell, self.breaks, self.breaks1)
+        xg, wg, cell = gauss_rule_cells(pcell, lo, hi, self.ref, self.wref)
         return Rule(xg, wg, cell, pcell)
 
     def reconstruct(self, p, values, rule):
