@@ -112,3 +112,21 @@ def test_the_scene_is_never_written(monkeypatch):
     assert r.path == "fast (compiled loop)"
     for k, a in before.items():
         assert np.array_equal(getattr(scene.bodies[0].particles, k), a), k
+
+
+@pytest.mark.parametrize("case", [
+    dict(scheme="musl", mass="lumped", degree=2, dim=2, material="linear", effect="gravity"),
+    dict(scheme="cd", mass="lumped", degree=2, dim=1, material="linear", effect="none"),
+], ids=lambda c: f"{c['scheme']}-{c['dim']}d")
+def test_parallel_kernels_give_the_same_bits(monkeypatch, case):
+    """Above SERIAL_BELOW particles the loop calls the parallel kernels, a
+    few steps per call so that the thread policy can act between calls."""
+    scene = scene_for(case, steps=23)
+    method = Method(scheme=case["scheme"], mass="lumped")
+    with monkeypatch.context() as m:
+        m.setattr(compiled_loop, "SERIAL_BELOW", 0)
+        m.setattr(compiled_loop.StepLoop, "CALL_SECONDS", 1e-9)  # one step per call
+        looped = simulate(scene, method, save_every=5)
+    stepped = without_loop(monkeypatch, scene, method, save_every=5)
+    assert looped.counts["compiled_loop_steps"] == 23
+    assert_same(looped, stepped)

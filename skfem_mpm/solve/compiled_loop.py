@@ -25,6 +25,7 @@ import functools
 import hashlib
 import inspect
 import os
+import time
 
 import numpy as np
 
@@ -215,6 +216,7 @@ class StepLoop:
         self.run_state = self.module.Run(*(fields[name] for name in self.module.FIELDS))
         self._loop = self.module.LOOPS[self.scheme]
         self._loaded = None  # the particles whose arrays the run holds
+        self._steps_per_call = 1  # parallel: grows to CALL_SECONDS of steps
 
     def compile(self):
         """Compile (or load from numba's cache) everything ``run`` calls."""
@@ -226,9 +228,16 @@ class StepLoop:
         self.module.grid_arrays(self.run_state)
         self.module.records(self.run_state)
 
+    # With parallel kernels a call of the loop lasts about this long, so
+    # that the thread policy (solve/threads.py), which acts between calls,
+    # still follows the machine's load (a serial loop runs to the next save).
+    CALL_SECONDS = 0.05
+
     def run(self, state, n):
         """Up to ``n`` steps from ``state`` (its particles, t and step);
         the state is updated with those taken, which are returned."""
+        if self.parallel:
+            n = min(n, self._steps_per_call)
         p = state.particles
         if p.n != self._arrays[0].shape[0]:  # particles were removed
             return 0
@@ -239,7 +248,11 @@ class StepLoop:
         else:
             mod.set_work(run, float(state.external_work))
         mod.reset_step_records(run)
+        start = time.perf_counter()
         taken = self._loop(run, n)
+        if taken:
+            per_step = (time.perf_counter() - start) / taken
+            self._steps_per_call = max(1, int(self.CALL_SECONDS / max(per_step, 1e-9)))
         if taken == 0:
             self._loaded = p
             return 0
