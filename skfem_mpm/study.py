@@ -25,7 +25,7 @@ worker compiling the same kernels at the same time (the later runs load
 them from numba's cache).
 
 Timing a run (:func:`run_one`): first an untimed warm-up run of the same
-scene and method, stopped after :data:`WARM_UP_STEPS` steps, compiles or
+scene and method, cut to :data:`WARM_UP_STEPS` steps, compiles or
 loads every kernel the run calls (the consistent-mass assembly and CG and
 the reconstruction included, whatever ``warm_up_kernels`` covers); then
 ``repeat`` timed runs, whose median is ``wall_time_s`` (the range in
@@ -147,17 +147,19 @@ def _compiled_kernels():
 
     from numba.core.dispatcher import Dispatcher
 
-    return {id(d): len(d.overloads) for d in gc.get_objects() if isinstance(d, Dispatcher)}
+    def is_dispatcher(obj):
+        try:
+            return isinstance(obj, Dispatcher)
+        except ReferenceError:  # a weak proxy whose object is gone
+            return False
+
+    return {id(d): len(d.overloads) for d in gc.get_objects() if is_dispatcher(d)}
 
 
 def _kernels_added(before):
     """How many signatures were compiled or loaded since ``before``."""
     now = _compiled_kernels()
     return sum(max(0, n - before.get(k, 0)) for k, n in now.items())
-
-
-def _stop_after(steps):
-    return lambda step, state: step < steps
 
 
 def run_one(job):
@@ -199,8 +201,13 @@ def run_one(job):
         if fem_run:
             fem(bench.scene(job["cells"], spec["degree"], job["ppc"], fem=True,
                             t_end=1e-3 * scene.t_end), method)
-        else:
-            simulate(scene, method, callback=_stop_after(WARM_UP_STEPS))
+        else:  # the same scene cut to WARM_UP_STEPS steps: the same kernels
+            # and the same compiled loop (a callback would keep every step in
+            # Python, so the loop would compile in the first timed run)
+            from .solve import prepare
+
+            short = min(scene.t_end, WARM_UP_STEPS * prepare(scene, method).dt)
+            simulate(bench.scene(job["cells"], spec["degree"], job["ppc"], t_end=short), method)
         first_use = time.perf_counter() - t0
         times, compiles = [], 0
         for _ in range(repeat):
