@@ -213,7 +213,7 @@ class StepLoop:
             n_steps=int(state.n_steps), t_end=float(state.scene.t_end), vfactor=1.0,
             store_acc=cd, velocities_done=False, gravity_work=gravity_work, work=0.0,
             work_sum=np.zeros(dim), stop=0, phase_ns=np.zeros(3, dtype=np.int64))
-        self.run_state = self.module.Run(*(fields[name] for name in self.module.FIELDS))
+        self.run_state = self.module.new_run(*(fields[name] for name in self.module.FIELDS))
         self._loop = self.module.LOOPS[self.scheme]
         self._loaded = None  # the particles whose arrays the run holds
         self._steps_per_call = 1  # parallel: grows to CALL_SECONDS of steps

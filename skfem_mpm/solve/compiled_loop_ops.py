@@ -71,6 +71,14 @@ structref.define_proxy(Run, RunType, list(FIELDS))
 
 
 @njit(cache=True)
+def new_run(*fields):
+    """A run with ``fields`` in the order of FIELDS (built in compiled code,
+    which numba caches: the proxy's own constructor compiles in every
+    process)."""
+    return Run(*fields)
+
+
+@njit(cache=True)
 def load_state(run, x, v, u, V, stress, t, step, work):
     """Copy a particle state (its time, step and external work) into the
     run's current arrays (the run never writes arrays it did not allocate)."""
