@@ -157,12 +157,13 @@ def loop_module(dim, p, parallel, window):
     """The generated loop module of one variant."""
     with open(_OPS, encoding="utf-8") as f:
         ops = f.read()
-    source = _prelude(dim, p, parallel, window) + "\n\n" + ops
+    threads = "par" if parallel else "ser"
+    variant = f"VARIANT = {f'{dim}d_p{p}_{threads}'!r}\n"
+    source = _prelude(dim, p, parallel, window) + "\n" + variant + "\n\n" + ops
     # the operations' callees are not tracked by numba's cache: their
     # sources go into the file's name (kernels.generated.load hashes it)
     depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
-    threads = "par" if parallel else "ser"
     return load(f"loop_{dim}d_p{p}_{threads}_{tag}", source)
 
 

@@ -42,6 +42,14 @@ class RunType(types.StructRef):
         return tuple((name, types.unliteral(t)) for name, t in fields)
 
 
+# Each variant's run type has its own name (VARIANT, from the prelude): numba
+# names compiled specialisations after their argument types' names, so two
+# variants' runs of the same fields would share the symbol of the one scheme
+# function compiled for both, and the second would call the first's kernels.
+RunType.__name__ = RunType.__qualname__ = f"RunType_{VARIANT}"
+globals()[RunType.__name__] = RunType  # pickled by name in numba's cache index
+
+
 FIELDS = (
     # particles: the current state and the arrays the step writes
     "x", "v", "u", "m", "V", "stress", "x_new", "v_new", "u_new", "V_new", "stress_new",
