@@ -1,21 +1,13 @@
 """Drucker-Prager plasticity fitted to Mohr-Coulomb."""
 import numpy as np
 
-from ..validation import check_choice, check_positive
+from ..validation import check_choice
 from .compiled import PointUpdate
 from .plastic import ElastoPlastic
 
 __all__ = ["DruckerPrager", "drucker_prager_fit"]
 
 FITS = ("plane strain", "compression", "extension")
-
-
-def check_angle(name, value, upper=90.0):
-    """An angle in degrees in [0, upper)."""
-    value = check_positive(name, value, allow_zero=True)
-    if not value < upper:
-        raise ValueError(f"{name} must be an angle in degrees in [0, {upper:g}), got {value}")
-    return value
 
 
 def drucker_prager_fit(friction_angle, dilation_angle, fit):
@@ -87,12 +79,7 @@ class DruckerPrager(ElastoPlastic):
     def __init__(self, E, nu, friction_angle, cohesion, dilation_angle=0.0,
                  fit="plane strain", large_deformation=False):
         self._elastic(E, nu, large_deformation)
-        self.friction_angle = check_angle("friction_angle", friction_angle)
-        self.cohesion = check_positive("cohesion", cohesion, allow_zero=True)
-        self.dilation_angle = check_angle("dilation_angle", dilation_angle)
-        if self.dilation_angle > self.friction_angle:
-            raise ValueError(f"dilation_angle must not exceed friction_angle "
-                             f"({self.friction_angle:g}), got {self.dilation_angle:g}")
+        self._frictional(friction_angle, cohesion, dilation_angle)
         self.fit = fit
         self.eta, self.xi, self.eta_bar = drucker_prager_fit(
             self.friction_angle, self.dilation_angle, fit)

@@ -3,7 +3,6 @@ import numpy as np
 
 from ..validation import check_positive
 from .compiled import PointUpdate
-from .drucker_prager import check_angle
 from .plastic import ElastoPlastic, from_principal, principal
 
 __all__ = ["MohrCoulomb"]
@@ -55,12 +54,7 @@ class MohrCoulomb(ElastoPlastic):
     def __init__(self, E, nu, friction_angle, cohesion, dilation_angle=0.0,
                  tension_cutoff=None, large_deformation=False):
         self._elastic(E, nu, large_deformation)
-        self.friction_angle = check_angle("friction_angle", friction_angle)
-        self.cohesion = check_positive("cohesion", cohesion, allow_zero=True)
-        self.dilation_angle = check_angle("dilation_angle", dilation_angle)
-        if self.dilation_angle > self.friction_angle:
-            raise ValueError(f"dilation_angle must not exceed friction_angle "
-                             f"({self.friction_angle:g}), got {self.dilation_angle:g}")
+        self._frictional(friction_angle, cohesion, dilation_angle)
         if tension_cutoff is not None:
             tension_cutoff = check_positive("tension_cutoff", tension_cutoff, allow_zero=True)
         self.tension_cutoff = tension_cutoff

@@ -97,6 +97,14 @@ def from_principal(values, vectors):
     return np.einsum("nik,nk,njk->nij", vectors, values, vectors)
 
 
+def check_angle(name, value, upper=90.0):
+    """An angle in degrees in [0, upper)."""
+    value = check_positive(name, value, allow_zero=True)
+    if not value < upper:
+        raise ValueError(f"{name} must be an angle in degrees in [0, {upper:g}), got {value}")
+    return value
+
+
 class ElastoPlastic(Material):
     """Base of the small-strain elastoplastic materials: isotropic linear
     elasticity (E, nu), a return mapping given by the subclass
@@ -117,6 +125,16 @@ class ElastoPlastic(Material):
                              f"got {large_deformation!r}")
         self.large_deformation = bool(large_deformation)
         self.finite_strain = self.large_deformation
+
+    def _frictional(self, friction_angle, cohesion, dilation_angle):
+        """The Mohr-Coulomb parameters (angles in degrees, 0 <= psi <= phi < 90,
+        c >= 0), shared by MohrCoulomb and DruckerPrager."""
+        self.friction_angle = check_angle("friction_angle", friction_angle)
+        self.cohesion = check_positive("cohesion", cohesion, allow_zero=True)
+        self.dilation_angle = check_angle("dilation_angle", dilation_angle)
+        if self.dilation_angle > self.friction_angle:
+            raise ValueError(f"dilation_angle must not exceed friction_angle "
+                             f"({self.friction_angle:g}), got {self.dilation_angle:g}")
 
     def check_dim(self, dim):
         if dim not in (2, 3):
