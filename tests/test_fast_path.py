@@ -375,20 +375,23 @@ def test_stale_fringe_factors_are_replaced_when_cg_fails():
         failing.solve(rhs, zeros, "velocity")
 
 
-def test_fringe_correction_turns_on_where_kronecker_alone_iterates_long():
+@pytest.mark.parametrize("min_rows", [0, 325])
+def test_fringe_correction_turns_on_where_kronecker_alone_iterates_long(min_rows):
     """A CG run with the Kronecker preconditioner alone that takes at least
     FRINGE_FROM iterations turns the fringe correction on for the next
-    solves (through the warm data); fewer iterations leave it off."""
+    solves (through the warm data), on a group of at least FRINGE_MIN_ROWS
+    free dofs (the block has 324); fewer iterations leave it off."""
     from skfem_mpm.solve.stencil_system import StencilSystem
 
     k, stencil, mass, constraints = _block_system()
     rhs = np.random.default_rng(5).standard_normal((mass.size, 2)) * mass[:, None]
     zeros = np.zeros_like(rhs)
-    for threshold, switched in ((100, False), (StencilSystem.FRINGE_FROM, True)):
+    for threshold, switched in ((100, False), (StencilSystem.FRINGE_FROM, min_rows == 0)):
         warm, counts = {}, []
         for _ in range(2):
             system = StencilSystem(k, stencil.copy(), mass, constraints, np.zeros(mass.size), warm)
             system.FRINGE_FROM = threshold
+            system.FRINGE_MIN_ROWS = min_rows
             system.solve(rhs, zeros, "acceleration")  # cold both times (no warm start kept)
             counts.append(system.iterations)
         assert ("fringe0_on" in warm) == switched

@@ -910,7 +910,10 @@ def _narrow(a, n):
     """The C-ordered array a (..., m) reinterpreted with n <= m columns
     (work space: its values are not kept)."""
     shape = a.shape[:-1] + (n,)
-    return a.reshape(a.size)[:np.prod(np.array(shape))].reshape(shape)
+    size = n
+    for d in a.shape[:-1]:
+        size *= d
+    return a.reshape(a.size)[:size].reshape(shape)
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
@@ -972,13 +975,17 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
     beta = np.zeros(nc)
     first = True
     it = 0
+    alphas = np.zeros(nc)
     while True:
         width = xc.shape[1]
-        keep = np.flatnonzero(active[:width])
-        n = keep.shape[0]
+        n = 0
+        for j in range(width):
+            if active[j]:
+                n += 1
         if n < width:  # pack the unconverged columns to the front
             if n == 0:
                 break
+            keep = np.flatnonzero(active[:width])
             if not packed:
                 packed = True
                 xc = _narrow(work[5], n)
@@ -1028,7 +1035,7 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
             continue
         it += 1
         _ell_product_dot(A, cols, d, q, partial)
-        alpha = np.zeros(width)
+        alpha = alphas[:width]
         for j in range(width):
             dq = 0.0
             for t in range(nt):

@@ -29,12 +29,14 @@ import time
 
 import numpy as np
 
-from ..kernels import mpm, scatter
+from ..kernels import kronecker, mpm, scatter
 from ..kernels.gather import g2p_kernel
 from ..kernels.generated import load
 from ..kernels.records import grid_record
 from ..kernels.scatter import g2p2g_kernel, p2g_kernel
 from . import schemes
+from .stencil_system import StencilSystem, stencil_residual
+from .timestep import COVERED, fast_dof_limit
 
 __all__ = ["ENABLED", "SERIAL_BELOW", "StepLoop", "loop_applies"]
 
@@ -46,10 +48,10 @@ SERIAL_BELOW = 4096
 """Particle count below which the loop runs serial kernels."""
 
 _HERE = os.path.dirname(os.path.abspath(__file__))
-_OPS = os.path.join(_HERE, "compiled_loop_ops.py")
+_TEMPLATES = [os.path.join(_HERE, name)
+              for name in ("compiled_loop_ops.py", "compiled_loop_mass.py")]
 
-# the parallel kernels of kernels.mpm / kernels.scatter the operations call,
-# under the names the operations use
+# the grid kernels the operations call, under the names the operations use
 _GRID_KERNELS = {
     "REDUCE_FIELDS": scatter.reduce_fields,
     "REDUCE_COPIES": scatter.reduce_copies,
@@ -58,6 +60,16 @@ _GRID_KERNELS = {
     "MASS_WEIGHTED_SUM": mpm.mass_weighted_sum,
     "SMALL_MASS_1D": mpm.small_mass_1d,
     "SMALL_MASS_2D": mpm.small_mass_2d,
+    # consistent mass (compiled_loop_mass)
+    "CONSISTENT_1D": mpm.consistent_1d,
+    "CONSISTENT_2D": mpm.consistent_2d,
+    "REDUCE_STENCIL": mpm.reduce_stencil,
+    "COMPACT_SYSTEM": mpm.compact_system,
+    "FAST_ROW_FRACTIONS": mpm.fast_row_fractions,
+    "COMPACT_PROBLEM": mpm.compact_problem,
+    "EXPAND_PROBLEM": mpm.expand_problem,
+    "ELL_PCG": mpm.ell_pcg,
+    "BANDED_CHOLESKY": kronecker.banded_cholesky,
 }
 
 
@@ -70,7 +82,6 @@ def loop_applies(state, executor):
         (not ENABLED, "the compiled loop is switched off (compiled_loop.ENABLED)"),
         (executor is None or executor.path != "fast", "not the compiled executor"),
         (m.scheme not in ("musl", "usl", "cd"), f"scheme {m.scheme}"),
-        (m.mass != "lumped", f"{m.mass} mass"),
         (not executor.fused if executor is not None else True,
          "a material other than one linear elastic body"),
         (bool(executor.other_forces) if executor is not None else True,
@@ -84,41 +95,104 @@ def loop_applies(state, executor):
     for failed, why in reasons:
         if failed:
             return False, why
+    if m.mass != "lumped":
+        why = _mass_unsupported(state)
+        if why is not None:
+            return False, why
     return True, ""
 
 
+def _mass_unsupported(state):
+    """Why the loop cannot solve this run's consistent (or hybrid) mass, or
+    None: it runs StencilSystem's Kronecker-preconditioned CG, not the
+    sparse LU, the Jacobi preconditioner or the fringe correction."""
+    m, cls = state.method, StencilSystem
+    if m.mass_solver == "direct":
+        return "mass_solver 'direct' (sparse LU)"
+    if cls.preconditioner != "kronecker":
+        return f"the {cls.preconditioner!r} preconditioner"
+    if cls.iteration_log is not None:
+        return "a CG iteration log is recorded"
+    if state.grid.dim == 2 and cls.FRINGE_LAYERS > 0:
+        if cls.FRINGE_FROM <= 0:
+            return "the fringe correction from the first step"
+        if any(key.startswith("fringe") and key.endswith("_on") for key in state.warm):
+            return "the fringe correction (on since an earlier step)"
+    return None
+
+
 # ------------------------------------------------------ the generated module
-def _serial_source(name, kernel):
-    """Source of a parallel kernel compiled without ``parallel`` under
-    ``name`` and the imports its body needs (the same blocks: the same
-    results)."""
-    source = inspect.getsource(kernel.py_func)
-    if "parallel=True" not in source:
-        raise ValueError(f"{kernel.py_func.__name__} is not a parallel kernel")
-    source = source.replace("parallel=True", "parallel=False", 1)
-    source = source.replace(f"def {kernel.py_func.__name__}(", f"def {name}(", 1)
-    module = inspect.getmodule(kernel.py_func)
-    needed = sorted(n for n in kernel.py_func.__code__.co_names
-                    if n in vars(module) and n not in ("np", "njit", "prange", "FAST"))
-    imports = [f"from {module.__name__} import {n}" for n in needed]
-    return imports, source
+def _is_kernel(value):
+    return hasattr(value, "py_func") and hasattr(value, "targetoptions")
+
+
+def _serial_closure(roots):
+    """The kernels among ``roots`` and their callees that need a serial
+    copy (parallel ones, and those calling one), callees first."""
+    needs, order = {}, []
+
+    def visit(kernel):
+        func = kernel.py_func
+        key = (func.__module__, func.__name__)
+        if key in needs:
+            return needs[key]
+        needs[key] = False  # (no recursion among kernels)
+        module = inspect.getmodule(func)
+        copy = bool(kernel.targetoptions.get("parallel", False))
+        for name in func.__code__.co_names:
+            value = vars(module).get(name)
+            if _is_kernel(value) and visit(value):
+                copy = True
+        needs[key] = copy
+        if copy:
+            order.append(kernel)
+        return copy
+
+    for kernel in roots:
+        visit(kernel)
+    return order
+
+
+def _serial_source(kernels):
+    """Source of a module holding copies of ``kernels`` compiled without
+    ``parallel`` under their own names (so that they call each other's
+    copies), with the imports their bodies need. The same blocks: the same
+    results."""
+    names = {}
+    for kernel in kernels:
+        name = kernel.py_func.__name__
+        if name in names and names[name] is not kernel:
+            raise ValueError(f"two kernels named {name} need serial copies")
+        names[name] = kernel
+    imports, bodies = set(), []
+    for kernel in kernels:
+        func = kernel.py_func
+        source = inspect.getsource(func).replace("parallel=True", "parallel=False", 1)
+        module = inspect.getmodule(func)
+        for name in func.__code__.co_names:
+            if name in vars(module) and name not in names and \
+                    name not in ("np", "njit", "prange", "FAST"):
+                imports.add(f"from {module.__name__} import {name}")
+        bodies.append(source)
+    lines = ['"""Generated by skfem_mpm.solve.compiled_loop; do not edit."""',
+             "import numpy as np",
+             "from numba import njit, prange",
+             "",
+             "from skfem_mpm.kernels.weights import FAST",
+             *sorted(imports)]
+    return "\n".join(lines) + "\n\n\n" + "\n\n".join(bodies)
 
 
 @functools.cache
 def _serial_grid_kernels():
     """The generated module of the serial copies of the grid kernels (one
     for every variant: they do not depend on the dimension or degree)."""
-    lines = ['"""Generated by skfem_mpm.solve.compiled_loop; do not edit."""',
-             "import numpy as np",
-             "from numba import njit, prange",
-             "",
-             "from skfem_mpm.kernels.weights import FAST"]
-    bodies = []
-    for label, kernel in _GRID_KERNELS.items():
-        imports, source = _serial_source(label, kernel)
-        lines.extend(imports)
-        bodies.append(source)
-    return load("loop_grid_serial", "\n".join(lines) + "\n\n\n" + "\n\n".join(bodies))
+    kernels = _serial_closure(_GRID_KERNELS.values())
+    # the copies' callees are not tracked by numba's cache: their sources
+    # go into the file's name (kernels.generated.load hashes the text)
+    callees = "".join(inspect.getsource(m) for m in (mpm, scatter, kronecker))
+    tag = hashlib.sha1(callees.encode()).hexdigest()[:12]
+    return load("loop_serial", f"# callees {tag}\n" + _serial_source(kernels))
 
 
 def _prelude(dim, p, parallel, window):
@@ -136,18 +210,30 @@ def _prelude(dim, p, parallel, window):
     lines.append("from skfem_mpm.kernels.tiny_mass import merged_lumped_solve as MERGED_SOLVE")
     serial = None if parallel else _serial_grid_kernels()
     for label, kernel in _GRID_KERNELS.items():
-        if parallel:
-            lines.append(f"from {kernel.py_func.__module__} import "
-                         f"{kernel.py_func.__name__} as {label}")
+        name = kernel.py_func.__name__
+        if parallel or not hasattr(serial, name):
+            lines.append(f"from {kernel.py_func.__module__} import {name} as {label}")
         else:
-            lines.append(f"from {serial.__name__} import {label}")
+            lines.append(f"from {serial.__name__} import {name} as {label}")
     small = "SMALL_MASS_1D(mass, p, tol, small)" if dim == 1 else \
         "SMALL_MASS_2D(mass, nbx, nby, p, tol, small)"
+    assemble = ("(bx, ux, ihx, Cx), = axes\n"
+                "    CONSISTENT_1D(x, m, bx, ux, ihx, Cx, p, copies, stiff, touched)"
+                if dim == 1 else
+                "(bx, ux, ihx, Cx), (by, uy, ihy, Cy) = axes\n"
+                "    CONSISTENT_2D(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, copies, "
+                "stiff, touched)")
     body = f'''
 @njit(cache=True)
 def SMALL_MASS(mass, tol, small, nbx, nby, p):
     """Count of the tiny-mass dofs (see kernels.mpm.small_mass_{dim}d)."""
     return {small}
+
+
+@njit(cache=True)
+def ASSEMBLE(x, m, axes, p, nbx, copies, stiff, touched):
+    """Per-thread copies of the consistent mass stencil (kernels.mpm.consistent_{dim}d)."""
+    {assemble}
 '''
     return "\n".join(lines) + "\n\n" + body
 
@@ -155,14 +241,17 @@ def SMALL_MASS(mass, tol, small, nbx, nby, p):
 @functools.cache
 def loop_module(dim, p, parallel, window):
     """The generated loop module of one variant."""
-    with open(_OPS, encoding="utf-8") as f:
-        ops = f.read()
+    templates = []
+    for path in _TEMPLATES:
+        with open(path, encoding="utf-8") as f:
+            templates.append(f.read())
     threads = "par" if parallel else "ser"
     variant = f"VARIANT = {f'{dim}d_p{p}_{threads}'!r}\n"
-    source = _prelude(dim, p, parallel, window) + "\n" + variant + "\n\n" + ops
+    source = _prelude(dim, p, parallel, window) + "\n" + variant + "\n\n" + \
+        "\n\n".join(templates)
     # the operations' callees are not tracked by numba's cache: their
     # sources go into the file's name (kernels.generated.load hashes it)
-    depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter))
+    depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{dim}d_p{p}_{threads}_{tag}", source)
 
@@ -213,14 +302,130 @@ class StepLoop:
             dt=float(state.dt), t=float(state.t), step=int(state.step),
             n_steps=int(state.n_steps), t_end=float(state.scene.t_end), vfactor=1.0,
             store_acc=cd, velocities_done=False, gravity_work=gravity_work, work=0.0,
-            work_sum=np.zeros(dim), stop=0, phase_ns=np.zeros(3, dtype=np.int64))
+            work_sum=np.zeros(dim), stop=0, handover=False,
+            phase_ns=np.zeros(4, dtype=np.int64), nthreads=int(k.nthreads))
+        # consistent or hybrid mass: the run's mass system (None: lumped)
+        self.cm = fields["cm"] = None if state.method.mass == "lumped" else \
+            self._mass_system(state, k)
         self.run_state = self.module.new_run(*(fields[name] for name in self.module.FIELDS))
+        self.retired = False  # the executor takes every further step
         self._loop = self.module.LOOPS[self.scheme]
         self._loaded = None  # the particles whose arrays the run holds
         self._steps_per_call = 1  # parallel: grows to CALL_SECONDS of steps
 
+    def _mass_system(self, state, k):
+        """The consistent-mass data of the run (compiled_loop_mass), sized
+        for every dof; the constraint groups as StencilSystem forms them."""
+        grid, method, cls = state.grid, state.method, StencilSystem
+        dim, nd, p = grid.dim, grid.ndofs, grid.degree
+        k._stencil_pattern()  # the stencil's shape
+        ns = k._stencil_shape[1]
+        nt = k.nthreads
+        nbx, nby = (nd, 1) if dim == 1 else tuple(grid.basis_per_axis[:2])
+        hybrid = method.mass == "hybrid"
+        guard = 0.0 if hybrid else method.frequency_guard
+        limit = 0.0
+        weights, ratios, moving = np.ones(nd), np.ones(nd), np.ones(nd)
+        if guard > 0:
+            limit = guard * fast_dof_limit(grid.degree, method.scheme) / \
+                (state.dt * state.wave_speed_now) ** 2
+            weights, ratios, moving = state.fast_dof_guard_arrays()
+        mask = state.constraints.mask
+        groups = {}
+        for c in range(dim):
+            groups.setdefault(mask[:, c].tobytes(), []).append(c)
+        G = len(groups)
+        group_comps = np.zeros((G, dim), dtype=np.int64)
+        for g, comps in enumerate(groups.values()):
+            group_comps[g, :len(comps)] = comps
+        bands, sums = k.axis_mass()
+        nc = 2 * dim  # the most columns of a CG run: two problems
+        zeros, empty = np.zeros, np.empty
+        fields = dict(
+            stencil=zeros((nd, ns)), stiffness=zeros(nd),
+            copies=zeros((nt, nd, (ns + 1) // 2)), stiff_copies=zeros((nt, nd)),
+            touched=zeros((nt, 2), dtype=np.int64), row_range=np.array([0, nd]),
+            axes=tuple(k.args),
+            guard=bool(guard > 0), limit=float(limit),
+            weights=np.ascontiguousarray(weights, dtype=np.float64),
+            mass_ratios=np.ascontiguousarray(ratios, dtype=np.float64),
+            moving=np.asarray(moving, dtype=np.float64), covered=np.array(COVERED, dtype=float),
+            guarded=zeros(nd), fast=zeros(nd),
+            group_comps=group_comps,
+            group_size=np.array([len(c) for c in groups.values()], dtype=np.int64),
+            rows=zeros((G, nd), dtype=np.int64), n_rows=zeros(G, dtype=np.int64),
+            index=zeros((G, nd), dtype=np.int64), A=zeros((G, nd, ns)),
+            cols=zeros((G, nd, ns), dtype=np.int32),
+            # the fixed-column part is read only for nonzero constraint
+            # values, which the loop never has: never written (np.zeros
+            # leaves its pages unmapped)
+            F=zeros((G, nd, ns)), fcols=zeros((G, nd, ns), dtype=np.int32),
+            inv_diag=zeros((G, nd)),
+            bands_x=np.ascontiguousarray(bands[0]),
+            bands_y=np.ascontiguousarray(bands[1]) if dim == 2 else zeros((1, p + 1)),
+            sums_x=np.ascontiguousarray(sums[0]),
+            sums_y=np.ascontiguousarray(sums[1]) if dim == 2 else zeros(1),
+            Lx=zeros((G, nbx, p + 1)), Ly=np.ones((G, nby, p + 1)),
+            factored_rows=zeros((G, nd), dtype=np.int64),
+            n_factored=np.full(G, -1, dtype=np.int64), box_shape=zeros((G, 4), dtype=np.int64),
+            gauss=zeros((G, nd)), box_index=zeros((G, nd), dtype=np.int64),
+            local=zeros((G, nd), dtype=np.int64), inv_scale=zeros((G, nd)),
+            lumped_row=float(cls.LUMPED_ROW),
+            b=empty(nd * nc), x=empty(nd * nc), work=empty(6 * nd * nc),
+            box=empty(nbx * nby * nc), rtol=1e-13, max_iterations=int(cls.max_iterations or 0),
+            fringe_from=int(cls.FRINGE_FROM), fringe_min_rows=int(cls.FRINGE_MIN_ROWS),
+            fringe_layers=int(cls.FRINGE_LAYERS) if dim == 2 else 0,
+            fringe_on=zeros(G, dtype=np.bool_), iterations=0,
+            warm=zeros((2, nd, dim)), has_warm=zeros(2, dtype=np.bool_),
+            warm_good=zeros((2, nd, dim)), has_good=zeros(2, dtype=np.bool_),
+            hybrid=hybrid)
+        self._groups = G
+        return self.module.new_mass_system(*(fields[n] for n in self.module.MASS_FIELDS))
+
+    WARM_KINDS = ("acceleration", "velocity")
+
+    def _load_warm(self, state):
+        """The run starts its CG runs from the state's warm starts."""
+        cm = self.cm
+        nd, dim = self.executor.kernels.ndofs, state.grid.dim
+        warm = np.zeros((2, nd, dim))
+        has = np.zeros(2, dtype=np.bool_)
+        for i, kind in enumerate(self.WARM_KINDS):
+            prev = state.warm.get(kind)
+            if prev is not None and prev.shape == (nd, dim):
+                warm[i], has[i] = prev, True
+        self.module.load_warm(cm, warm, has)
+
+    def _mass_results(self, state, handover):
+        """The warm starts of the last step taken into the state (new
+        arrays: warm data may be shared with a checkpoint), the fringe
+        switch, and the reactions of consistent mass (M a - f on the
+        constrained rows)."""
+        run = self.run_state
+        warm, has, fringe_on, stencil, fast = self.module.mass_records(self.cm)
+        for i, kind in enumerate(self.WARM_KINDS):
+            if has[i]:
+                state.warm[kind] = warm[i].copy()
+        if handover:
+            for g in np.flatnonzero(fringe_on):
+                state.warm[f"fringe{g}_on"] = np.array([1])
+            self.retired = True
+        c = state.constraints
+        if c.any:
+            mass, a, force = self.module.grid_arrays(run)
+            if state.method.mass == "hybrid":
+                state.defer_reactions(c, mass, a, force, None)  # gravity is in the force
+            else:
+                k = self.executor.kernels
+                state.reactions = c.reactions(stencil_residual(
+                    stencil, k.stencil_geometry, c.mask, mass <= 0, fast, a, force))
+
     def compile(self):
         """Compile (or load from numba's cache) everything ``run`` calls."""
+        if self.cm is not None:
+            nd, dim = self.executor.kernels.ndofs, self._arrays[0].shape[1]
+            self.module.load_warm(self.cm, np.zeros((2, nd, dim)), np.zeros(2, dtype=np.bool_))
+            self.module.mass_records(self.cm)
         self.module.load_state(self.run_state, *self._arrays, 0.0, 0, 0.0)
         self.module.set_work(self.run_state, 0.0)
         self.module.reset_step_records(self.run_state)
@@ -237,12 +442,17 @@ class StepLoop:
     def run(self, state, n):
         """Up to ``n`` steps from ``state`` (its particles, t and step);
         the state is updated with those taken, which are returned."""
+        if self.retired:
+            return 0
         if self.parallel:
             n = min(n, self._steps_per_call)
         p = state.particles
         if p.n != self._arrays[0].shape[0]:  # particles were removed
             return 0
         mod, run = self.module, self.run_state
+        consistent = self.cm is not None
+        if consistent:
+            self._load_warm(state)
         if self._loaded is not p:
             mod.load_state(run, p.x, p.v, p.u, p.V, p.stress, float(state.t), int(state.step),
                            float(state.external_work))
@@ -264,12 +474,14 @@ class StepLoop:
         state.external_work = work
         if self.scheme == "cd":
             state.particle_acceleration = acc.copy()
-        if state.constraints.any:
+        phase_ns, small_max, handover = mod.records(run)
+        if consistent:
+            self._mass_results(state, handover)
+        elif state.constraints.any:
             mass, a, force = mod.grid_arrays(run)
             gravity = self.executor.gravity if self.executor.gravity_work else None
             state.defer_reactions(state.constraints, mass, a, force, gravity)
-        phase_ns, small_max = mod.records(run)
-        for phase, ns in zip(("p2g", "solve", "g2p"), phase_ns.tolist()):
+        for phase, ns in zip(("p2g", "solve", "g2p", "mass_matrix"), phase_ns.tolist()):
             if ns:
                 state.timer.add(phase, ns * 1e-9)
         state.small_dofs_max = max(state.small_dofs_max, int(small_max))

@@ -18,15 +18,20 @@ run)``: the run is both the executor and the state) and looped over steps
 by :func:`run_musl` and its siblings, without Python between the steps.
 
 What a compiled run covers (:func:`skfem_mpm.solve.compiled_loop.loop_applies`
-says which runs): lumped mass, one linear elastic body (its stress update
-fused into g2p), gravity, fixed constraints. A step that would need
-anything else stops the loop before it writes the current state
-(``run.stop``): a non-finite value, J <= 0 or a particle outside the grid
-(flags of the g2p kernel), tiny-mass dofs. The Python step then takes that
-step and says what happened.
+says which runs): lumped, consistent and hybrid mass (``run.cm``: None, or
+the consistent-mass system of :mod:`skfem_mpm.solve.compiled_loop_mass`; a
+run of each kind compiles only its own operations), one linear elastic
+body (its stress update fused into g2p), gravity, fixed constraints. A
+step that would need anything else stops the loop before it writes the
+current state (``run.stop``): a non-finite value, J <= 0 or a particle
+outside the grid (flags of the g2p kernel), a tiny-mass merge the lumped
+kernel cannot do (1), tiny-mass dofs with consistent mass (4), a CG run
+above its tolerance (3). The Python step then takes that step and says
+what happened. ``run.handover``: the step was taken, and the next ones
+need the executor (the fringe correction turned on).
 
 Phase times (nanoseconds of the monotonic clock) add up in ``run.phase_ns``:
-0 p2g, 1 solve, 2 g2p.
+0 p2g, 1 solve, 2 g2p, 3 mass_matrix.
 """
 import numpy as np
 from numba import njit, types
@@ -63,8 +68,15 @@ FIELDS = (
     "lam", "mu",
     # the step
     "dt", "t", "step", "n_steps", "t_end", "vfactor", "store_acc", "velocities_done",
-    "gravity_work", "work", "work_sum", "stop", "phase_ns",
+    "gravity_work", "work", "work_sum", "stop", "handover", "phase_ns",
+    # consistent or hybrid mass: a MassSystem (None: lumped mass)
+    "cm", "nthreads",
 )
+
+
+def _consistent(run):
+    """Whether the run (its numba type) has a consistent-mass system."""
+    return not isinstance(run.field_dict["cm"], types.NoneType)
 
 
 class Run(structref.StructRefProxy):
@@ -110,6 +122,7 @@ def reset_step_records(run):
     """Clear what a call of the loop reports: the stop flag, the most
     tiny-mass dofs of a step and the phase times."""
     run.stop = 0
+    run.handover = False
     run.small_max = 0
     run.phase_ns[:] = 0
 
@@ -129,13 +142,16 @@ def grid_arrays(run):
 
 @njit(cache=True)
 def records(run):
-    """The phase times (ns) and the most tiny-mass dofs of a step."""
-    return run.phase_ns, run.small_max
+    """The phase times (ns), the most tiny-mass dofs of a step, and whether
+    the executor takes the next steps."""
+    return run.phase_ns, run.small_max, run.handover
 
 
 # ------------------------------------------------------------- operations
 @overload_method(RunType, "particles_to_grid")
 def _particles_to_grid(run, state):
+    consistent = _consistent(run)
+
     def impl(run, state):
         t0 = monotonic_ns()
         particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
@@ -154,7 +170,14 @@ def _particles_to_grid(run, state):
                                              run.nby, run.degree)
                 run.small_max = max(run.small_max, run.small_count)
         run.velocities_done = False
-        run.phase_ns[0] += monotonic_ns() - t0
+        t1 = monotonic_ns()
+        run.phase_ns[0] += t1 - t0
+        if consistent:
+            if run.small_count > 0:  # the general grid system merges them
+                run.stop = 4
+                return run
+            assemble_mass(run.cm, run.x, run.m, run.degree, run.nbx, run.nby, run.x.shape[1])
+            run.phase_ns[3] += monotonic_ns() - t1
         return run
     return impl
 
@@ -172,14 +195,75 @@ def _lumped_solve(run, rhs, gravity, out):
     return impl
 
 
+@overload_method(RunType, "mass_solve")
+def _mass_solve(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
+    def impl(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
+        """Consistent M x = rhs for 1 or 2 problems (see compiled_loop_mass)."""
+        if not mass_solve(run.cm, run.nthreads, count, rhs0, kind0, out0, rhs1, kind1, out1):
+            run.stop = 3
+    return impl
+
+
+@overload_method(RunType, "prepare_grid")
+def _prepare_grid(run):
+    if not _consistent(run):
+        return lambda run: None
+
+    def impl(run):
+        """Consistent mass: gravity as the force m g, then the step's system."""
+        if run.gravity_work:
+            for k in range(run.force.shape[0]):
+                for c in range(run.force.shape[1]):
+                    run.force[k, c] = run.force[k, c] + run.mass[k] * run.gravity[c]
+        prepare_mass(run.cm, run.mass, run.mask, run.degree, run.nbx, run.nby,
+                     run.x.shape[1])
+    return impl
+
+
+@overload_method(RunType, "solve_acceleration")
+def _solve_acceleration(run):
+    if not _consistent(run):
+        return lambda run: run.lumped_solve(run.force, run.gravity, run.a)
+
+    def impl(run):
+        if run.cm.hybrid:  # lumped acceleration (gravity is in the force)
+            run.lumped_solve(run.force, run.no_gravity, run.a)
+        else:
+            run.mass_solve(1, run.force, 0, run.a, run.force, 0, run.a)
+    return impl
+
+
 @overload_method(RunType, "solve_grid")
 def _solve_grid(run, state, grid, end_velocity=None):
+    consistent = _consistent(run)
     if end_velocity is None or isinstance(end_velocity, (types.NoneType, types.Omitted)):
         def impl(run, state, grid, end_velocity=None):  # MUSL: a only
             if run.stop:
                 return run.a
             t0 = monotonic_ns()
-            run.lumped_solve(run.force, run.gravity, run.a)
+            run.prepare_grid()
+            run.solve_acceleration()
+            run.phase_ns[1] += monotonic_ns() - t0
+            return run.a
+        return impl
+
+    if consistent:
+        def impl(run, state, grid, end_velocity=None):  # USL, CD: a and v = v^n + c dt a
+            if run.stop:
+                return run.a
+            t0 = monotonic_ns()
+            vdt = end_velocity * run.dt
+            run.prepare_grid()
+            if run.cm.hybrid:
+                run.lumped_solve(run.force, run.no_gravity, run.a)
+                run.mass_solve(1, run.momentum, 1, run.v_old, run.momentum, 1, run.v_old)
+            else:
+                run.mass_solve(2, run.force, 0, run.a, run.momentum, 1, run.v_old)
+            if not run.stop:
+                for k in range(run.a.shape[0]):
+                    for c in range(run.a.shape[1]):
+                        run.v_grid[k, c] = run.a[k, c] * vdt + run.v_old[k, c]
+                run.cm.warm[1][:] = run.v_grid  # see steps.remember_end_velocity
             run.phase_ns[1] += monotonic_ns() - t0
             return run.a
         return impl
@@ -212,6 +296,17 @@ def _update_particle_velocities(run, state, grid, velocity_factor=1.0,
     return impl
 
 
+@overload_method(RunType, "solve_projected_velocity")
+def _solve_projected_velocity(run):
+    if not _consistent(run):
+        return lambda run: run.lumped_solve(run.momentum_new, run.no_gravity, run.v_grid)
+
+    def impl(run):  # see steps.project_velocity: the warm start moves by dt a
+        shift_warm(run.cm, 1, run.dt, run.a)
+        run.mass_solve(1, run.momentum_new, 1, run.v_grid, run.momentum_new, 1, run.v_grid)
+    return impl
+
+
 @overload_method(RunType, "project_velocity")
 def _project_velocity(run, state, grid):
     def impl(run, state, grid):
@@ -224,7 +319,7 @@ def _project_velocity(run, state, grid):
         REDUCE_COPIES(run.copies_g2p2g, run.touched_g2p2g, run.momentum_new)
         run.velocities_done = True
         t1 = monotonic_ns()
-        run.lumped_solve(run.momentum_new, run.no_gravity, run.v_grid)
+        run.solve_projected_velocity()
         run.phase_ns[2] += t1 - t0
         run.phase_ns[1] += monotonic_ns() - t1
     return impl
@@ -258,9 +353,13 @@ def _update_stress(run, state, grid, velocity=None):
 
 @overload_method(RunType, "commit")
 def _commit(run, state, grid):
+    consistent = _consistent(run)
+
     def impl(run, state, grid):
         if run.stop:
             return
+        if consistent and commit_mass(run.cm):  # the fringe correction is on
+            run.handover = True
         if run.gravity_work:  # see Kernels.gravity_work
             MASS_WEIGHTED_SUM(run.mass, run.v_grid, run.work_sum)
             run.work += WORK_INCREMENT(run.work_sum, run.dt, run.gravity)
@@ -283,6 +382,8 @@ def run_musl(run, n):
         schemes.step_musl(run, run)
         if run.stop:
             return k
+        if run.handover:
+            return k + 1
     return n
 
 
@@ -293,6 +394,8 @@ def run_usl(run, n):
         schemes.step_usl(run, run)
         if run.stop:
             return k
+        if run.handover:
+            return k + 1
     return n
 
 
@@ -303,6 +406,8 @@ def run_cd(run, n):
         schemes.step_cd(run, run)
         if run.stop:
             return k
+        if run.handover:
+            return k + 1
     return n
 
 

@@ -128,12 +128,19 @@ class State:
         0 on dofs constrained in every component, which never move)."""
         if not isinstance(self.grid, SplineGrid):
             return 1.0
+        w, mu, moving = self.fast_dof_guard_arrays()
+        return covered_weights(w, mu, lumped, diagonal) * moving
+
+    def fast_dof_guard_arrays(self):
+        """(w, mu, moving) of :meth:`guard_weights` on a spline grid: the
+        full-grid weights and mass ratios of
+        :func:`skfem_mpm.solve.timestep.fast_dof_weights`, and the dofs not
+        constrained in every component."""
         if self._fast_dof_weights is None:
             # a dof constrained in every component does not move: never fast
             moving = ~self.constraints.mask.all(axis=1)
             self._fast_dof_weights = (*fast_dof_weights(self.grid), moving)
-        w, mu, moving = self._fast_dof_weights
-        return covered_weights(w, mu, lumped, diagonal) * moving
+        return self._fast_dof_weights
 
     @property
     def adaptive(self):

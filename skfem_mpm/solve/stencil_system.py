@@ -18,7 +18,7 @@ from ..kernels.mpm import (compact_problem, compact_system, ell_pcg, expand_prob
 from ..validation import check_choice
 from .grid_system import shift_guess
 
-__all__ = ["PRECONDITIONERS", "StencilSystem", "preconditioned_with"]
+__all__ = ["PRECONDITIONERS", "StencilSystem", "preconditioned_with", "stencil_residual"]
 
 PRECONDITIONERS = ("kronecker+fringe", "kronecker", "lumped")
 """The stencil CG's preconditioners (see :func:`preconditioned_with`)."""
@@ -143,8 +143,14 @@ class StencilSystem:
     # column, 6 with it, and 25% more solve time). A group turns it on, for
     # the rest of the run, after a CG run with the Kronecker preconditioner
     # alone took at least FRINGE_FROM iterations (the switch is warm data,
-    # so restarts follow it).
+    # so restarts follow it), and only a group of at least FRINGE_MIN_ROWS
+    # free dofs: on small grids the factorisation and its triangular solves
+    # cost more than the iterations they save (the expanding block of
+    # `bench --consistent`: 324 free dofs at 32 x 32 cells ran slower with
+    # it, 1,156 at 64 x 64 faster), and the compiled step loop
+    # (solve/compiled_loop.py) runs only without it.
     FRINGE_FROM = 12
+    FRINGE_MIN_ROWS = 600
 
     def _fringe(self, g, rows, A, cols):
         """The fringe correction's factors for group g, or None (the
@@ -232,7 +238,7 @@ class StencilSystem:
                                        f"{self.rtol:g} after {-its} iterations")
                 self.iterations += its
                 if kron is not None and fringe is None and self.fringe_layers > 0 \
-                        and its >= self.FRINGE_FROM:
+                        and its >= self.FRINGE_FROM and rows.size >= self.FRINGE_MIN_ROWS:
                     self.warm[f"fringe{g}_on"] = np.array([1])
                 if fringe is not None:
                     self._keep_fringe(g, [kind for _, _, kind in problems],
@@ -252,13 +258,22 @@ class StencilSystem:
     def residual(self, x, rhs):
         """M x - rhs with the fast rows lumped, on the constrained dofs (the
         rows the reactions read; zero elsewhere)."""
-        rows = self.reaction_rows
-        y = np.empty((rows.size, x.shape[1]))
-        stencil_rows_product(self.stencil, *self.geometry, rows, self.inactive, self.fast,
-                             np.ascontiguousarray(x), y)
-        out = np.zeros_like(rhs)
-        out[rows] = y - rhs[rows]
-        return out
+        return stencil_residual(self.stencil, self.geometry, self.constraints.mask,
+                                self.inactive, self.fast, x, rhs, self.reaction_rows)
+
+
+def stencil_residual(stencil, geometry, mask, inactive, fast, x, rhs, rows=None):
+    """M x - rhs on the dofs constrained in any component (``rows``, when
+    known; zero elsewhere): what the reactions read. M is the stencil with
+    the fast rows lumped (fractions ``fast``) and the columns of the
+    massless (``inactive``) dofs removed, as the solves see it."""
+    if rows is None:
+        rows = np.flatnonzero(mask.any(axis=1))
+    y = np.empty((rows.size, x.shape[1]))
+    stencil_rows_product(stencil, *geometry, rows, inactive, fast, np.ascontiguousarray(x), y)
+    out = np.zeros_like(rhs)
+    out[rows] = y - rhs[rows]
+    return out
 
 
 _DEFAULT_FRINGE_LAYERS = StencilSystem.FRINGE_LAYERS

@@ -1,0 +1,303 @@
+"""Consistent (and hybrid) mass on a compiled run: part of the source of the
+generated loop modules (not imported as a module; see
+:mod:`skfem_mpm.solve.compiled_loop_ops`).
+
+The same equations, kernels and order of operations as the compiled
+executor's :class:`~skfem_mpm.solve.stencil_system.StencilSystem` with the
+Kronecker preconditioner, so that a run gives the same bits on either path:
+
+    assemble        M (stencil rows) and the fast-dof guard's stiffness
+                    weights K_k = sum_p m_p |grad N_k(x_p)|^2 (kernel pair
+                    consistent_{1,2}d + reduce_stencil)
+    prepare         the fast-row lumping fractions theta_k of
+                    :func:`skfem_mpm.solve.timestep.lumping_fraction`, with K
+                    scaled by :func:`skfem_mpm.solve.timestep.covered_weights`
+                    (hybrid mass: no guard, theta = 0); for each constraint
+                    pattern ("group") its free dofs (not constrained, with
+                    mass), their rows in ELL form (compact_system), and the
+                    factors of the Kronecker preconditioner
+                    (:class:`skfem_mpm.kernels.kronecker.KroneckerData`: banded
+                    Cholesky factors of the axis masses on the free dofs'
+                    index box, kept while the free-dof set stays)
+    mass_solve      M x = rhs on the free dofs (constrained and massless dofs
+                    0), one or two right-hand sides in one CG run (ell_pcg),
+                    warm started from the last solution of the same kind
+                    (0 acceleration, 1 velocity)
+
+The fringe correction of the preconditioner (SuperLU factors of the
+free-dof set's edge) is not compiled: a group of at least
+``fringe_min_rows`` free dofs whose Kronecker-preconditioned CG needed
+``fringe_from`` iterations turns it on for the rest of the run (as
+StencilSystem does), and the run hands over to the executor after that
+step (``fringe_on``, ``handover``).
+"""
+
+
+@structref.register
+class MassSystemType(types.StructRef):
+    def preprocess_fields(self, fields):
+        return tuple((name, types.unliteral(t)) for name, t in fields)
+
+
+MassSystemType.__name__ = MassSystemType.__qualname__ = f"MassSystemType_{VARIANT}"
+globals()[MassSystemType.__name__] = MassSystemType
+
+
+MASS_FIELDS = (
+    # assembly: the stencil (dofs, (2p + 1)^dim), K, per-thread copies, the
+    # rows the last assembly touched, the axes' (breakpoints, uniform, 1/h,
+    # extraction)
+    "stencil", "stiffness", "copies", "stiff_copies", "touched", "row_range", "axes",
+    # fast-dof guard: on?, its limit, covered_weights' w, mu, the moving
+    # dofs (1.0 / 0.0), COVERED, the scaled K, the lumping fractions
+    "guard", "limit", "weights", "mass_ratios", "moving", "covered", "guarded", "fast",
+    # groups: their components, the free rows and dof -> row, the ELL rows
+    "group_comps", "group_size", "rows", "n_rows", "index", "A", "cols", "F", "fcols",
+    "inv_diag",
+    # Kronecker preconditioner per group: axis mass bands and row sums,
+    # factors (1 / L_ii in column 0), the rows they were built for,
+    # box (a0, b0, ny, nx), Gauss row sums, box index, scaling
+    "bands_x", "bands_y", "sums_x", "sums_y", "Lx", "Ly", "factored_rows", "n_factored",
+    "box_shape", "gauss", "box_index", "local", "inv_scale", "lumped_row",
+    # conjugate gradients: right-hand sides, solutions, work space (flat)
+    "b", "x", "work", "box", "rtol", "max_iterations", "fringe_from", "fringe_min_rows",
+    "fringe_layers", "fringe_on", "iterations",
+    # warm starts: [0] acceleration, [1] velocity; those of the last step
+    # taken (a step that stops hands its own start to the executor)
+    "warm", "has_warm", "warm_good", "has_good",
+    # hybrid mass: the acceleration is solved with the lumped mass
+    "hybrid",
+)
+
+
+class MassSystem(structref.StructRefProxy):
+    """The consistent-mass data of a compiled run."""
+
+    def __new__(cls, *fields):
+        return structref.StructRefProxy.__new__(cls, *fields)
+
+
+structref.define_proxy(MassSystem, MassSystemType, list(MASS_FIELDS))
+
+
+@njit(cache=True)
+def new_mass_system(*fields):
+    """A MassSystem with ``fields`` in the order of MASS_FIELDS."""
+    return MassSystem(*fields)
+
+
+@njit(cache=True)
+def load_warm(cm, warm, has_warm):
+    """Set the warm starts (the executor's, when it took steps between calls)."""
+    cm.warm[:] = warm
+    cm.has_warm[:] = has_warm
+    cm.warm_good[:] = warm
+    cm.has_good[:] = has_warm
+    cm.fringe_on[:] = False
+
+
+@njit(cache=True)
+def commit_mass(cm):
+    """The step is taken: its warm starts are the good ones; True when a
+    group turned the fringe correction on (the executor takes over)."""
+    cm.warm_good[:] = cm.warm
+    cm.has_good[:] = cm.has_warm
+    for g in range(cm.fringe_on.shape[0]):
+        if cm.fringe_on[g]:
+            return True
+    return False
+
+
+@njit(cache=True)
+def mass_records(cm):
+    """The warm starts of the last step taken, the groups that turned the
+    fringe correction on, the stencil and lumping fractions of the last
+    step (for reactions)."""
+    return cm.warm_good, cm.has_good, cm.fringe_on, cm.stencil, cm.fast
+
+
+@njit(cache=True)
+def assemble_mass(cm, x, m, p, nbx, nby, dim):
+    """The consistent mass stencil and K of the particles (Kernels.consistent_stencil)."""
+    ASSEMBLE(x, m, cm.axes, p, nbx, cm.copies, cm.stiff_copies, cm.touched)
+    lo = cm.touched[0, 0]
+    hi = cm.touched[0, 1]
+    for t in range(1, cm.touched.shape[0]):
+        lo = min(lo, cm.touched[t, 0])
+        hi = max(hi, cm.touched[t, 1])
+    if hi <= lo:  # no particles
+        lo = 0
+        hi = 0
+    was_lo = cm.row_range[0]
+    was_hi = cm.row_range[1]
+    # rows outside the touched union are zero: clear those that held entries
+    for a, b in ((was_lo, min(lo, was_hi)), (max(hi, was_lo), was_hi)):
+        for k in range(a, b):
+            cm.stencil[k, :] = 0.0
+            cm.stiffness[k] = 0.0
+    cm.row_range[0] = lo
+    cm.row_range[1] = hi
+    REDUCE_STENCIL(cm.copies, cm.stiff_copies, cm.touched, lo, hi, p, nbx, nby, dim,
+                   cm.stencil, cm.stiffness)
+
+
+@njit(cache=True)
+def _kronecker_factors(cm, g, rows, nbx, dim):
+    """Group g's banded Cholesky factors, box and Gauss row sums
+    (KroneckerData._factor), unless they were built for the same rows."""
+    n = rows.shape[0]
+    if cm.n_factored[g] == n:
+        same = True
+        for r in range(n):
+            if cm.factored_rows[g, r] != rows[r]:
+                same = False
+                break
+        if same:
+            return
+    a0 = nbx
+    a1 = 0
+    b0 = 1 << 62
+    b1 = 0
+    for r in range(n):
+        a = rows[r] % nbx
+        b = rows[r] // nbx
+        a0 = min(a0, a)
+        a1 = max(a1, a + 1)
+        b0 = min(b0, b)
+        b1 = max(b1, b + 1)
+    L = BANDED_CHOLESKY(cm.bands_x, a0, a1)
+    for i in range(a1 - a0):
+        cm.Lx[g, i, 0] = 1.0 / L[i, 0]
+        for d in range(1, L.shape[1]):
+            cm.Lx[g, i, d] = L[i, d]
+    if dim == 2:
+        L = BANDED_CHOLESKY(cm.bands_y, b0, b1)
+        for i in range(b1 - b0):
+            cm.Ly[g, i, 0] = 1.0 / L[i, 0]
+            for d in range(1, L.shape[1]):
+                cm.Ly[g, i, d] = L[i, d]
+    for r in range(n):
+        a = rows[r] % nbx
+        b = rows[r] // nbx
+        if dim == 2:
+            cm.gauss[g, r] = cm.sums_x[a] * cm.sums_y[b]
+        else:
+            cm.gauss[g, r] = cm.sums_x[a]
+        cm.box_index[g, r] = (b - b0) * (a1 - a0) + (a - a0)
+        cm.factored_rows[g, r] = rows[r]
+    cm.n_factored[g] = n
+    cm.box_shape[g, 0] = a0
+    cm.box_shape[g, 1] = b0
+    cm.box_shape[g, 2] = b1 - b0
+    cm.box_shape[g, 3] = a1 - a0
+
+
+@njit(cache=True)
+def prepare_mass(cm, mass, mask, p, nbx, nby, dim):
+    """The step's fast-row fractions, free-dof groups, ELL rows and
+    preconditioner (see the module)."""
+    stencil = cm.stencil
+    nd, ns = stencil.shape
+    centre = (ns - 1) // 2
+    if cm.guard:  # K_k covered_weights_k moving_k, then theta (fast_row_fractions)
+        lo = cm.covered[0]
+        hi = cm.covered[1]
+        for k in range(nd):
+            tau = stencil[k, centre] / (max(mass[k], 1e-300) * cm.mass_ratios[k])
+            s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
+            w = 1.0 - (1.0 - cm.weights[k]) * (s * s * (3.0 - 2.0 * s))
+            cm.guarded[k] = cm.stiffness[k] * (w * cm.moving[k])
+        FAST_ROW_FRACTIONS(cm.guarded, stencil, mass, cm.limit, cm.fast)
+    else:
+        cm.fast[:] = 0.0
+    for g in range(cm.group_size.shape[0]):
+        c0 = cm.group_comps[g, 0]
+        n = 0
+        for k in range(nd):
+            if not mask[k, c0] and mass[k] > 0.0:
+                cm.rows[g, n] = k
+                cm.index[g, k] = n
+                n += 1
+            else:
+                cm.index[g, k] = -1
+        cm.n_rows[g] = n
+        rows = cm.rows[g, :n]
+        COMPACT_SYSTEM(stencil, p, nbx, nby, dim, rows, cm.index[g], cm.fast, cm.A[g, :n],
+                       cm.cols[g, :n], cm.F[g, :n], cm.fcols[g, :n], True, False)
+        for r in range(n):
+            cm.inv_diag[g, r] = 1.0 / mass[rows[r]]
+        if n == 0:
+            continue
+        _kronecker_factors(cm, g, rows, nbx, dim)
+        for r in range(n):
+            k = rows[r]
+            if cm.fast[k] >= cm.lumped_row:  # a lumped row: its own diagonal
+                cm.local[g, r] = -1
+                cm.inv_scale[g, r] = 1.0 / cm.A[g, r, centre]
+            else:
+                cm.local[g, r] = cm.box_index[g, r]
+                cm.inv_scale[g, r] = 1.0 / np.sqrt(mass[k] / cm.gauss[g, r])
+
+
+@njit(cache=True)
+def mass_solve(cm, nt, count, rhs0, kind0, out0, rhs1, kind1, out1):
+    """M x = rhs for ``count`` (1 or 2) problems (rhs, warm-start kind, out)
+    in one CG run per group, constrained and massless dofs 0; each solution
+    is kept as its kind's next warm start. Returns False when CG stopped
+    above its tolerance (the executor then takes the step and raises)."""
+    out0[:] = 0.0
+    if count == 2:
+        out1[:] = 0.0
+    for g in range(cm.group_size.shape[0]):
+        n = cm.n_rows[g]
+        if n == 0:
+            continue
+        ncomp = cm.group_size[g]
+        comps = cm.group_comps[g, :ncomp]
+        nc = count * ncomp
+        rows = cm.rows[g, :n]
+        F = cm.F[g, :n]
+        fcols = cm.fcols[g, :n]
+        b = cm.b[:n * nc].reshape((n, nc))
+        x = cm.x[:n * nc].reshape((n, nc))
+        COMPACT_PROBLEM(rows, rhs0, rhs0, False, cm.warm[kind0] if cm.has_warm[kind0] else rhs0,
+                        cm.has_warm[kind0], comps, 0, F, fcols, b, x)
+        if count == 2:
+            COMPACT_PROBLEM(rows, rhs1, rhs1, False,
+                            cm.warm[kind1] if cm.has_warm[kind1] else rhs1, cm.has_warm[kind1],
+                            comps, ncomp, F, fcols, b, x)
+        problem = np.empty(nc, dtype=np.int64)
+        for j in range(nc):
+            problem[j] = j // ncomp
+        ny = cm.box_shape[g, 2]
+        nx = cm.box_shape[g, 3]
+        kron = (cm.Lx[g], cm.Ly[g], cm.local[g, :n], cm.inv_scale[g, :n],
+                cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)))
+        limit = cm.max_iterations if cm.max_iterations > 0 else 10 * n + 100
+        work = cm.work[:6 * n * nc].reshape((6, n, nc))
+        its = ELL_PCG(cm.A[g, :n], cm.cols[g, :n], cm.inv_diag[g, :n], kron, None, b, x,
+                      problem, cm.rtol, limit, nt, work)
+        if its < 0:
+            return False
+        cm.iterations += its
+        if cm.fringe_layers > 0 and its >= cm.fringe_from and n >= cm.fringe_min_rows:
+            cm.fringe_on[g] = True
+        EXPAND_PROBLEM(rows, x, comps, 0, out0)
+        if count == 2:
+            EXPAND_PROBLEM(rows, x, comps, ncomp, out1)
+    cm.warm[kind0][:] = out0
+    cm.has_warm[kind0] = True
+    if count == 2:
+        cm.warm[kind1][:] = out1
+        cm.has_warm[kind1] = True
+    return True
+
+
+@njit(cache=True)
+def shift_warm(cm, kind, dt, a):
+    """warm[kind] += dt a when there is one (StencilSystem.shift_guess)."""
+    if cm.has_warm[kind]:
+        w = cm.warm[kind]
+        for k in range(w.shape[0]):
+            for c in range(w.shape[1]):
+                w[k, c] = w[k, c] + dt * a[k, c]
