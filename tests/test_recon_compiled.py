@@ -330,3 +330,48 @@ def test_a_block_hitting_a_floor_with_tls_gains_no_energy():
     p = r.particles
     assert p.x[:, 1].min() < 0.035  # in contact
     assert energy(p) - energy(parts) < 0.05 * 312.0
+
+
+def test_cholesky_factorises_and_tests_the_smallest_eigenvalue():
+    """kernels.cholesky: L L^T = M - shift I where that is positive
+    definite (also in place), False where the smallest eigenvalue of M is
+    not above the shift."""
+    from skfem_mpm.kernels.cholesky import cholesky
+
+    rng = np.random.default_rng(5)
+    Q, _ = np.linalg.qr(rng.normal(size=(5, 5)))
+    M = Q @ np.diag([3.0, 1.0, 0.5, 0.1, 5e-9]) @ Q.T
+    L = np.zeros((6, 6))
+    assert cholesky(M, 5, 1e-9, L)
+    low = np.tril(L[:5, :5])
+    assert np.abs(low @ low.T - (M - 1e-9 * np.eye(5))).max() < 1e-14
+    assert not cholesky(M, 5, 1e-8, L)  # smallest eigenvalue 5e-9 <= 1e-8
+    work = M.copy()
+    assert cholesky(work, 4, 0.0, work)  # in place, leading 4 x 4 block
+    low = np.tril(work[:4, :4])
+    assert np.abs(low @ low.T - M[:4, :4]).max() < 1e-14
+
+
+def test_compiled_fits_fall_back_where_particles_are_nearly_on_a_line():
+    """The particles of a cell within 1e-5 of a cell of a line off the
+    cell's centre: the linear TLS block scaled to unit diagonal and the
+    MLS moment matrices have smallest eigenvalues of 1e-10 and 3e-11,
+    above 0 but below TLS_RANK_TOL and MLS_RANK_TOL, so both compiled
+    fits take the lower level as the reference does. Planted: the
+    Cholesky test without its shift (run with NUMBA_DISABLE_JIT=1, the
+    callers' cache keeps the old callee) gives differences of 0.23 (tls)
+    and 405 (mls)."""
+    grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), 2, 2)
+    rng = np.random.default_rng(11)
+    n = 9
+    x = np.column_stack((rng.uniform(0.05, 0.45, n), 0.45 + 5e-6 * rng.uniform(-1, 1, n)))
+    p = Particles(x, np.ones(n), np.full(n, 0.25 / n))
+    values = np.column_stack((1.0 + x[:, 0] ** 2, np.sin(40 * x[:, 1]) + x[:, 0]))
+    rule = kernel_rule(grid, p)
+    expected = reconstruct_tls(grid, p, values, rule)
+    assert np.abs(compiled_tls(grid, p, values, rule) - expected).max() <= 1e-12 * np.abs(
+        expected).max()
+    expected = reconstruct_mls(grid, p, values, rule)
+    out = np.empty_like(expected)
+    mls_reconstruct(p.x, values, rule.x, 1.5 * min(grid.h), out)
+    assert np.abs(out - expected).max() <= 1e-12 * np.abs(expected).max()
