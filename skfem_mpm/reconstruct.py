@@ -20,10 +20,20 @@ signature can be passed as ``Method(reconstruction=callable)``.
 The integration region: in 1D the union of the particles' current extents
 [x_p - V_p/2, x_p + V_p/2], with gaps narrower than a cell closed (the body
 exactly, also when it ends inside a cell); in 2D and 3D on spline grids
-the cells that hold particles, each cut to the box the body covers
-(:func:`body_boxes`: whole cells inside the body; where a free surface
-crosses a cell, the box holding the cell's particle volume, exact for a
-surface parallel to a grid line).
+the cells that hold particles and that the body fills (:func:`body_boxes`
+gives the whole cell), while in a cell a free surface or a contact front
+cuts (:func:`cut_cells`) the particles themselves are the rule (points
+x_p, weights V_p) and every reconstruction returns the particle's own
+value there: particle quadrature in the cut cells
+(:attr:`IntegrationRule.particle_points`). Why: a fit in a cut cell is
+extrapolated to the Gauss points of the cell's estimated box, and the
+force of such fits is not the work-conjugate of the particles' strain
+rates; on a 0.4 x 0.2 elastic block falling onto a fixed floor (16 x 16
+quadratic cells, 3 x 3 particles per cell, consistent MUSL, tls) the
+impact gained 487 J against 312 J of kinetic energy by t = 0.30 (and the
+run failed at t = 0.42); with particles in the cut cells it loses 21 J, as
+particle quadrature does (test_recon_compiled). A user's callable
+receives the whole rule and should return its fit at every point.
 Gauss rules use p + 2 points per axis (exact for a cubic field times two
 degree-p functions).
 
@@ -99,13 +109,43 @@ __all__ = ["IntegrationRule", "integration_rule", "reconstruct_spline", "reconst
 
 
 class IntegrationRule:
-    """Gauss points ``x`` (ng, dim), weights ``w`` (ng,), the grid cell of
-    each point ``cell`` (ng,), and for 1D the connected pieces of the body
-    (``pieces``: list of (lo, hi, point index array))."""
+    """Points ``x`` (ng, dim), weights ``w`` (ng,), the grid cell of each
+    point ``cell`` (ng,), and for 1D the connected pieces of the body
+    (``pieces``: list of (lo, hi, point index array)).
 
-    def __init__(self, x, w, cell, pieces=None):
+    ``particle_points``: None, or the indices of the particles that are
+    points of the rule themselves (those of the cells a free surface cuts,
+    see :func:`integration_rule`): they follow the ``ngauss`` Gauss points,
+    with the particle's position and its volume V_p as weight, and a
+    reconstruction returns the particle's own value there."""
+
+    def __init__(self, x, w, cell, pieces=None, particle_points=None):
         self.x, self.w, self.cell = x, w, cell
         self.pieces = pieces
+        self.particle_points = particle_points
+        self.ngauss = x.shape[0] - (0 if particle_points is None else particle_points.size)
+
+    def gauss_part(self):
+        """The rule of the Gauss points alone (self when it has no particle points)."""
+        if self.particle_points is None:
+            return self
+        n = self.ngauss
+        return IntegrationRule(self.x[:n], self.w[:n], self.cell[:n], self.pieces)
+
+
+def at_rule_points(reconstruct):
+    """A reconstruction that honours a rule's particle points: ``reconstruct``
+    on the Gauss points, the particles' own values at the particle points."""
+    def on_rule(grid, particles, values, rule, **options):
+        if getattr(rule, "particle_points", None) is None:
+            return reconstruct(grid, particles, values, rule, **options)
+        values = np.asarray(values, dtype=np.float64)
+        gauss = reconstruct(grid, particles, values, rule.gauss_part(), **options)
+        return np.concatenate((gauss, values[rule.particle_points]))
+
+    on_rule.__name__, on_rule.__doc__ = reconstruct.__name__, reconstruct.__doc__
+    on_rule.__wrapped__ = reconstruct
+    return on_rule
 
 
 def _body_pieces_1d(particles, gap):
@@ -151,6 +191,35 @@ def integration_rule(grid, particles, points_per_axis):
         x, w, cell = grid.gauss_rule(k, held)
         return IntegrationRule(x, w, cell)
     lo, hi = body_boxes(grid, particles, cells, held)  # whole cells inside the body
+    cut = cut_cells(grid, held, lo, hi)
+    if cut.any():  # the particles are the rule of the cells a free surface cuts
+        inside = ~cut
+        rule = _box_rule(grid, held[inside], lo[inside], hi[inside], k)
+        flag = np.zeros(grid.ncells, dtype=bool)
+        flag[held[cut]] = True
+        own = np.flatnonzero(flag[cells])
+        return IntegrationRule(np.concatenate((rule.x, particles.x[own])),
+                               np.concatenate((rule.w, particles.V[own])),
+                               np.concatenate((rule.cell, cells[own])), particle_points=own)
+    return _box_rule(grid, held, lo, hi, k)
+
+
+def cut_cells(grid, held, lo, hi):
+    """Which of the ``held`` cells (ascending) a free surface cuts: their
+    :func:`body_boxes` box ``lo``..``hi`` is not the whole cell."""
+    whole = np.ones(held.size, dtype=bool)
+    stride = 1
+    for axis in range(grid.dim):
+        n = grid.cells_per_axis[axis]
+        e = (held // stride) % n
+        whole &= (lo[:, axis] == grid.breakpoints[axis][e]) & \
+            (hi[:, axis] == grid.breakpoints[axis][e + 1])
+        stride *= n
+    return ~whole
+
+
+def _box_rule(grid, held, lo, hi, k):
+    """The tensor Gauss rule of k points per axis on each box lo..hi of the cells ``held``."""
     ref, wref = np.polynomial.legendre.leggauss(k)
     ref, wref = 0.5 * (ref + 1.0), 0.5 * wref
     dim = grid.dim
@@ -673,4 +742,7 @@ def reconstruct_mls(grid, particles, values, rule, radius=1.5, degree=1):
     return out
 
 
+reconstruct_spline = at_rule_points(reconstruct_spline)
+reconstruct_tls = at_rule_points(reconstruct_tls)
+reconstruct_mls = at_rule_points(reconstruct_mls)
 RECONSTRUCTORS = {"spline": reconstruct_spline, "tls": reconstruct_tls, "mls": reconstruct_mls}

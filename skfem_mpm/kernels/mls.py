@@ -30,6 +30,8 @@ r of x_g lie in the 3^d boxes around the box of x_g.
 import numpy as np
 from numba import njit
 
+from .cholesky import cholesky
+
 __all__ = ["MLS_RANK_TOL", "mls_reconstruct"]
 
 MLS_RANK_TOL = 1e-6  # the reference's threshold (eigvalsh(M / scale)[0] > 1e-6; a test checks)
@@ -84,25 +86,6 @@ def _boxes(x, r):
         order[fill[box[i]]] = i
         fill[box[i]] += 1
     return lower, nbox, order, start
-
-
-@njit(cache=True, error_model="numpy")
-def _cholesky(M, n, shift, L):
-    """L (lower) with L L^T = M[:n, :n] - shift I; False when a pivot is <= 0."""
-    for j in range(n):
-        pivot = M[j, j] - shift
-        for q in range(j):
-            pivot -= L[j, q] * L[j, q]
-        if not pivot > 0.0:
-            return False
-        root = np.sqrt(pivot)
-        L[j, j] = root
-        for i in range(j + 1, n):
-            s = M[i, j]
-            for q in range(j):
-                s -= L[i, q] * L[j, q]
-            L[i, j] = s / root
-    return True
 
 
 @njit(cache=True, error_model="numpy")
@@ -171,7 +154,7 @@ def mls_reconstruct(x, values, xg, r, out):
         for s in range(m):
             for t in range(m):
                 scaled[s, t] = M[s, t] / scale
-        if _cholesky(scaled, m, MLS_RANK_TOL, L) and _cholesky(M, m, 0.0, L):
+        if cholesky(scaled, m, MLS_RANK_TOL, L) and cholesky(M, m, 0.0, L):
             for col in range(k):  # L L^T c = b[:, col]; out = c_0
                 for s in range(m):
                     acc = b[s, col]

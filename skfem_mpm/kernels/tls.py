@@ -39,6 +39,8 @@ Gauss points likewise; the fit of cell e is then evaluated at its points.
 import numpy as np
 from numba import njit
 
+from .cholesky import cholesky
+
 __all__ = ["TLS_BOUND_ABS", "TLS_BOUND_TOL", "TLS_RANK_TOL", "tls_reconstruct"]
 
 TLS_RANK_TOL = 1e-8  # the value of skfem_mpm.reconstruct.TLS_RANK_TOL (a test checks)
@@ -63,7 +65,8 @@ def _monomials(x, g, centre, size, phi):
 @njit(cache=True, error_model="numpy")
 def _well_posed(A, n, tol, work):
     """Smallest eigenvalue of the leading n x n block of A scaled to unit
-    diagonal > tol, by Cholesky of the scaled block minus tol I."""
+    diagonal > tol, by Cholesky of the scaled block minus tol I (in
+    ``work``)."""
     for i in range(n):
         if not A[i, i] > 0.0:
             return False
@@ -71,21 +74,7 @@ def _well_posed(A, n, tol, work):
         si = 1.0 / np.sqrt(A[i, i])
         for j in range(n):
             work[i, j] = A[i, j] * si * (1.0 / np.sqrt(A[j, j]))
-        work[i, i] -= tol
-    for j in range(n):
-        pivot = work[j, j]
-        for q in range(j):
-            pivot -= work[j, q] * work[j, q]
-        if not pivot > 0.0:
-            return False
-        root = np.sqrt(pivot)
-        work[j, j] = root
-        for i in range(j + 1, n):
-            s = work[i, j]
-            for q in range(j):
-                s -= work[i, q] * work[j, q]
-            work[i, j] = s / root
-    return True
+    return cholesky(work, n, tol, work)
 
 
 @njit(cache=True, error_model="numpy")

@@ -261,13 +261,49 @@ class CompiledReconstruction:
                                                         self.ref, self.wref)
             return Rule(xg[:, None], wg, cell, pcell, order, pp, pg)
         lo, hi = body_boxes_2d(p.x, p.V, pcell, self.breaks, self.breaks1)
-        xg, wg, cell = gauss_rule_cells(pcell, lo, hi, self.ref, self.wref)
-        return Rule(xg, wg, cell, pcell)
+        cut = self._cut(lo, hi)
+        if not cut[pcell].any():
+            xg, wg, cell = gauss_rule_cells(pcell, lo, hi, self.ref, self.wref)
+            return Rule(xg, wg, cell, pcell)
+        # the particles are the rule of the cells a free surface cuts (as the reference)
+        own = np.flatnonzero(cut[pcell])
+        xg, wg, cell = gauss_rule_cells(pcell[~cut[pcell]], lo, hi, self.ref, self.wref)
+        rule = Rule(np.concatenate((xg, p.x[own])), np.concatenate((wg, p.V[own])),
+                    np.concatenate((cell, pcell[own])), pcell)
+        rule.particle_points, rule.ngauss = own, wg.size
+        return rule
+
+    def _cut(self, lo, hi):
+        """Per cell: its body box lo..hi (:func:`body_boxes_2d`) is not the
+        whole cell (a free surface cuts it; cells without particles too)."""
+        nx = self.breaks.size - 1
+        c = np.arange(lo.shape[0])
+        ix, iy = c % nx, c // nx
+        return ~((lo[:, 0] == self.breaks[ix]) & (hi[:, 0] == self.breaks[ix + 1])
+                 & (lo[:, 1] == self.breaks1[iy]) & (hi[:, 1] == self.breaks1[iy + 1]))
 
     def reconstruct(self, p, values, rule):
-        """The reconstructed ``values`` (n, k) at the rule's points (ng, k)."""
-        out = np.empty((rule.x.shape[0], values.shape[1]))
+        """The reconstructed ``values`` (n, k) at the rule's points (ng, k):
+        the fit at the Gauss points, the particles' own values at the
+        rule's particle points (``rule.particle_points``, after the
+        ``rule.ngauss`` Gauss points)."""
         values = np.ascontiguousarray(values)
+        own = getattr(rule, "particle_points", None)
+        if own is None:
+            return self._fit(p, values, rule)
+        gauss = rule.__class__.__new__(rule.__class__)
+        gauss.__dict__.update(rule.__dict__)
+        n = rule.ngauss
+        gauss.x, gauss.w, gauss.cell = rule.x[:n], rule.w[:n], rule.cell[:n]
+        gauss.particle_points = None
+        out = np.concatenate((self._fit(p, values, gauss), values[own]))
+        if hasattr(gauss, "lu"):  # the 2D spline's factorisation: reused on this rule
+            rule.lu = gauss.lu
+        return out
+
+    def _fit(self, p, values, rule):
+        """The fit of ``values`` at the points of a rule of Gauss points alone."""
+        out = np.empty((rule.x.shape[0], values.shape[1]))
         if self.name == "tls":
             tls_reconstruct(p.x, p.V, values, rule.pcell, rule.x, rule.w, rule.cell,
                             self.breaks, self.breaks1, out)

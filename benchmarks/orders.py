@@ -1,0 +1,129 @@
+"""Observed orders of convergence of reconstructed MPM with each scheme (issue 18).
+
+Accuracy only (no timing), so the tables do not depend on the machine's load.
+Each table row is one method; its columns the error at each grid and the
+observed order between consecutive grids, log2(e_h / e_(h/2)) (the grids
+double). Errors are each benchmark's primary error relative to the exact
+displacement amplitude (S1 small: RMS at t_end; S3 small and D2 small: as
+the study measures them). Mass is consistent throughout; cfl the default
+0.5 of each scheme's own stable limit (rk4's limit is sqrt(2) times the
+central-difference one, see skfem_mpm.solve.timestep).
+
+    python benchmarks/orders.py                      # every table
+    python benchmarks/orders.py --tables cubic       # one table: cubic, quadratic, d2
+    python benchmarks/orders.py --json runs.jsonl    # also the runs as JSON lines
+
+Tables:
+  cubic      S1 small and S3 small, p = 3, 2 particles per cell, spline
+             (particle knots, and ``knots="grid"``) / tls x rk4 / cd, 8-16-32
+             cells (target: rk4 order >= 3.5 from 8 to 16)
+  quadratic  S1 small and S3 small, p = 2, 8 particles per cell, the same
+             methods, 16-32-64 cells (target: rk4 >= 2.7 over 16-32-64)
+
+A reconstruction written ``name:option=value`` runs with that option
+(``spline:knots=grid``; such runs stay on the reference executor).
+  d2         D2 small, p = 2, 3 x 3 particles per cell, none / spline / tls /
+             mls x musl / rk4, 8-16-32 cells per axis
+"""
+import argparse
+import json
+import math
+import sys
+import time
+
+TABLES = {
+    "cubic": dict(cases=("s1", "s3"), degree=3, ppc=2, cells=(8, 16, 32),
+                  recons=("spline", "spline:knots=grid", "tls"), schemes=("rk4", "cd")),
+    "quadratic": dict(cases=("s1", "s3"), degree=2, ppc=8, cells=(16, 32, 64),
+                      recons=("spline", "spline:knots=grid", "tls"), schemes=("rk4", "cd")),
+    "d2": dict(cases=("d2",), degree=2, ppc=3, cells=(8, 16, 32),
+               recons=("none", "spline", "tls", "mls"), schemes=("musl", "rk4")),
+}
+BENCHMARKS = {"s1": ("vibrating-string", "small"), "s3": ("traction-bar", "small"),
+              "d2": ("vibrating-plate-2d", "small")}
+
+
+def error(case, cells, degree, ppc, recon, scheme, cfl=0.5):
+    """The benchmark's primary error of one run (relative), its steps and wall time."""
+    from skfem_mpm import Method, simulate
+    from skfem_mpm.benchmarks import get_benchmark
+    from skfem_mpm.solve import prepare
+
+    b = get_benchmark(*BENCHMARKS[case])
+    name, _, option = recon.partition(":")  # "spline:knots=grid": with that option
+    options = dict([option.split("=", 1)]) if option else None
+    method = Method(scheme=scheme, mass="consistent", reconstruction=name, cfl=cfl,
+                    reconstruction_options=options)
+    scene = b.scene(cells, degree, ppc)
+    save_every = None
+    if b.saves > 1:  # as the study does for an error over the saves
+        save_every = max(1, (prepare(scene, method).n_steps or b.saves) // b.saves)
+    t0 = time.perf_counter()
+    r = simulate(scene, method, save_every=save_every)
+    return b.errors(r)[b.primary_error], r.counts["steps"], time.perf_counter() - t0
+
+
+def orders(errors):
+    """log2(e_k / e_(k+1)) between consecutive grids that each halve h."""
+    return [math.log2(a / b) if a > 0 and b > 0 else float("nan")
+            for a, b in zip(errors[:-1], errors[1:])]
+
+
+def table(name, spec, out=None):
+    """The markdown table of one entry of TABLES (runs it)."""
+    cells = spec["cells"]
+    head = ("| case | reconstruction | scheme | " + " | ".join(f"{c}" for c in cells) + " | "
+            + " | ".join(f"order {a}-{b}" for a, b in zip(cells[:-1], cells[1:])) + " |")
+    rows = [f"{name}: degree {spec['degree']}, {spec['ppc']} particles per cell"
+            f"{' per axis' if spec['cases'] == ('d2',) else ''}, consistent mass, cfl 0.5",
+            "", head, "|---" * (3 + 2 * len(cells) - 1) + "|"]
+    for case in spec["cases"]:
+        for recon in spec["recons"]:
+            for scheme in spec["schemes"]:
+                errs = []
+                for c in cells:
+                    try:
+                        e, steps, wall = error(case, c, spec["degree"], spec["ppc"], recon, scheme)
+                    except Exception as exc:  # a failed run is a result of the table
+                        e, steps, wall = float("nan"), None, None
+                        print(f"# {case} {recon} {scheme} {c}: {exc}"[:200], file=sys.stderr)
+                    errs.append(e)
+                    if out is not None:
+                        out.write(json.dumps({"table": name, "case": case, "cells": c,
+                                              "degree": spec["degree"], "ppc": spec["ppc"],
+                                              "reconstruction": recon, "scheme": scheme,
+                                              "error": e, "steps": steps, "wall": wall}) + "\n")
+                        out.flush()
+                rows.append(f"| {case.upper()} small | {recon} | {scheme} | "
+                            + " | ".join(f"{e:.3g}" for e in errs) + " | "
+                            + " | ".join(f"{o:.2f}" for o in orders(errs)) + " |")
+                print(rows[-1], file=sys.stderr, flush=True)
+    return "\n".join(rows)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tables", default=",".join(TABLES),
+                    help=f"comma-separated, of {', '.join(TABLES)}")
+    ap.add_argument("--cells", default=None,
+                    help="override the grids, e.g. 8,16 (comma-separated, each twice the last)")
+    ap.add_argument("--json", default=None, help="also write every run as a JSON line here")
+    a = ap.parse_args()
+    names = a.tables.split(",")
+    for n in names:
+        if n not in TABLES:
+            raise SystemExit(f"--tables: {n!r} is not one of {', '.join(TABLES)}")
+    out = open(a.json, "a") if a.json else None
+    try:
+        for n in names:
+            spec = dict(TABLES[n])
+            if a.cells:
+                spec["cells"] = tuple(int(c) for c in a.cells.split(","))
+            print(table(n, spec, out) + "\n", flush=True)
+    finally:
+        if out is not None:
+            out.close()
+
+
+if __name__ == "__main__":
+    main()
