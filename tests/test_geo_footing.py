@@ -1,10 +1,13 @@
 """Footing (a rigid footing on the dofs under its current base) and BBar
 (the cell-averaged volumetric strain rate against volumetric locking)."""
+import json
+
 import numpy as np
 import pytest
 
 from skfem_mpm import (BBar, Body, Fixed, Footing, LinearElastic, Method, Particles, Scene,
                        SplineGrid, VonMises, simulate)
+from skfem_mpm.cli import main
 from skfem_mpm.materials import lame_parameters
 
 E, NU, RHO = 100.0, 0.3, 1.0
@@ -137,3 +140,17 @@ def test_bad_bbar_raises():
         BBar("clay", grid)
     with pytest.raises(ValueError, match="grid must be the scene's SplineGrid"):
         BBar(LinearElastic(E, NU), None)
+
+
+def test_cli_runs_the_strip_footing_and_reports_the_bearing_capacity(capsys):
+    """G1 at 1 cell under the half footing, pushed to 0.11 B (the
+    validation is a benchmark run, not a test): the JSON record has the
+    bearing capacity factor under a key with "bearing" and the curve; the
+    clay has yielded and the pressure is on its plateau below Prandtl's."""
+    assert main(["run", "strip-footing", "--cells", "10", "--set", "settlement=0.11",
+                 "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["cells_across_width"] == 10 and record["cells_under_half_footing"] == 1
+    n_c = record["bearing_capacity_factor"]
+    assert 3.5 < n_c < 2 + np.pi and record["bearing_capacity_prandtl"] == 2 + np.pi
+    assert record["curve"][-1][0] == pytest.approx(0.1125)  # the last 0.005 B bin
