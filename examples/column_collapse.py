@@ -15,8 +15,6 @@ tan 30 deg; started from the at-rest stress K0 = 1 - sin(30 deg).
 """
 import sys
 
-import numpy as np
-
 from skfem_mpm import Method, simulate
 from skfem_mpm.benchmarks import get_benchmark
 
