@@ -1,11 +1,11 @@
 """skfem-mpm: the Material Point Method with B-spline bases, as a scikit-fem plugin."""
 __version__ = "0.1.0"
 
-from .effects import BodyForce, Damping, Fixed, Gravity, Prescribed, Traction, Wall
+from .effects import BodyForce, Damping, Fixed, Footing, Gravity, Prescribed, Traction, Wall
 from .errors import SimulationError
 from .geostatic import geostatic_stress
 from .lagrange import LagrangeGrid
-from .materials import DruckerPrager, LinearElastic, MohrCoulomb, NeoHookean, VonMises
+from .materials import BBar, DruckerPrager, LinearElastic, MohrCoulomb, NeoHookean, VonMises
 from .particles import Particles
 from .quadrature import ParticleBasis, transfer_matrices
 from .scene import Body, Scene
@@ -19,6 +19,7 @@ __all__ = [
     "BodyForce",
     "Damping",
     "Wall",
+    "Footing",
     "geostatic_stress",
     "Fixed",
     "Gravity",
@@ -26,6 +27,7 @@ __all__ = [
     "MohrCoulomb",
     "DruckerPrager",
     "VonMises",
+    "BBar",
     "Method",
     "NeoHookean",
     "Prescribed",

@@ -7,6 +7,7 @@ executor runs it without leaving compiled code; declare per-particle state
 (``particles.state[name]``) with ``state_fields`` (:mod:`.state`).
 """
 from .base import Material, det, incremental_deformation, lame_parameters
+from .bbar import BBar
 from .compiled import point_update
 from .drucker_prager import DruckerPrager
 from .linear_elastic import LinearElastic
@@ -16,5 +17,5 @@ from .state import StateLayout, state_layout
 from .von_mises import VonMises
 
 __all__ = ["Material", "LinearElastic", "NeoHookean", "MohrCoulomb", "DruckerPrager",
-           "VonMises", "lame_parameters", "det",
+           "VonMises", "BBar", "lame_parameters", "det",
            "incremental_deformation", "point_update", "state_layout", "StateLayout"]
