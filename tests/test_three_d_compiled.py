@@ -132,3 +132,47 @@ def test_3d_refusals_name_their_reason():
                             "3D with consistent mass")):
         ok, why = compiled_executor_applies(prepare(scene, method))
         assert not ok and reason in why
+
+
+@pytest.fixture(scope="module")
+def c_reference(tmp_path_factory):
+    from skfem_mpm.reference_c import ReferenceUnavailable, compile_reference, find_compiler
+
+    try:
+        find_compiler()
+    except ReferenceUnavailable as exc:
+        pytest.skip(f"no C compiler to build the C reference: {exc}")
+    return compile_reference(tmp_path_factory.mktemp("c"))
+
+
+@pytest.mark.parametrize("filled", (False, True), ids=("middle-half", "filled"))
+def test_c_reference_3d_ends_in_the_state_simulate_computes(c_reference, tmp_path, filled):
+    """usl_step.c in 3D on the bench's problem (8^3 cells: the middle half
+    starts on a breakpoint, so no tiny-mass merge, which the C loop does not
+    do; or every cell, so that the clamped boundary B-splines are used), the
+    block expanding and shearing so that every stress component changes:
+    the final state of simulate (USL, lumped, compiled) to round-off on 2
+    threads and on 1; a state 1e-7 off is not accepted."""
+    from skfem_mpm.bench import scene_3d
+    from skfem_mpm.reference_c import compare, run_reference, write_problem
+
+    scene, dt = scene_3d(cells=8, steps=8, dt=2e-4)
+    body = scene.bodies[0]
+    if filled:
+        body.particles = Particles.seed(scene.grid, 2, 1.0)
+    x = body.particles.x
+    body.particles.v = 0.1 * (x - 0.5) + 0.05 * np.roll(x - 0.5, 1, axis=1)
+    method = Method(scheme="usl", dt=dt * (1 - 1e-9))
+    result = simulate(scene, method)
+    assert result.path.startswith("fast")
+    problem = write_problem(tmp_path / "in.bin", scene, method)
+    assert problem["steps"] == result.counts["steps"] >= 8
+    for threads in (2, 1):
+        out = run_reference(c_reference, tmp_path / "in.bin", tmp_path / "out.bin", threads)
+        assert out["threads"] == threads and out["invalid"] == 0
+        agrees, differences = compare(result.particles, out["final"], problem)
+        assert agrees and max(differences.values()) < 1e-12, differences
+    shear = np.abs(result.particles.stress[:, [0, 0, 1], [1, 2, 2]]).max(axis=0)
+    assert shear.min() / problem["modulus"] > 1e-6  # every shear component is compared
+    wrong = dict(out["final"], stress=out["final"]["stress"] * (1 + 1e-7))
+    assert not compare(result.particles, wrong, problem)[0]
