@@ -7,6 +7,9 @@ The problems (as in the project's performance issue):
   gravity, fixed edges, 200 explicit steps, float64, lumped mass.
 * 1D: 250,000 cells, quadratic, 4 particles per cell (1e6 particles), the
   same physics, 200 steps.
+* 3D: unit cube, 64^3 cells, quadratic, 2 x 2 x 2 particles per cell in
+  the middle half [0.25, 0.75]^3 (262,144 particles), the same physics, all
+  faces fixed, dt 1e-5, 100 steps.
 
 Each figure is the median of ``repeat`` runs of the project's own
 ``simulate`` (USL, and MUSL beside it), with JIT compilation excluded and
@@ -40,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["consistent_scene", "main", "run", "run_with_c", "scene_1d", "scene_2d"]
+__all__ = ["consistent_scene", "main", "run", "run_with_c", "scene_1d", "scene_2d", "scene_3d"]
 
 C_TARGET = 0.9  # the issue's target: our USL throughput >= 0.9x the C loop's
 
@@ -69,6 +72,18 @@ def scene_1d(cells=250_000, ppc=4, degree=2, steps=200):
     dt = 0.5 * critical_time_step(grid, np.sqrt(material.E), "lumped")
     return (Scene(grid, Body(particles, material), steps * dt,
                   effects=[Gravity(-9.81), Fixed("left"), Fixed("right")]), dt)
+
+
+def scene_3d(cells=64, ppc=2, degree=2, steps=100, dt=1e-5):
+    """The 3D problem; returns (scene, dt)."""
+    from . import Body, Fixed, Gravity, LinearElastic, Particles, Scene, SplineGrid
+
+    grid = SplineGrid.box((0, 1), (0, 1), (0, 1), cells, degree)
+    particles = Particles.seed(grid, ppc, 1.0, region=((0.25, 0.75),) * 3)
+    effects = [Gravity((0.0, 0.0, -9.81))] + [Fixed(s) for s in (
+        "xmin", "xmax", "ymin", "ymax", "zmin", "zmax")]
+    return Scene(grid, Body(particles, LinearElastic(1e4, 0.3)), steps * dt,
+                 effects=effects), dt
 
 
 def consistent_scene(cells, steps, problem="falling block"):
@@ -299,7 +314,8 @@ def main(argv=None):
               "repeat": repeat}
     s2, dt2 = scene_2d(cells=64 if args.quick else 128, steps=steps)
     s1, dt1 = scene_1d(cells=25_000 if args.quick else 250_000, steps=steps)
-    _usl_rows(report, [("2d_usl", s2, dt2), ("1d_usl", s1, dt1)], repeat)
+    s3, dt3 = scene_3d(cells=16 if args.quick else 64, steps=10 if args.quick else 100)
+    _usl_rows(report, [("2d_usl", s2, dt2), ("1d_usl", s1, dt1), ("3d_usl", s3, dt3)], repeat)
     report["2d_musl"] = run(s2, dt2, "musl", repeat=repeat)
     if args.reference:
         report["2d_usl_reference"] = ref = run(s2, dt2, "usl", backend="numpy", repeat=1)
@@ -318,6 +334,17 @@ def main(argv=None):
         for a, b in zip(series, series[1:]):
             b["time_ratio_for_4x_particles"] = b["wall_time_s"] / a["wall_time_s"]
         report["scaling_2d"] = series
+        report["memory_3d_bytes_per_particle"] = memory_child(3, 64, 10)
+        series = []
+        for cells in (16, 32, 64):
+            s, dt = scene_3d(cells=cells, steps=20)
+            r = run(s, dt, "usl", repeat=3)
+            series.append({"cells": cells, "particles": r["particles"],
+                           "wall_time_s": r["wall_time_s"],
+                           "particle_steps_per_s": r["particle_steps_per_s"]})
+        for a, b in zip(series, series[1:]):
+            b["time_ratio_for_8x_particles"] = b["wall_time_s"] / a["wall_time_s"]
+        report["scaling_3d"] = series
     if args.consistent:
         report["consistent_2d"] = consistent_comparison(
             cells=(32, 64) if args.quick else (64, 128, 256), steps=10 if args.quick else 20,
@@ -336,7 +363,7 @@ def _print_c_reference(report):
         return
     print(f"C reference ({c['compiler']}, usl_step.c of skfem_mpm.reference_c), compiled and "
           f"run now on the same problems, in turn with ours:")
-    for key in ("2d_usl", "1d_usl"):
+    for key in ("2d_usl", "1d_usl", "3d_usl"):
         row = c.get(key)
         if row is None:
             continue
@@ -365,7 +392,7 @@ def _print_report(report, repeat):
     print(f"machine: {m['cpu']}, {m['cores']} cores, {m['system']}, Python {m['python']}")
     print(f"threads: {report['threads']} (numba), median of {repeat} run(s), JIT excluded; "
           f"compared only with references run now, on this machine")
-    for key in ("2d_usl", "2d_musl", "2d_usl_reference", "1d_usl", "1d_musl"):
+    for key in ("2d_usl", "2d_musl", "2d_usl_reference", "1d_usl", "1d_musl", "3d_usl"):
         if key not in report:
             continue
         r = report[key]
@@ -381,6 +408,9 @@ def _print_report(report, repeat):
     if "memory_2d_bytes_per_particle" in report:
         print(f"2D peak memory: {report['memory_2d_bytes_per_particle']:.0f} bytes per particle "
               f"(target <= 300)")
+    if "memory_3d_bytes_per_particle" in report:
+        print(f"3D peak memory: {report['memory_3d_bytes_per_particle']:.0f} bytes per particle "
+              f"(target <= 400)")
     for row in report.get("consistent_2d", []):
         split = ", ".join(f"{k} {v:.2f}" for k, v in row["phases_ms_per_step"].items())
         its = row["cg_iterations_per_solve"]
@@ -392,6 +422,11 @@ def _print_report(report, repeat):
         ratio = row.get("time_ratio_for_4x_particles")
         extra = f", time x{ratio:.2f} for 4x particles" if ratio else ""
         print(f"scaling: {row['particles']:>8d} particles "
+              f"{row['particle_steps_per_s'] / 1e6:7.2f} M/s{extra}")
+    for row in report.get("scaling_3d", []):
+        ratio = row.get("time_ratio_for_8x_particles")
+        extra = f", time x{ratio:.2f} for 8x particles" if ratio else ""
+        print(f"scaling 3D: {row['particles']:>8d} particles "
               f"{row['particle_steps_per_s'] / 1e6:7.2f} M/s{extra}")
 
 

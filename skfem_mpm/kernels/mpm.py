@@ -23,7 +23,7 @@ from numba import get_num_threads, njit, prange
 from .fringe import apply_corrected
 from .kronecker import apply_kronecker
 from .scatter import holders
-from .tiny_mass import merged_lumped_solve
+from .tiny_mass import merged_lumped_solve_axes
 from .transfer import Transfers
 from .weights import FAST, extracted_functions, locate_axis_point
 
@@ -427,6 +427,37 @@ def small_mass_2d(mass, nbx, nby, p, tol, small):
     return count
 
 
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def small_mass_axes(mass, nbx, nby, nbz, p, tol, small):
+    """small[k] = 0 < m_k < tol * max of m over the dofs sharing a cell with
+    k (index offsets -p..p per axis) on a tensor grid of nbx x nby x nbz
+    functions, any dimension (1D: nby = nbz = 1; 2D: nbz = 1), dof
+    k = a + nbx (b + nby c); returns their count. Same rule and result as
+    :func:`small_mass_1d` and :func:`small_mass_2d` (which the compiled
+    loop keeps: its serial copies need a body without calls)."""
+    count = 0
+    for k in prange(nbx * nby * nbz):
+        mk = mass[k]
+        small[k] = False
+        if mk <= 0.0:
+            continue
+        a = k % nbx
+        b = (k // nbx) % nby
+        c = k // (nbx * nby)
+        big = 0.0
+        for cc in range(max(0, c - p), min(nbz, c + p + 1)):
+            for bb in range(max(0, b - p), min(nby, b + p + 1)):
+                row = (cc * nby + bb) * nbx
+                for aa in range(max(0, a - p), min(nbx, a + p + 1)):
+                    mm = mass[row + aa]
+                    if mm > big:
+                        big = mm
+        if mk < tol * big:
+            small[k] = True
+            count += 1
+    return count
+
+
 class Kernels:
     """The compiled kernels bound to one spline grid and the run's block
     count (the number of numba threads when bound): the particle-grid
@@ -605,8 +636,10 @@ class Kernels:
         if self.dim == 2:
             count = small_mass_2d(lumped, self.nbx, self.grid.basis_per_axis[1], self.p, tol,
                                   small)
-        else:
+        elif self.dim == 1:
             count = small_mass_1d(lumped, self.p, tol, small)
+        else:
+            count = small_mass_axes(lumped, *self.axes_shape, self.p, tol, small)
         return small, int(count)
 
     def usl_grid(self, mass, momentum, force, gravity, constrained, v_values, a_values, vdt,
@@ -621,9 +654,14 @@ class Kernels:
         number of small dofs, or -1 when the reference merge must be used
         (see :mod:`skfem_mpm.kernels.tiny_mass`)."""
         has = values is not None
-        nbx, nby = (self.ndofs, 1) if self.dim == 1 else self.grid.basis_per_axis
-        return merged_lumped_solve(mass, rhs, gravity, constrained, values if has else rhs, has,
-                                   nbx, nby, self.p, tol, out)
+        return merged_lumped_solve_axes(mass, rhs, gravity, constrained,
+                                        values if has else rhs, has, *self.axes_shape, self.p,
+                                        tol, out)
+
+    @property
+    def axes_shape(self):
+        """(nbx, nby, nbz): functions per axis, 1 for the missing axes."""
+        return tuple(self.grid.basis_per_axis) + (1,) * (3 - self.dim)
 
     def solve(self, mass, rhs, gravity, constrained, values, out):
         """Lumped solve into ``out`` (see lumped_solve)."""

@@ -21,42 +21,64 @@ resolved. A row is a short list of (kept dof, weight); ties can branch it,
 and a row longer than ``MAX_ENTRIES`` makes the kernel return -1 (the
 caller then takes the reference solve).
 
-Dofs are numbered a + nbx b on a tensor grid of nbx x nby functions (1D:
-nby = 1).
+Dofs are numbered a + nbx (b + nby c) on a tensor grid of nbx x nby x nbz
+functions (1D: nby = nbz = 1; 2D: nbz = 1); the cells sharing dofs with k
+span index offsets -p..p on each axis.
 """
 import numpy as np
 from numba import njit
 
-__all__ = ["merged_lumped_solve", "TIE", "MAX_ENTRIES"]
+__all__ = ["merged_lumped_solve", "merged_lumped_solve_axes", "TIE", "MAX_ENTRIES"]
 
 TIE = 1e-9          # as grid_system._Reduction.TIE
 MAX_ENTRIES = 32    # (kept dof, weight) pairs of one small dof's row
 
 
-@njit(cache=True, error_model="numpy")
-def _neighbour_max(mass, k, nbx, nby, p):
-    """max of m_j over the dofs j sharing a cell with k (k included)."""
+@njit(cache=True, inline="always", error_model="numpy")
+def _box(k, nbx, nby, nbz, p):
+    """The index ranges (a0, a1, b0, b1, c0, c1) of the dofs sharing a cell
+    with dof k (offsets -p..p per axis, cut at the grid)."""
     a = k % nbx
-    b = k // nbx
+    b = (k // nbx) % nby
+    c = k // (nbx * nby)
+    return (max(0, a - p), min(nbx, a + p + 1), max(0, b - p), min(nby, b + p + 1),
+            max(0, c - p), min(nbz, c + p + 1))
+
+
+@njit(cache=True, error_model="numpy")
+def _neighbour_max(mass, k, nbx, nby, nbz, p):
+    """max of m_j over the dofs j sharing a cell with k (k included)."""
+    a0, a1, b0, b1, c0, c1 = _box(k, nbx, nby, nbz, p)
     big = 0.0
-    for bb in range(max(0, b - p), min(nby, b + p + 1)):
-        for aa in range(max(0, a - p), min(nbx, a + p + 1)):
-            m = mass[bb * nbx + aa]
-            if m > big:
-                big = m
+    for cc in range(c0, c1):
+        for bb in range(b0, b1):
+            row = (cc * nby + bb) * nbx
+            for aa in range(a0, a1):
+                m = mass[row + aa]
+                if m > big:
+                    big = m
     return big
 
 
 @njit(cache=True, error_model="numpy")
 def merged_lumped_solve(mass, rhs, gravity, constrained, values, has_values, nbx, nby, p, tol,
                         out):
-    """out = the merged lumped solve of every component (module docstring);
-    returns the largest number of small dofs over the components, or -1
-    when a row outgrew MAX_ENTRIES (``out`` is then not valid)."""
+    """:func:`merged_lumped_solve_axes` on a 1D (nby = 1) or 2D grid."""
+    return merged_lumped_solve_axes(mass, rhs, gravity, constrained, values, has_values, nbx,
+                                    nby, 1, p, tol, out)
+
+
+@njit(cache=True, error_model="numpy")
+def merged_lumped_solve_axes(mass, rhs, gravity, constrained, values, has_values, nbx, nby,
+                             nbz, p, tol, out):
+    """out = the merged lumped solve of every component (module docstring)
+    on a grid of nbx x nby x nbz functions; returns the largest number of
+    small dofs over the components, or -1 when a row outgrew MAX_ENTRIES
+    (``out`` is then not valid)."""
     nd, dim = rhs.shape
     neighbour_max = np.empty(nd)
     for k in range(nd):
-        neighbour_max[k] = _neighbour_max(mass, k, nbx, nby, p) if mass[k] > 0.0 else 0.0
+        neighbour_max[k] = _neighbour_max(mass, k, nbx, nby, nbz, p) if mass[k] > 0.0 else 0.0
     small = np.zeros(nd, dtype=np.bool_)
     entries = np.zeros(nd, dtype=np.int64)
     row_dof = np.empty((nd, MAX_ENTRIES), dtype=np.int64)
@@ -75,34 +97,37 @@ def merged_lumped_solve(mass, rhs, gravity, constrained, values, has_values, nbx
         smalls = np.flatnonzero(small)
         order = smalls[np.argsort(-mass[smalls], kind="mergesort")]
         for s in order:  # heaviest first: masters are resolved before
-            a = s % nbx
-            b = s // nbx
+            a0, a1, b0, b1, c0, c1 = _box(s, nbx, nby, nbz, p)
             top = (1.0 - TIE) * neighbour_max[s]
             masters = 0
-            for bb in range(max(0, b - p), min(nby, b + p + 1)):
-                for aa in range(max(0, a - p), min(nbx, a + p + 1)):
-                    if mass[bb * nbx + aa] >= top:
-                        masters += 1
+            for cc in range(c0, c1):
+                for bb in range(b0, b1):
+                    row = (cc * nby + bb) * nbx
+                    for aa in range(a0, a1):
+                        if mass[row + aa] >= top:
+                            masters += 1
             share = 1.0 / masters
             n = 0
-            for bb in range(max(0, b - p), min(nby, b + p + 1)):
-                for aa in range(max(0, a - p), min(nbx, a + p + 1)):
-                    j = bb * nbx + aa
-                    if mass[j] < top:
-                        continue
-                    if small[j]:
-                        for e in range(entries[j]):
+            for cc in range(c0, c1):
+                for bb in range(b0, b1):
+                    row = (cc * nby + bb) * nbx
+                    for aa in range(a0, a1):
+                        j = row + aa
+                        if mass[j] < top:
+                            continue
+                        if small[j]:
+                            for e in range(entries[j]):
+                                if n == MAX_ENTRIES:
+                                    return -1
+                                row_dof[s, n] = row_dof[j, e]
+                                row_weight[s, n] = share * row_weight[j, e]
+                                n += 1
+                        else:
                             if n == MAX_ENTRIES:
                                 return -1
-                            row_dof[s, n] = row_dof[j, e]
-                            row_weight[s, n] = share * row_weight[j, e]
+                            row_dof[s, n] = j
+                            row_weight[s, n] = share
                             n += 1
-                    else:
-                        if n == MAX_ENTRIES:
-                            return -1
-                        row_dof[s, n] = j
-                        row_weight[s, n] = share
-                        n += 1
             entries[s] = n
         # restrict: T^T rhs and T^T m on the kept dofs
         for k in range(nd):

@@ -3,7 +3,7 @@
 ``usl_step.c`` (beside this file) is a hand-written C99/OpenMP loop of the
 step that ``skfem-mpm bench`` times for its USL rows: quadratic B-splines
 on a uniform grid, lumped mass, gravity, fixed dofs, small-strain linear
-elasticity and the volume update (its header states the equations and
+elasticity and the volume update, 1D to 3D (its header states the equations and
 the file formats). The bench compiles it here with the system's C
 compiler, runs it on the very problem it gives ``simulate`` (the initial
 particle state, time step and step count are written to a file), checks
@@ -32,7 +32,7 @@ __all__ = ["FLAGS", "SOURCE", "CompiledReference", "ReferenceUnavailable", "comp
 
 SOURCE = Path(__file__).with_name("usl_step.c")
 FLAGS = ("-O3", "-march=native", "-fopenmp")
-MAGIC = b"USLSTEP1"
+MAGIC = b"USLSTEP2"
 
 # Two correct runs differ by round-off only (the summation order differs
 # between the C loop and the compiled kernels); a wrong step differs in the
@@ -104,9 +104,9 @@ def _covered(state):
     if (m.scheme, m.mass, m.reconstruction_name) != ("usl", "lumped", "none"):
         problems.append(f"the method (scheme {m.scheme}, mass {m.mass}, "
                         f"reconstruction {m.reconstruction_name}; it needs usl, lumped, none)")
-    if not isinstance(grid, SplineGrid) or grid.degree != 2 or grid.dim not in (1, 2) \
+    if not isinstance(grid, SplineGrid) or grid.degree != 2 or grid.dim not in (1, 2, 3) \
             or not all(grid._uniform) or min(grid.cells_per_axis) < 4:
-        problems.append("the grid (it needs a uniform quadratic SplineGrid in 1D or 2D "
+        problems.append("the grid (it needs a uniform quadratic SplineGrid in 1D, 2D or 3D "
                         "with at least 4 cells per axis)")
     if len(state.bodies) != 1 or type(state.bodies[0][0]) is not LinearElastic \
             or state.scene.finite_strain:
@@ -127,15 +127,15 @@ def write_problem(path, scene, method):
     _covered(state)
     p, grid, dim = state.particles, state.grid, state.grid.dim
     material = state.bodies[0][0]
-    gravity = np.zeros(2)
+    gravity = np.zeros(3)
     for f in state.forces:
         gravity[:dim] += f.acceleration
-    cells = list(grid.cells_per_axis) + [1] * (2 - dim)
-    bounds = [b for axis in grid.bounds for b in axis] + [0.0, 1.0] * (2 - dim)
-    header = np.array([dim, cells[0], cells[1], p.n, state.n_steps], dtype=np.int64)
-    lam, mu = (material.lam, material.mu) if dim == 2 else (0.0, 0.0)
+    cells = list(grid.cells_per_axis) + [1] * (3 - dim)
+    bounds = [b for axis in grid.bounds for b in axis] + [0.0, 1.0] * (3 - dim)
+    header = np.array([dim, *cells, p.n, state.n_steps], dtype=np.int64)
+    lam, mu = (material.lam, material.mu) if dim >= 2 else (0.0, 0.0)
     E = material.E if dim == 1 else 0.0
-    parameters = np.array(bounds + [state.dt, gravity[0], gravity[1], lam, mu, E])
+    parameters = np.array(bounds + [state.dt, *gravity, lam, mu, E])
     with open(path, "wb") as f:
         f.write(MAGIC)
         f.write(header.tobytes())
@@ -167,7 +167,7 @@ def run_reference(executable, problem_path, output_path, threads, repeat=1):
             values[key] = int(value)
     with open(problem_path, "rb") as f:
         f.seek(len(MAGIC))
-        dim, _, _, n, _ = np.frombuffer(f.read(40), dtype=np.int64)
+        dim, _, _, _, n, _ = np.frombuffer(f.read(48), dtype=np.int64)
     data = np.fromfile(output_path, dtype=np.float64)
     shapes = {"x": (n, dim), "v": (n, dim), "u": (n, dim), "V": (n,), "stress": (n, dim, dim)}
     final, start = {}, 0

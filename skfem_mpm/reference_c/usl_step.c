@@ -6,7 +6,7 @@
  * The step: update stress last (USL), lumped mass, quadratic B-splines on a
  * uniform grid with open (clamped) knot vectors, gravity as a grid
  * acceleration, fixed dofs, small-strain linear elasticity and the volume
- * update; 1D and 2D. With particles p, grid dofs i and N_ip = N_i(x_p):
+ * update; 1D, 2D and 3D. With particles p, grid dofs i and N_ip = N_i(x_p):
  *
  *   m_i = sum_p m_p N_ip,   P_i = sum_p m_p v_p N_ip,
  *   f_i = -sum_p V_p sigma_p . grad N_i(x_p)
@@ -15,7 +15,7 @@
  *   v_p += dt sum_i N_ip a_i,   x_p += dt sum_i N_ip v_i   (u_p likewise)
  *   L_p = sum_i v_i (x) grad N_i(x_p),   D = dt sym(L_p)
  *   sigma_p += lambda tr(D) I + 2 mu D     (1D: sigma_p += E dt L_p)
- *   V_p *= det(I + dt L_p)
+ *   V_p *= det(I + dt L_p)                 (3D: the rule of Sarrus)
  *
  * (Sulsky, Zhou & Schreyer 1995 for the update-stress-last step; the
  * project's skfem_mpm.solve.schemes.step_usl for the same sequence.)
@@ -29,12 +29,13 @@
  * Usage:  usl_step INPUT OUTPUT [REPEAT]
  *
  * INPUT (native byte order, written by skfem_mpm.reference_c):
- *   char    magic[8]      "USLSTEP1"
- *   int64   dim, cells_x, cells_y (1 in 1D), n (particles), steps
- *   double  lo_x, hi_x, lo_y, hi_y, dt, g_x, g_y, lambda, mu, E
+ *   char    magic[8]      "USLSTEP2"
+ *   int64   dim, cells_x, cells_y, cells_z (1 for missing axes), n (particles), steps
+ *   double  lo_x, hi_x, lo_y, hi_y, lo_z, hi_z, dt, g_x, g_y, g_z, lambda, mu, E
  *   uint8   fixed[ndofs * dim]   1 where dof i, component c is fixed
- *                                (ndofs = (cells_x + 2) (cells_y + 2) in 2D,
- *                                dof index i = (y index) (cells_x + 2) + x index)
+ *                                (ndofs = (cells_x + 2) (cells_y + 2) (cells_z + 2)
+ *                                in 3D, dof index i = ((z index) (cells_y + 2)
+ *                                + y index) (cells_x + 2) + x index)
  *   double  x[n dim], v[n dim], u[n dim], m[n], V[n], stress[n dim dim]
  * OUTPUT: x, v, u, V, stress after the steps (same layouts).
  * Each of the REPEAT runs (default 1) starts from the input state; stdout
@@ -131,9 +132,9 @@ static int basis(const Axis *ax, double x, double w[3], double dw[3])
 
 typedef struct {
     int dim, n, steps;
-    Axis ax[2];
-    int nbx, nby, ndofs;
-    double dt, g[2], lambda, mu, E;
+    Axis ax[3];
+    int nbx, nby, nbz, ndofs;
+    double dt, g[3], lambda, mu, E;
     unsigned char *fixed;
     double *x, *v, *u, *m, *V, *stress;
 } Problem;
@@ -224,6 +225,50 @@ static void p2g_2d(const Problem *P, Grid *G, int t)
     G->last[t] = last;
 }
 
+
+static void p2g_3d(const Problem *P, Grid *G, int t)
+{
+    int nt = G->nthreads, lo = (int)((int64_t)t * P->n / nt), hi = (int)((int64_t)(t + 1) * P->n / nt);
+    int first = P->ndofs, last = 0, i, a, b, c, nbx = P->nbx, nbxy = P->nbx * P->nby;
+    double *g = G->copy[t], wx[3], dx[3], wy[3], dy[3], wz[3], dz[3];
+    memset(g + (size_t)G->first[t] * 7, 0, (size_t)(G->last[t] - G->first[t]) * 7 * sizeof(double));
+    for (i = lo; i < hi; i++) {
+        int ex = basis(&P->ax[0], P->x[3 * i], wx, dx);
+        int ey = basis(&P->ax[1], P->x[3 * i + 1], wy, dy);
+        int ez = basis(&P->ax[2], P->x[3 * i + 2], wz, dz);
+        const double *s = P->stress + 9 * i;
+        double mi = P->m[i], px = mi * P->v[3 * i], py = mi * P->v[3 * i + 1];
+        double pz = mi * P->v[3 * i + 2], Vi = P->V[i];
+        double sxx = Vi * s[0], syy = Vi * s[4], szz = Vi * s[8];
+        double sxy = Vi * 0.5 * (s[1] + s[3]), sxz = Vi * 0.5 * (s[2] + s[6]);
+        double syz = Vi * 0.5 * (s[5] + s[7]);
+        int k0 = ez * nbxy + ey * nbx + ex;
+        for (c = 0; c < 3; c++) {
+            for (b = 0; b < 3; b++) {
+                double wyz = wy[b] * wz[c], dyz = dy[b] * wz[c], ydz = wy[b] * dz[c];
+                double *row = g + (size_t)(k0 + c * nbxy + b * nbx) * 7;
+                for (a = 0; a < 3; a++) {
+                    double N = wx[a] * wyz, gx = dx[a] * wyz, gy = wx[a] * dyz, gz = wx[a] * ydz;
+                    double *node = row + 7 * a;
+                    node[0] += N * mi;
+                    node[1] += N * px;
+                    node[2] += N * py;
+                    node[3] += N * pz;
+                    node[4] -= sxx * gx + sxy * gy + sxz * gz;
+                    node[5] -= sxy * gx + syy * gy + syz * gz;
+                    node[6] -= sxz * gx + syz * gy + szz * gz;
+                }
+            }
+        }
+        if (k0 < first)
+            first = k0;
+        if (k0 + 2 * nbxy + 2 * nbx + 3 > last)
+            last = k0 + 2 * nbxy + 2 * nbx + 3;
+    }
+    G->first[t] = first < last ? first : 0;
+    G->last[t] = last;
+}
+
 /* ------------------------------------------------------------- grid update */
 
 /* Sum the thread copies of node k, then a = f / m + g and v = P / m + dt a on
@@ -233,7 +278,7 @@ static void grid_update(const Problem *P, Grid *G)
     int k, dim = P->dim, nc = G->ncomp, nt = G->nthreads;
 #pragma omp parallel for schedule(static)
     for (k = 0; k < P->ndofs; k++) {
-        double sum[5] = {0.0, 0.0, 0.0, 0.0, 0.0};
+        double sum[7] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
         int t, c;
         for (t = 0; t < nt; t++) {
             if (k >= G->first[t] && k < G->last[t]) {
@@ -336,6 +381,69 @@ static long g2p_2d(Problem *P, const Grid *G)
     return invalid;
 }
 
+
+static long g2p_3d(Problem *P, const Grid *G)
+{
+    long invalid = 0;
+    int i, nbx = P->nbx, nbxy = P->nbx * P->nby;
+    double dt = P->dt, lambda = P->lambda, mu = P->mu;
+#pragma omp parallel for schedule(static) reduction(+ : invalid)
+    for (i = 0; i < P->n; i++) {
+        double wx[3], dx[3], wy[3], dy[3], wz[3], dz[3], A[3] = {0.0, 0.0, 0.0};
+        double U[3] = {0.0, 0.0, 0.0}, L[3][3] = {{0.0}}, D[3][3], F[3][3], tr, J;
+        double *s = P->stress + 9 * i, *x = P->x + 3 * i, *v = P->v + 3 * i, *u = P->u + 3 * i;
+        int ex = basis(&P->ax[0], x[0], wx, dx), ey = basis(&P->ax[1], x[1], wy, dy);
+        int ez = basis(&P->ax[2], x[2], wz, dz), a, b, c, d;
+        for (c = 0; c < 3; c++) {
+            for (b = 0; b < 3; b++) {
+                double wyz = wy[b] * wz[c], dyz = dy[b] * wz[c], ydz = wy[b] * dz[c];
+                int row = (ez + c) * nbxy + (ey + b) * nbx + ex;
+                for (a = 0; a < 3; a++) {
+                    const double *ga = G->a + 3 * (row + a), *gv = G->vg + 3 * (row + a);
+                    double N = wx[a] * wyz, grad[3];
+                    grad[0] = dx[a] * wyz;
+                    grad[1] = wx[a] * dyz;
+                    grad[2] = wx[a] * ydz;
+                    for (d = 0; d < 3; d++) {
+                        int e;
+                        A[d] += N * ga[d];
+                        U[d] += N * gv[d];
+                        for (e = 0; e < 3; e++)
+                            L[d][e] += gv[d] * grad[e];
+                    }
+                }
+            }
+        }
+        for (d = 0; d < 3; d++) {
+            v[d] += dt * A[d];
+            x[d] += dt * U[d];
+            u[d] += dt * U[d];
+        }
+        for (d = 0; d < 3; d++) {
+            int e;
+            for (e = 0; e < 3; e++) {
+                D[d][e] = 0.5 * dt * (L[d][e] + L[e][d]);
+                F[d][e] = (d == e ? 1.0 : 0.0) + dt * L[d][e];
+            }
+        }
+        tr = lambda * (D[0][0] + D[1][1] + D[2][2]);
+        for (d = 0; d < 3; d++) {
+            int e;
+            for (e = 0; e < 3; e++)
+                s[3 * d + e] += (d == e ? tr : 0.0) + 2.0 * mu * D[d][e];
+        }
+        J = F[0][0] * (F[1][1] * F[2][2] - F[1][2] * F[2][1])
+            - F[0][1] * (F[1][0] * F[2][2] - F[1][2] * F[2][0])
+            + F[0][2] * (F[1][0] * F[2][1] - F[1][1] * F[2][0]);
+        P->V[i] *= J;
+        if (!(J > 0.0) || !isfinite(x[0]) || !isfinite(x[1]) || !isfinite(x[2])
+            || !isfinite(v[0]) || !isfinite(v[1]) || !isfinite(v[2])
+            || outside(&P->ax[0], x[0]) || outside(&P->ax[1], x[1]) || outside(&P->ax[2], x[2]))
+            invalid++;
+    }
+    return invalid;
+}
+
 /* ---------------------------------------------------------------- the loop */
 
 static long run_steps(Problem *P, Grid *G)
@@ -348,11 +456,13 @@ static long run_steps(Problem *P, Grid *G)
             int t = omp_get_thread_num();
             if (P->dim == 1)
                 p2g_1d(P, G, t);
-            else
+            else if (P->dim == 2)
                 p2g_2d(P, G, t);
+            else
+                p2g_3d(P, G, t);
         }
         grid_update(P, G);
-        invalid += P->dim == 1 ? g2p_1d(P, G) : g2p_2d(P, G);
+        invalid += P->dim == 1 ? g2p_1d(P, G) : P->dim == 2 ? g2p_2d(P, G) : g2p_3d(P, G);
     }
     return invalid;
 }
@@ -383,34 +493,38 @@ static double *read_doubles(FILE *f, size_t count, const char *what)
 static void read_problem(const char *path, Problem *P)
 {
     char magic[8];
-    int64_t head[5];
-    double par[10];
+    int64_t head[6];
+    double par[13];
     size_t n, dim;
     FILE *f = fopen(path, "rb");
     if (!f)
         fail("cannot open the input", path);
     read_exactly(f, magic, 1, 8, "magic");
-    if (memcmp(magic, "USLSTEP1", 8) != 0)
-        fail("not a usl_step input (magic USLSTEP1)", path);
-    read_exactly(f, head, sizeof(int64_t), 5, "header");
-    read_exactly(f, par, sizeof(double), 10, "parameters");
-    if ((head[0] != 1 && head[0] != 2) || head[1] < 2 * DEGREE || head[2] < 1 || head[3] < 1
-        || head[4] < 0 || (head[0] == 2 && head[2] < 2 * DEGREE))
-        fail("invalid header (dim 1 or 2, at least 4 cells per axis, n >= 1, steps >= 0)", path);
+    if (memcmp(magic, "USLSTEP2", 8) != 0)
+        fail("not a usl_step input (magic USLSTEP2)", path);
+    read_exactly(f, head, sizeof(int64_t), 6, "header");
+    read_exactly(f, par, sizeof(double), 13, "parameters");
+    if (head[0] < 1 || head[0] > 3 || head[1] < 2 * DEGREE || head[2] < 1 || head[3] < 1
+        || head[4] < 1 || head[5] < 0 || (head[0] >= 2 && head[2] < 2 * DEGREE)
+        || (head[0] == 3 && head[3] < 2 * DEGREE))
+        fail("invalid header (dim 1 to 3, at least 4 cells per axis, n >= 1, steps >= 0)", path);
     P->dim = (int)head[0];
-    P->n = (int)head[3];
-    P->steps = (int)head[4];
+    P->n = (int)head[4];
+    P->steps = (int)head[5];
     axis_init(&P->ax[0], (int)head[1], par[0], par[1]);
     axis_init(&P->ax[1], (int)head[2], par[2], par[3]);
+    axis_init(&P->ax[2], (int)head[3], par[4], par[5]);
     P->nbx = (int)head[1] + DEGREE;
-    P->nby = P->dim == 2 ? (int)head[2] + DEGREE : 1;
-    P->ndofs = P->nbx * P->nby;
-    P->dt = par[4];
-    P->g[0] = par[5];
-    P->g[1] = par[6];
-    P->lambda = par[7];
-    P->mu = par[8];
-    P->E = par[9];
+    P->nby = P->dim >= 2 ? (int)head[2] + DEGREE : 1;
+    P->nbz = P->dim == 3 ? (int)head[3] + DEGREE : 1;
+    P->ndofs = P->nbx * P->nby * P->nbz;
+    P->dt = par[6];
+    P->g[0] = par[7];
+    P->g[1] = par[8];
+    P->g[2] = par[9];
+    P->lambda = par[10];
+    P->mu = par[11];
+    P->E = par[12];
     n = (size_t)P->n;
     dim = (size_t)P->dim;
     P->fixed = malloc((size_t)P->ndofs * dim);

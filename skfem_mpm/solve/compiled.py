@@ -65,7 +65,10 @@ def compiled_executor_applies(state):
     if not isinstance(state.grid, SplineGrid):
         return False, "not a SplineGrid"
     if state.grid.dim == 3:
-        return False, "3D (compiled kernels not yet generated for 3D)"
+        if m.mass != "lumped":
+            return False, f"3D with {m.mass} mass (the compiled stencil is 1D and 2D only)"
+        if m.reconstruction != "none":
+            return False, "3D reconstruction (compiled reconstructions are 1D and 2D only)"
     if m.reconstruction != "none":
         why = unsupported(m, state.grid.dim)
         if why is not None:
