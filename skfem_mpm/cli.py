@@ -14,6 +14,7 @@ Every option's help names its choices and default (``--help``).
 Bad arguments print one line ``skfem-mpm: error: ...`` and exit with code 2.
 """
 import argparse
+import functools
 import json
 import os
 import sys
@@ -39,17 +40,40 @@ class _UsageError(Exception):
 COMPILE_NOTICE_AFTER = 2.0
 
 
+def _kernel_cache_is_cold():
+    """True when numba's cache holds no machine code for the basis-function
+    kernels that every compiled run calls first (``kernels.weights``): an
+    empty cache (first use, a new NUMBA_CACHE_DIR) or a stale one (numba
+    keys its index on the source file's time stamp). Reads the cache index
+    files only. None when numba's cache internals are not as expected."""
+    try:
+        from numba.core.dispatcher import Dispatcher
+
+        from .kernels import weights
+
+        caches = [obj._cache for obj in vars(weights).values()
+                  if isinstance(obj, Dispatcher) and hasattr(obj._cache, "_cache_file")]
+        if not caches:
+            return None
+        return not any(c._cache_file._load_index() for c in caches)
+    except Exception:  # numba's private cache API moved: fall back on the time alone
+        return None
+
+
 class _CompileNotice:
     """Around a block that compiles or loads kernels (a warm-up run, a
     study's first jobs): once it has lasted ``after`` seconds, the line
     ``compiling kernels (first use only)...`` goes to stderr, completed by
-    the block's time when it ends; a shorter block (a warm numba cache)
-    prints nothing."""
+    the block's time when it ends; a shorter block prints nothing, and so
+    does any block when ``cold`` is False (:func:`_kernel_cache_is_cold`:
+    the kernels load from the cache; a study's first jobs under load last
+    longer than ``after`` without compiling anything)."""
 
     MESSAGE = "compiling kernels (first use only)..."
 
-    def __init__(self, after=None, stream=None, message=None):
+    def __init__(self, after=None, stream=None, message=None, cold=None):
         self.after = COMPILE_NOTICE_AFTER if after is None else after
+        self.cold = cold
         self.message = self.MESSAGE if message is None else message
         self.stream = stream if stream is not None else sys.stderr
         self.shown = False
@@ -68,7 +92,8 @@ class _CompileNotice:
         self._t0 = time.perf_counter()
         self._timer = threading.Timer(self.after, self._show)
         self._timer.daemon = True
-        self._timer.start()
+        if self.cold is not False:
+            self._timer.start()
         return self
 
     def __exit__(self, *exc):
@@ -256,7 +281,7 @@ def _cmd_run(args, kind):
     if args.out:
         steps = prepare(scene, method).n_steps or 100
         save_every = max(1, steps // 50)
-    with _CompileNotice():
+    with _CompileNotice(cold=_kernel_cache_is_cold()):
         first_use = warm_up_run(bench, args.cells, args.degree, args.ppc, method,
                                 kind == "fem", args.t_end)
     if kind == "fem":
@@ -368,7 +393,9 @@ def _cmd_study(args):
             reference = model_reference(bench)
     records = convergence(bench.name, methods, cells, ppc=ppc, variant=bench.variant,
                           params=params, executor=executor, progress=True, scheme=scheme, cfl=cfl,
-                          repeat=repeat, compile_notice=_CompileNotice,
+                          repeat=repeat,
+                          compile_notice=functools.partial(_CompileNotice,
+                                                           cold=_kernel_cache_is_cold()),
                           compare_with=args.compare_with)
     leaked = sum(r.get("timed_compiles") or 0 for r in records)
     if leaked:

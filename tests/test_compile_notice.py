@@ -31,6 +31,37 @@ def test_a_short_block_prints_nothing():
     assert stream.getvalue() == ""
 
 
+def test_a_warm_cache_is_never_announced():
+    """cold=False (the kernels load from the cache): a study's first jobs
+    under load last longer than 2 s without compiling; nothing is said."""
+    stream = io.StringIO()
+    with _CompileNotice(after=0.05, stream=stream, cold=False):
+        time.sleep(0.3)
+    assert stream.getvalue() == ""
+
+
+COLD_PROBE = """
+import sys
+from skfem_mpm.cli import _kernel_cache_is_cold
+from skfem_mpm.spline import SplineGrid
+import numpy as np
+before = _kernel_cache_is_cold()
+SplineGrid.line(0.0, 1.0, 4, 2).axis_functions(0, np.array([0.3]), backend="numba")
+print(before, _kernel_cache_is_cold())
+"""
+
+
+def test_an_empty_cache_is_cold_until_the_basis_kernels_are_compiled(tmp_path):
+    """A child process with an empty NUMBA_CACHE_DIR: cold; after one basis
+    evaluation has compiled (and cached) its kernel: not cold."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path), NUMBA_NUM_THREADS="1")
+    run = subprocess.run([sys.executable, "-c", COLD_PROBE], env=env, capture_output=True,
+                         text=True, timeout=600, check=False,
+                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["True", "False"], run.stdout
+
+
 def _run_cli(cache, *argv):
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), NUMBA_NUM_THREADS="1")
     return subprocess.run([sys.executable, "-m", "skfem_mpm.cli", *argv], env=env,
