@@ -9,6 +9,9 @@ from skfem_mpm import Body, Fixed, Gravity, LinearElastic, Method, Particles, Sc
     simulate
 from skfem_mpm.benchmarks import get_benchmark
 
+# a hard study: the slow tier (`pytest -m slow`, run by .ci/run too)
+pytestmark = pytest.mark.slow
+
 
 def energy_excess(r):
     e, work = r.energies["total"], r.energies["external_work"]
