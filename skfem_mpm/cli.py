@@ -182,7 +182,8 @@ def build_parser():
                    f"{' '.join(map(str, QUICK['cells']))} in 1D, "
                    f"{' '.join(map(str, STUDY_CELLS[2][0]))} in 2D, "
                    f"{' '.join(map(str, STUDY_CELLS[3][0]))} in 3D; {QUICK['repeat']} timed "
-                   f"repeats (default: off, the full study)")
+                   f"repeats, 2 once two have taken {QUICK['repeat_budget']:g} s (default: off, "
+                   f"the full study)")
     s.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
                    help="methods named kind-pN-mass[-reconstruction][-scheme]: kind mpm or fem, "
                    f"N 1-3, mass {{{','.join(MASSES)}}}, reconstruction "
@@ -335,7 +336,10 @@ def _write_run_pictures(result, bench, out, field="stress"):
 RUN_FIELDS = ("stress", "velocity", "displacement", "error")
 # default cells per axis of `run` and `fem`; 3D runs on the reference executor
 RUN_CELLS = {1: 16, 2: 16, 3: 4}
-QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.1, "scheme": "cd", "repeat": 3}
+# repeat_budget: a quick study's job stops repeating after two timed runs
+# that took that many seconds (the long consistent-mass jobs)
+QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.1, "scheme": "cd", "repeat": 3,
+         "repeat_budget": 2.0}
 # a study's default cells per axis by dimension: (quick, full)
 STUDY_CELLS = {1: (QUICK["cells"], [8, 16, 32, 64, 128]), 2: ([4, 8, 16], [4, 8, 16, 32]),
                3: ([2, 4], [2, 4, 8])}
@@ -369,6 +373,7 @@ def _cmd_study(args):
     if args.repeat is not None and args.repeat < 1:
         raise _UsageError(f"--repeat must be a positive integer, got {args.repeat}")
     repeat = args.repeat or (QUICK["repeat"] if args.quick else 1)
+    budget = QUICK["repeat_budget"] if args.quick and args.repeat is None else None
     _check_out(args.out)
     ppc = args.ppc if args.ppc is not None else (QUICK["ppc"] if bench.dim == 1 else 2)
     scheme = args.scheme or QUICK["scheme"]
@@ -385,7 +390,9 @@ def _cmd_study(args):
         executor = Client(args.dask)
         where = (f"Dask cluster at {args.dask} "
                  f"({len(executor.scheduler_info()['workers'])} workers)")
-    note = (f"Timed runs: {where}. Wall time: the median of {repeat} timed run(s) after an "
+    runs = f"{repeat} timed run(s)" if budget is None else (
+        f"up to {repeat} timed runs (2 once two have taken {budget:g} s; column repeats)")
+    note = (f"Timed runs: {where}. Wall time: the median of {runs} after an "
             f"untimed warm-up run that compiles every kernel (its time: jit_time_s).")
     reference = None
     if args.compare_with == "auto" and any(m.startswith("mpm") for m in methods):
@@ -393,7 +400,7 @@ def _cmd_study(args):
             reference = model_reference(bench)
     records = convergence(bench.name, methods, cells, ppc=ppc, variant=bench.variant,
                           params=params, executor=executor, progress=True, scheme=scheme, cfl=cfl,
-                          repeat=repeat,
+                          repeat=repeat, repeat_budget=budget,
                           compile_notice=functools.partial(_CompileNotice,
                                                            cold=_kernel_cache_is_cold()),
                           compare_with=args.compare_with)

@@ -173,7 +173,10 @@ def run_one(job):
     An untimed warm-up run (``WARM_UP_STEPS`` steps of the same scene and
     method; for fem, the scene at a thousandth of its end time) compiles
     everything the job calls, then ``job["repeat"]`` (default 1) timed runs
-    give the median ``wall_time_s`` and its range. ``jit_time_s`` is the
+    give the median ``wall_time_s`` and its range; with
+    ``job["repeat_budget"]`` (seconds) the repeats stop early, after at least
+    two, once the timed runs have taken that long (``repeats`` says how
+    many ran). ``jit_time_s`` is the
     warm-up run's whole time (compilation, cache loads, first-use set-up),
     ``timed_compiles`` the kernels compiled or loaded during the timed runs."""
     from .errors import SimulationError
@@ -205,7 +208,9 @@ def run_one(job):
         first_use = warm_up_run(bench, job["cells"], spec["degree"], job["ppc"], method,
                                 fem_run, scene.t_end)
         times, compiles = [], 0
-        for _ in range(repeat):
+        budget = job.get("repeat_budget")
+        while len(times) < repeat and not (
+                budget is not None and len(times) >= 2 and sum(times) >= budget):
             before = _compiled_kernels()
             result = (fem(scene, method, save_every=save_every) if fem_run
                       else simulate(scene, method, save_every=save_every))
@@ -216,7 +221,7 @@ def run_one(job):
         return record
     record.update(particles=result.counts["particles"], steps=result.counts["steps"],
                   dt=result.dt, wall_time_s=statistics.median(times),
-                  wall_time_min_s=min(times), wall_time_max_s=max(times), repeats=repeat,
+                  wall_time_min_s=min(times), wall_time_max_s=max(times), repeats=len(times),
                   jit_time_s=first_use, timed_compiles=compiles)
     for p, s in result.timings.items():
         record[f"phase_{p}_s"] = s
@@ -270,11 +275,13 @@ def _executor(executor):
 
 def convergence(benchmark, methods, cells, ppc=2, variant=None, params=None, executor=None,
                 progress=False, scheme="musl", cfl=0.5, t_end=None, repeat=1,
-                compile_notice=None, compare_with="auto"):
+                compile_notice=None, compare_with="auto", repeat_budget=None):
     """Run every method at every resolution; returns a list of records with
     errors, observed orders (between successive resolutions of a method),
     wall time (the median of ``repeat`` timed runs, compilation excluded,
-    see :func:`run_one`) and per-phase times. ``executor`` as in the module
+    see :func:`run_one`; ``repeat_budget``: fewer repeats, at least two, for
+    a job whose timed runs have already taken that many seconds) and
+    per-phase times. ``executor`` as in the module
     docstring; ``"serial"`` runs in this process, one run at a time.
     ``compile_notice``: a context manager factory entered around the jobs
     that run first (the coarsest of each kernel set, :func:`compile_first`:
@@ -291,6 +298,10 @@ def convergence(benchmark, methods, cells, ppc=2, variant=None, params=None, exe
         raise ValueError(f"compare_with must be one of {COMPARE_WITH}, got {compare_with!r}")
     if isinstance(repeat, bool) or not isinstance(repeat, int) or repeat < 1:
         raise ValueError(f"repeat must be a positive integer, got {repeat!r}")
+    if repeat_budget is not None and not (isinstance(repeat_budget, (int, float))
+                                          and repeat_budget > 0):
+        raise ValueError(f"repeat_budget must be a positive number of seconds or None, got "
+                         f"{repeat_budget!r}")
     specs = [m if isinstance(m, dict) else parse_method(m, scheme, cfl) for m in methods]
     cells = [int(c) for c in cells]
     if not cells or any(c < 1 for c in cells):
@@ -300,6 +311,7 @@ def convergence(benchmark, methods, cells, ppc=2, variant=None, params=None, exe
         model_reference(bench)  # computed and cached once, before the runs read it
     jobs = [{"benchmark": benchmark, "variant": variant, "params": dict(params or {}),
              "method": spec, "cells": n, "ppc": ppc, "t_end": t_end, "repeat": repeat,
+             "repeat_budget": repeat_budget,
              "compare_with": compare_with}
             for spec in specs for n in cells]
     first, rest = compile_first(jobs)
