@@ -14,9 +14,11 @@ Every option's help names its choices and default (``--help``).
 Bad arguments print one line ``skfem-mpm: error: ...`` and exit with code 2.
 """
 import argparse
+import functools
 import json
 import os
 import sys
+import time
 
 from .errors import SimulationError
 
@@ -30,6 +32,77 @@ class _Parser(argparse.ArgumentParser):
 
 class _UsageError(Exception):
     pass
+
+
+# seconds of warm-up after which the command line says it is compiling: a
+# warm cache loads a run's kernels in well under this, an empty one takes
+# tens of seconds
+COMPILE_NOTICE_AFTER = 2.0
+
+
+def _kernel_cache_is_cold():
+    """True when numba's cache holds no machine code for the basis-function
+    kernels that every compiled run calls first (``kernels.weights``): an
+    empty cache (first use, a new NUMBA_CACHE_DIR) or a stale one (numba
+    keys its index on the source file's time stamp). Reads the cache index
+    files only. None when numba's cache internals are not as expected."""
+    try:
+        from numba.core.dispatcher import Dispatcher
+
+        from .kernels import weights
+
+        caches = [obj._cache for obj in vars(weights).values()
+                  if isinstance(obj, Dispatcher) and hasattr(obj._cache, "_cache_file")]
+        if not caches:
+            return None
+        return not any(c._cache_file._load_index() for c in caches)
+    except Exception:  # numba's private cache API moved: fall back on the time alone
+        return None
+
+
+class _CompileNotice:
+    """Around a block that compiles or loads kernels (a warm-up run, a
+    study's first jobs): once it has lasted ``after`` seconds, the line
+    ``compiling kernels (first use only)...`` goes to stderr, completed by
+    the block's time when it ends; a shorter block prints nothing, and so
+    does any block when ``cold`` is False (:func:`_kernel_cache_is_cold`:
+    the kernels load from the cache; a study's first jobs under load last
+    longer than ``after`` without compiling anything)."""
+
+    MESSAGE = "compiling kernels (first use only)..."
+
+    def __init__(self, after=None, stream=None, message=None, cold=None):
+        self.after = COMPILE_NOTICE_AFTER if after is None else after
+        self.cold = cold
+        self.message = self.MESSAGE if message is None else message
+        self.stream = stream if stream is not None else sys.stderr
+        self.shown = False
+
+    def _show(self):
+        with self._lock:
+            if not self._closed:
+                print(self.message, end="", file=self.stream, flush=True)
+                self.shown = True
+
+    def __enter__(self):
+        import threading
+
+        self._lock = threading.Lock()
+        self._closed = False
+        self._t0 = time.perf_counter()
+        self._timer = threading.Timer(self.after, self._show)
+        self._timer.daemon = True
+        if self.cold is not False:
+            self._timer.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._timer.cancel()
+        with self._lock:
+            self._closed = True
+            if self.shown:
+                print(f" {time.perf_counter() - self._t0:.1f} s", file=self.stream, flush=True)
+        return False
 
 
 def _parse_set(items):
@@ -91,7 +164,7 @@ def _run_options(p):
 
 def build_parser():
     from .solve.method import MASSES, RECONSTRUCTIONS, SCHEMES
-    from .study import QUICK_METHODS
+    from .study import COMPARE_WITH, QUICK_METHODS
 
     parser = _Parser(prog="skfem-mpm", description="B-spline MPM and FEM benchmarks "
                      "(scikit-fem plugin): errors and what they cost in time.")
@@ -109,7 +182,8 @@ def build_parser():
                    f"{' '.join(map(str, QUICK['cells']))} in 1D, "
                    f"{' '.join(map(str, STUDY_CELLS[2][0]))} in 2D, "
                    f"{' '.join(map(str, STUDY_CELLS[3][0]))} in 3D; {QUICK['repeat']} timed "
-                   f"repeats (default: off, the full study)")
+                   f"repeats, 2 once two have taken {QUICK['repeat_budget']:g} s (default: off, "
+                   f"the full study)")
     s.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
                    help="methods named kind-pN-mass[-reconstruction][-scheme]: kind mpm or fem, "
                    f"N 1-3, mass {{{','.join(MASSES)}}}, reconstruction "
@@ -131,6 +205,11 @@ def build_parser():
     s.add_argument("--repeat", type=int, default=None,
                    help="timed runs per job, the median is reported (default: "
                    f"{QUICK['repeat']} with --quick, else 1)")
+    s.add_argument("--compare-with", default="auto", choices=COMPARE_WITH, dest="compare_with",
+                   help="what errors are measured against: auto, the benchmark's exact "
+                   "solution, or for a variant beyond its exact solution's model (soil-column "
+                   "large) MPM runs against a fine FEM of the same model, computed once and "
+                   "cached; exact: always the exact solution (default: %(default)s)")
     s.add_argument("--out", default="skfem-mpm-report",
                    help="folder for study.csv, study.md and the PNGs (default: %(default)s)")
     s.add_argument("--dask", default=None, metavar="ADDRESS",
@@ -189,6 +268,7 @@ def _check_run_args(args):
 def _cmd_run(args, kind):
     from .benchmarks import get_benchmark
     from .solve import Method, fem, prepare, simulate
+    from .study import warm_up_run
 
     _check_run_args(args)
     _check_out(args.out)
@@ -202,6 +282,9 @@ def _cmd_run(args, kind):
     if args.out:
         steps = prepare(scene, method).n_steps or 100
         save_every = max(1, steps // 50)
+    with _CompileNotice(cold=_kernel_cache_is_cold()):
+        first_use = warm_up_run(bench, args.cells, args.degree, args.ppc, method,
+                                kind == "fem", args.t_end)
     if kind == "fem":
         result = fem(scene, method, save_every=save_every, progress=not args.json)
     else:
@@ -214,7 +297,7 @@ def _cmd_run(args, kind):
         record.update(bench.errors(result))
     else:
         record.update(bench.checks(result))
-    record.update(wall_time_s=result.wall_time, jit_time_s=result.jit_time,
+    record.update(wall_time_s=result.wall_time, jit_time_s=first_use + result.jit_time,
                   phase_times=result.phase_table())
     if args.out:
         _write_run_pictures(result, bench, args.out, args.field)
@@ -253,7 +336,10 @@ def _write_run_pictures(result, bench, out, field="stress"):
 RUN_FIELDS = ("stress", "velocity", "displacement", "error")
 # default cells per axis of `run` and `fem`; 3D runs on the reference executor
 RUN_CELLS = {1: 16, 2: 16, 3: 4}
-QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.1, "scheme": "cd", "repeat": 3}
+# repeat_budget: a quick study's job stops repeating after two timed runs
+# that took that many seconds (the long consistent-mass jobs)
+QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.1, "scheme": "cd", "repeat": 3,
+         "repeat_budget": 2.0}
 # a study's default cells per axis by dimension: (quick, full)
 STUDY_CELLS = {1: (QUICK["cells"], [8, 16, 32, 64, 128]), 2: ([4, 8, 16], [4, 8, 16, 32]),
                3: ([2, 4], [2, 4, 8])}
@@ -261,6 +347,7 @@ STUDY_CELLS = {1: (QUICK["cells"], [8, 16, 32, 64, 128]), 2: ([4, 8, 16], [4, 8,
 
 def _cmd_study(args):
     from .benchmarks import get_benchmark
+    from .model_reference import model_reference
     from .study import (
         FULL_METHODS,
         QUICK_METHODS,
@@ -286,6 +373,7 @@ def _cmd_study(args):
     if args.repeat is not None and args.repeat < 1:
         raise _UsageError(f"--repeat must be a positive integer, got {args.repeat}")
     repeat = args.repeat or (QUICK["repeat"] if args.quick else 1)
+    budget = QUICK["repeat_budget"] if args.quick and args.repeat is None else None
     _check_out(args.out)
     ppc = args.ppc if args.ppc is not None else (QUICK["ppc"] if bench.dim == 1 else 2)
     scheme = args.scheme or QUICK["scheme"]
@@ -302,11 +390,20 @@ def _cmd_study(args):
         executor = Client(args.dask)
         where = (f"Dask cluster at {args.dask} "
                  f"({len(executor.scheduler_info()['workers'])} workers)")
-    note = (f"Timed runs: {where}. Wall time: the median of {repeat} timed run(s) after an "
+    runs = f"{repeat} timed run(s)" if budget is None else (
+        f"up to {repeat} timed runs (2 once two have taken {budget:g} s; column repeats)")
+    note = (f"Timed runs: {where}. Wall time: the median of {runs} after an "
             f"untimed warm-up run that compiles every kernel (its time: jit_time_s).")
+    reference = None
+    if args.compare_with == "auto" and any(m.startswith("mpm") for m in methods):
+        with _CompileNotice(message="computing the same-model reference (first use only)..."):
+            reference = model_reference(bench)
     records = convergence(bench.name, methods, cells, ppc=ppc, variant=bench.variant,
                           params=params, executor=executor, progress=True, scheme=scheme, cfl=cfl,
-                          repeat=repeat)
+                          repeat=repeat, repeat_budget=budget,
+                          compile_notice=functools.partial(_CompileNotice,
+                                                           cold=_kernel_cache_is_cold()),
+                          compare_with=args.compare_with)
     leaked = sum(r.get("timed_compiles") or 0 for r in records)
     if leaked:
         note += f" WARNING: {leaked} kernel(s) compiled during timed runs."
@@ -316,8 +413,14 @@ def _cmd_study(args):
                                        "RMS displacement error at t_end")
              + " relative to the amplitude.")
     gap = bench.model_gaps.get(bench.variant)
-    setup += " Compared with: the benchmark's exact solution." + (
-        f" WARNING, variant {bench.variant}: {gap}." if gap else "")
+    if reference is not None:
+        setup += (f" MPM runs compared with: {reference.describe()}, which MPM's model "
+                  f"leaves at variant {bench.variant} by more than the methods' errors (the "
+                  f"column error_exact is the error against it); FEM runs (small strain: the "
+                  f"linear model) with the exact solution.")
+    else:
+        setup += " Compared with: the benchmark's exact solution." + (
+            f" WARNING, variant {bench.variant}: {gap}." if gap else "")
     paths = write_report(records, args.out, title=f"{bench.name} ({bench.variant})",
                          timing_note=setup + "\n\n" + note)
     print(setup)

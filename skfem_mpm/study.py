@@ -33,6 +33,7 @@ the reconstruction included, whatever ``warm_up_kernels`` covers); then
 numba kernels compiled or loaded during the timed runs: 0 means no
 compilation leaked into the figures.
 """
+import contextlib
 import csv
 import math
 import multiprocessing
@@ -43,6 +44,7 @@ from concurrent.futures import Executor, ProcessPoolExecutor
 from itertools import zip_longest
 
 from .benchmarks import get_benchmark
+from .model_reference import model_reference
 from .solve.method import HYBRID_SCHEMES, MASSES, RECONSTRUCTIONS, SCHEMES, Method
 from .solve.timing import PHASES
 from .testing import observed_orders
@@ -60,12 +62,15 @@ __all__ = [
     "time_to_reach_table",
     "verdict",
     "verdict_lines",
+    "warm_up_run",
     "work_precision",
     "write_report",
 ]
 
 # the error levels of the "time to reach e" table and the verdict
 REACH_TARGETS = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7)
+# what a study's errors are measured against (see convergence)
+COMPARE_WITH = ("auto", "exact")
 # steps of the untimed run that compiles a job's kernels before it is timed
 WARM_UP_STEPS = 3
 
@@ -82,7 +87,7 @@ FULL_METHODS = tuple(
 
 FIELDS = ("benchmark", "variant", "method", "kind", "degree", "mass", "reconstruction", "scheme",
           "cells", "h", "ppc", "dofs", "particles", "steps", "dt", "error", "error_measure",
-          "error_rms", "error_max",
+          "compared_with", "error_exact", "error_rms", "error_max",
           "error_rms_abs", "velocity_error_rms", "stress_error_rms", "order", "wall_time_s",
           "wall_time_min_s", "wall_time_max_s", "repeats", "jit_time_s", "timed_compiles") \
     + tuple(f"phase_{p}_s" for p in PHASES) + ("status",)
@@ -168,7 +173,10 @@ def run_one(job):
     An untimed warm-up run (``WARM_UP_STEPS`` steps of the same scene and
     method; for fem, the scene at a thousandth of its end time) compiles
     everything the job calls, then ``job["repeat"]`` (default 1) timed runs
-    give the median ``wall_time_s`` and its range. ``jit_time_s`` is the
+    give the median ``wall_time_s`` and its range; with
+    ``job["repeat_budget"]`` (seconds) the repeats stop early, after at least
+    two, once the timed runs have taken that long (``repeats`` says how
+    many ran). ``jit_time_s`` is the
     warm-up run's whole time (compilation, cache loads, first-use set-up),
     ``timed_compiles`` the kernels compiled or loaded during the timed runs."""
     from .errors import SimulationError
@@ -197,20 +205,12 @@ def run_one(job):
               "cells": job["cells"], "h": float(min(scene.grid.h)), "ppc": job["ppc"],
               "dofs": scene.grid.ndofs, "status": "ok"}
     try:
-        t0 = time.perf_counter()
-        if fem_run:
-            fem(bench.scene(job["cells"], spec["degree"], job["ppc"], fem=True,
-                            t_end=1e-3 * scene.t_end), method)
-        else:  # the same scene cut to WARM_UP_STEPS steps: the same kernels
-            # and the same compiled loop (a callback would keep every step in
-            # Python, so the loop would compile in the first timed run)
-            from .solve import prepare
-
-            short = min(scene.t_end, WARM_UP_STEPS * prepare(scene, method).dt)
-            simulate(bench.scene(job["cells"], spec["degree"], job["ppc"], t_end=short), method)
-        first_use = time.perf_counter() - t0
+        first_use = warm_up_run(bench, job["cells"], spec["degree"], job["ppc"], method,
+                                fem_run, scene.t_end)
         times, compiles = [], 0
-        for _ in range(repeat):
+        budget = job.get("repeat_budget")
+        while len(times) < repeat and not (
+                budget is not None and len(times) >= 2 and sum(times) >= budget):
             before = _compiled_kernels()
             result = (fem(scene, method, save_every=save_every) if fem_run
                       else simulate(scene, method, save_every=save_every))
@@ -221,15 +221,42 @@ def run_one(job):
         return record
     record.update(particles=result.counts["particles"], steps=result.counts["steps"],
                   dt=result.dt, wall_time_s=statistics.median(times),
-                  wall_time_min_s=min(times), wall_time_max_s=max(times), repeats=repeat,
+                  wall_time_min_s=min(times), wall_time_max_s=max(times), repeats=len(times),
                   jit_time_s=first_use, timed_compiles=compiles)
     for p, s in result.timings.items():
         record[f"phase_{p}_s"] = s
     if bench.has_exact:
-        record.update(bench.errors(result))
+        # fem's LinearElastic is small strain: the linear model, whose solution
+        # is the exact one; MPM's is hypoelastic (see model_reference)
+        reference = (model_reference(bench) if job.get("compare_with", "auto") == "auto"
+                     and not fem_run else None)
+        if reference is None:
+            record.update(bench.errors(result), compared_with="exact")
+        else:
+            record.update(reference.errors(result), compared_with="same-model reference",
+                          error_exact=bench.errors(result)[bench.primary_error])
         record["error_measure"] = bench.primary_error
         record["error"] = record[bench.primary_error]
     return record
+
+
+def warm_up_run(bench, cells, degree, ppc, method, fem_run=False, t_end=None):
+    """Run the scene of ``bench`` briefly, untimed, so that every kernel the
+    full run calls is compiled (or loaded from numba's cache) first: MPM,
+    the same scene cut to :data:`WARM_UP_STEPS` steps (the same kernels and
+    the same compiled loop; a callback would keep every step in Python, so
+    the loop would compile in the first timed run); FEM, the scene at a
+    thousandth of its end time. Returns its wall time [s]."""
+    from .solve import fem, prepare, simulate
+
+    t0 = time.perf_counter()
+    scene = bench.scene(cells, degree, ppc, fem=fem_run, t_end=t_end)
+    if fem_run:
+        fem(bench.scene(cells, degree, ppc, fem=True, t_end=1e-3 * scene.t_end), method)
+    else:
+        short = min(scene.t_end, WARM_UP_STEPS * prepare(scene, method).dt)
+        simulate(bench.scene(cells, degree, ppc, t_end=short), method)
+    return time.perf_counter() - t0
 
 
 def _executor(executor):
@@ -247,42 +274,77 @@ def _executor(executor):
 
 
 def convergence(benchmark, methods, cells, ppc=2, variant=None, params=None, executor=None,
-                progress=False, scheme="musl", cfl=0.5, t_end=None, repeat=1):
+                progress=False, scheme="musl", cfl=0.5, t_end=None, repeat=1,
+                compile_notice=None, compare_with="auto", repeat_budget=None):
     """Run every method at every resolution; returns a list of records with
     errors, observed orders (between successive resolutions of a method),
     wall time (the median of ``repeat`` timed runs, compilation excluded,
-    see :func:`run_one`) and per-phase times. ``executor`` as in the module
-    docstring; ``"serial"`` runs in this process, one run at a time."""
+    see :func:`run_one`; ``repeat_budget``: fewer repeats, at least two, for
+    a job whose timed runs have already taken that many seconds) and
+    per-phase times. ``executor`` as in the module
+    docstring; ``"serial"`` runs in this process, one run at a time.
+    ``compile_notice``: a context manager factory entered around the jobs
+    that run first (the coarsest of each kernel set, :func:`compile_first`:
+    where compilation happens); the command line passes one that says
+    "compiling kernels" when they take long. None: silent.
+    ``compare_with``: ``"auto"`` measures errors against the benchmark's
+    exact solution, or, for a variant whose exact solution is not MPM's
+    model (S2 ``large``), MPM runs against a same-model reference
+    (:func:`skfem_mpm.model_reference.model_reference`: computed once here,
+    cached on disk; each record's ``compared_with`` says which, and
+    ``error_exact`` keeps the error against the exact solution);
+    ``"exact"``: always the exact solution."""
+    if compare_with not in COMPARE_WITH:
+        raise ValueError(f"compare_with must be one of {COMPARE_WITH}, got {compare_with!r}")
     if isinstance(repeat, bool) or not isinstance(repeat, int) or repeat < 1:
         raise ValueError(f"repeat must be a positive integer, got {repeat!r}")
+    if repeat_budget is not None and not (isinstance(repeat_budget, (int, float))
+                                          and repeat_budget > 0):
+        raise ValueError(f"repeat_budget must be a positive number of seconds or None, got "
+                         f"{repeat_budget!r}")
     specs = [m if isinstance(m, dict) else parse_method(m, scheme, cfl) for m in methods]
     cells = [int(c) for c in cells]
     if not cells or any(c < 1 for c in cells):
         raise ValueError(f"cells must be positive integers, got {cells}")
-    get_benchmark(benchmark, variant, **(params or {}))  # validate early
+    bench = get_benchmark(benchmark, variant, **(params or {}))  # validate early
+    if compare_with == "auto" and any(spec["kind"] == "mpm" for spec in specs):
+        model_reference(bench)  # computed and cached once, before the runs read it
     jobs = [{"benchmark": benchmark, "variant": variant, "params": dict(params or {}),
-             "method": spec, "cells": n, "ppc": ppc, "t_end": t_end, "repeat": repeat}
+             "method": spec, "cells": n, "ppc": ppc, "t_end": t_end, "repeat": repeat,
+             "repeat_budget": repeat_budget,
+             "compare_with": compare_with}
             for spec in specs for n in cells]
+    first, rest = compile_first(jobs)
+    notice = compile_notice or contextlib.nullcontext
+    done = {}
     if executor == "serial":
-        records = [run_one(job) for job in _progress(jobs, progress)]
+        with notice():
+            for i in first:
+                done[i] = run_one(jobs[i])
+        for i in _progress(rest, progress):
+            done[i] = run_one(jobs[i])
     else:
-        first, rest = compile_first(jobs)
         pool, owned = _executor(executor)
-        bar = _bar(len(jobs), progress)
+        # with a notice, the bar starts after the compiling jobs (both write
+        # to stderr)
+        bar = None if compile_notice else _bar(len(jobs), progress)
         try:
-            done = {}
             for batch in (first, rest):
-                futures = [(i, pool.submit(run_one, jobs[i])) for i in batch]
-                for i, f in futures:
-                    done[i] = f.result()
-                    if bar is not None:
-                        bar.update()
-            records = [done[i] for i in range(len(jobs))]
+                context = notice() if batch is first else contextlib.nullcontext()
+                with context:
+                    futures = [(i, pool.submit(run_one, jobs[i])) for i in batch]
+                    for i, f in futures:
+                        done[i] = f.result()
+                        if bar is not None:
+                            bar.update()
+                if bar is None:
+                    bar = _bar(len(jobs), progress, initial=len(first))
         finally:
             if bar is not None:
                 bar.close()
             if owned:
                 pool.shutdown()
+    records = [done[i] for i in range(len(jobs))]
     _add_orders(records)
     return records
 
@@ -326,7 +388,7 @@ def _progress(items, enabled):
     return tqdm(items, unit="run", disable=not sys.stderr.isatty(), leave=False)
 
 
-def _bar(total, enabled):
+def _bar(total, enabled, initial=0):
     """A progress bar over ``total`` runs (None when not shown)."""
     if not enabled:
         return None
@@ -334,7 +396,8 @@ def _bar(total, enabled):
 
     from tqdm import tqdm
 
-    return tqdm(total=total, unit="run", disable=not sys.stderr.isatty(), leave=False)
+    return tqdm(total=total, initial=initial, unit="run", disable=not sys.stderr.isatty(),
+                leave=False)
 
 
 def _add_orders(records):
@@ -510,10 +573,15 @@ def _fmt(value):
     return str(value)
 
 
-def markdown_table(records, columns=("method", "cells", "particles", "steps", "error",
-                                     "order", "wall_time_s", "wall_time_min_s",
-                                     "wall_time_max_s", "jit_time_s")):
-    """A Markdown table of the chosen columns."""
+def markdown_table(records, columns=None):
+    """A Markdown table of the chosen columns (default: the study's main
+    ones, with ``error_exact`` beside ``error`` when the errors were
+    measured against a same-model reference)."""
+    if columns is None:
+        columns = ("method", "cells", "particles", "steps", "error") + (
+            ("error_exact",) if any(r.get("error_exact") is not None for r in records)
+            else ()) + ("order", "wall_time_s", "wall_time_min_s", "wall_time_max_s",
+                        "jit_time_s")
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     for r in records:
         lines.append("| " + " | ".join(_fmt(r.get(c)) for c in columns) + " |")

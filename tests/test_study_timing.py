@@ -102,3 +102,38 @@ def test_verdict_names_the_cheapest_method_and_its_margin():
         r["repeats"] = 1
     assert verdict(c_wins, [1e-4])[0]["holds"] is None
     assert "one timed run each" in verdict_lines(c_wins, [1e-4])[0]
+
+
+def test_a_repeat_budget_stops_long_jobs_after_two_runs(monkeypatch):
+    """repeat 3 with a 2 s budget: a job whose runs take 1.5 s stops after
+    two (3 s >= 2 s), one whose runs take 0.5 s runs three times; the
+    median and range come from the runs made."""
+    from skfem_mpm import solve
+
+    real = solve.simulate
+
+    def timed_at(wall):
+        calls = []
+
+        def timed(scene, method, **kwargs):
+            result = real(scene, method, **kwargs)
+            calls.append(scene.t_end)
+            if len(calls) > 1:  # a timed run, not the warm-up
+                result.wall_time = wall + 0.01 * len(calls)
+            return result
+        return timed
+
+    job = {"benchmark": "vibrating-string", "variant": "small", "params": {"L": 1.0},
+           "method": parse_method("mpm-p1-lumped"), "cells": 4, "ppc": 2, "repeat": 3,
+           "repeat_budget": 2.0}
+    monkeypatch.setattr(solve, "simulate", timed_at(1.5))
+    r = run_one(job)
+    assert r["repeats"] == 2 and (r["wall_time_min_s"], r["wall_time_max_s"]) == (1.52, 1.53)
+    monkeypatch.setattr(solve, "simulate", timed_at(0.5))
+    r = run_one(job)
+    assert r["repeats"] == 3 and r["wall_time_s"] == 0.53
+    monkeypatch.setattr(solve, "simulate", timed_at(1.5))
+    assert run_one(dict(job, repeat_budget=None))["repeats"] == 3
+    with pytest.raises(ValueError, match="repeat_budget must be a positive number"):
+        convergence("vibrating-string", ["mpm-p1-lumped"], [4], repeat_budget=0,
+                    executor="serial")

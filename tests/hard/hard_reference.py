@@ -7,46 +7,15 @@ equation of BENCHMARKS.md S2 by a few percent of the displacement, more than
 any discretisation error of the methods under test. The grid-crossing tests
 therefore measure the discretisation error against a fine Gauss-quadrature
 FEM solution (total Lagrangian, cubic B-splines, consistent mass, central
-differences) of the same model, P = E ln F, and report the linear-exact
-error beside it.
+differences) of the same model, P = E ln F (``Hencky1D``, shared with the
+studies' same-model reference, ``skfem_mpm.model_reference``), and report
+the linear-exact error beside it.
 """
 import numpy as np
 from scipy.interpolate import CubicSpline
 
 from skfem_mpm import Body, Method, Scene, fem
-from skfem_mpm.materials import Material
-
-
-class Hencky1D(Material):
-    """Uniaxial log-strain elasticity, P = sigma = E ln F (1D, finite strain):
-    the model the hypoelastic ``LinearElastic`` integrates in 1D."""
-
-    finite_strain = True
-
-    def __init__(self, E):
-        self.E = float(E)
-
-    def check_dim(self, dim):
-        if dim != 1:
-            raise ValueError(f"Hencky1D is a 1D model, got dim={dim}")
-
-    def first_piola(self, F):
-        return self.E * np.log(F)
-
-    def cauchy_stress(self, F):
-        return self.E * np.log(F)
-
-    def update(self, p, L, dt):
-        F = (1.0 + dt * L) * p.F
-        return self.E * np.log(F), p.V0 * F[:, 0, 0], F
-
-    def wave_speed(self, p):
-        F = p.F[:, 0, 0] if p.F is not None else np.ones(p.n)
-        return float(np.sqrt(self.E / F.min() / (p.m / p.V0).min()))
-
-    def strain_energy(self, p):
-        F = p.F[:, 0, 0] if p.F is not None else np.ones(p.n)
-        return float(np.sum(0.5 * self.E * np.log(F) ** 2 * p.V0))
+from skfem_mpm.model_reference import Hencky1D
 
 
 class ModelReference:

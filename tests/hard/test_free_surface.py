@@ -9,6 +9,9 @@ from skfem_mpm import Body, Fixed, Gravity, LinearElastic, Method, Particles, Sc
     simulate
 from skfem_mpm.benchmarks import get_benchmark
 
+# a hard study: the slow tier (`pytest -m slow`, run by .ci/run too)
+pytestmark = pytest.mark.slow
+
 
 def energy_excess(r):
     e, work = r.energies["total"], r.energies["external_work"]
@@ -16,11 +19,11 @@ def energy_excess(r):
     return float(np.max(e - budget) / np.abs(budget).max())
 
 
-def falling_block(degree):
+def falling_block(degree, t_end=0.5):
     grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), 16, degree)
     parts = Particles.seed(grid, 2, 1000.0, region=((0.3, 0.7), (0.45, 0.65)))
     # falls 0.45 in 0.30 s, hits the floor at 3 m/s, then rests on it
-    return Scene(grid, Body(parts, LinearElastic(1e6, 0.3)), 0.5,
+    return Scene(grid, Body(parts, LinearElastic(1e6, 0.3)), t_end,
                  effects=[Gravity((0.0, -9.81)), Fixed("bottom")])
 
 

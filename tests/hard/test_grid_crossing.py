@@ -16,6 +16,9 @@ from hard_reference import ModelReference, largest_stress_jump, run_saved_like
 from skfem_mpm import Method, simulate
 from skfem_mpm.benchmarks import get_benchmark
 
+# a hard study: the slow tier (`pytest -m slow`, run by .ci/run too)
+pytestmark = pytest.mark.slow
+
 LARGE = get_benchmark("soil-column", "large")
 PPC = 2
 CELLS = [20, 40, pytest.param(80, marks=pytest.mark.slow), pytest.param(160, marks=pytest.mark.slow)]

@@ -8,6 +8,9 @@ from skfem_mpm import Method, simulate
 from skfem_mpm.benchmarks import get_benchmark
 from skfem_mpm.materials import det
 
+# a hard study: the slow tier (`pytest -m slow`, run by .ci/run too)
+pytestmark = pytest.mark.slow
+
 
 def errors_and_J(b, cells, degree, method):
     out = []

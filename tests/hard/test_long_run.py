@@ -14,6 +14,9 @@ from skfem_mpm import Method, simulate
 from skfem_mpm.benchmarks import get_benchmark
 from skfem_mpm.solve import prepare
 
+# a hard study: the slow tier (`pytest -m slow`, run by .ci/run too)
+pytestmark = pytest.mark.slow
+
 S1 = get_benchmark("vibrating-string", "small", L=1.0)
 PERIOD = 2 * np.pi / S1.omega
 
