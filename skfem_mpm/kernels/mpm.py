@@ -1,4 +1,4 @@
-"""Consistent mass and grid solves on tensor B-spline grids (1D and 2D),
+"""Consistent mass and grid solves on tensor B-spline grids (1D to 3D),
 and :class:`Kernels`, the compiled kernels bound to one grid.
 
 The particle-grid transfers (p2g, g2p2g, g2p) are generated per dimension
@@ -19,9 +19,10 @@ import math
 
 import numpy as np
 from numba import get_num_threads, njit, prange
+from numba.extending import overload
 
 from .fringe import apply_corrected
-from .kronecker import apply_kronecker
+from .kronecker import apply_kronecker, apply_kronecker_axes
 from .scatter import holders
 from .tiny_mass import merged_lumped_solve_axes
 from .transfer import Transfers
@@ -274,6 +275,95 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def consistent_axes(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, nbx, nby,
+                    mass_copies, stiff_copies, touched):
+    """The stencil of the consistent mass on a tensor grid of any dimension
+    dim = x.shape[1] (axis d: breakpoints b_d, uniform u_d, cells per unit
+    length ih_d, extraction C_d, the fields of an Axis record of
+    :mod:`skfem_mpm.kernels.records`; the axes from dim on are not read), as :func:`consistent_1d` and
+    :func:`consistent_2d`: the upper half of the stencil (slots from the
+    centre on) and the per-dof sum m_p |grad N_k|^2, into per-thread copies
+    over touched node ranges.
+
+    Stencil slot of the offset (d_0, ..., d_(dim-1)) between two dofs:
+    s = sum_i (d_i + p) w^i, w = 2p + 1, centre (w^dim - 1) / 2; the upper
+    half holds column s - centre. Node q of a particle's (p + 1)^dim nodes
+    has digits a_i (axis 0 fastest), N_q = prod_i w^i_(a_i),
+    dN_q/dx_c = g^c_(a_c) prod_(i != c) w^i_(a_i) (Piegl & Tiller 1997,
+    sec. 3.4); the pair (q, q2) belongs to the upper half exactly when
+    q2 >= q (both orders compare the highest differing digit)."""
+    n = x.shape[0]
+    dim = x.shape[1]
+    nt = mass_copies.shape[0]
+    width = 2 * p + 1
+    nq = (p + 1) ** dim
+    for t in prange(nt):
+        M = mass_copies[t]
+        K = stiff_copies[t]
+        _clear_touched(M, touched, t)
+        K[touched[t, 0]:touched[t, 1]] = 0.0
+        first = M.shape[0]
+        last = 0
+        w = np.zeros((3, 4))
+        dw = np.zeros((3, 4))
+        N = np.empty(nq)
+        dof = np.empty(nq, dtype=np.int64)
+        slot = np.empty(nq, dtype=np.int64)
+        lo = t * n // nt
+        hi = (t + 1) * n // nt
+        for i in range(lo, hi):
+            mi = m[i]
+            base = 0
+            stride = 1
+            for d in range(dim):
+                if d == 0:
+                    e = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
+                elif d == 1:
+                    e = _axis(x[i, 1], b1, u1, ih1, C1, p, w[1], dw[1])
+                else:
+                    e = _axis(x[i, 2], b2, u2, ih2, C2, p, w[2], dw[2])
+                base += e * stride
+                stride *= nbx if d == 0 else nby
+            for q in range(nq):
+                rest = q
+                value = 1.0
+                node = 0
+                offset = 0
+                stride = 1
+                power = 1
+                for d in range(dim):
+                    a = rest % (p + 1)
+                    rest //= p + 1
+                    value *= w[d, a]
+                    node += a * stride
+                    offset += a * power
+                    stride *= nbx if d == 0 else nby
+                    power *= width
+                N[q] = value
+                dof[q] = base + node
+                slot[q] = offset
+                grad2 = 0.0
+                for c in range(dim):
+                    rest = q
+                    g = 1.0
+                    for d in range(dim):
+                        a = rest % (p + 1)
+                        rest //= p + 1
+                        g *= dw[d, a] if d == c else w[d, a]
+                    grad2 += g * g
+                K[base + node] += mi * grad2
+            for q in range(nq):
+                k = dof[q]
+                mq = mi * N[q]
+                for q2 in range(q, nq):
+                    M[k, slot[q2] - slot[q]] += mq * N[q2]
+            first = min(first, base)
+            last = max(last, dof[nq - 1] + 1)
+        touched[t, 0] = first
+        touched[t, 1] = last
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim, M, K):
     """Rows lo..hi-1 (the union of the touched ranges; the caller keeps the
     other rows zero): sum the per-thread upper halves into M[:, centre:] and
@@ -296,12 +386,19 @@ def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim,
                 for s in range(nh):
                     M[k, centre + s] = _take(mass_copies, threads, count, k, s)
     width = 2 * p + 1
-    pb = p if dim == 2 else 0
+    pb = p if dim >= 2 else 0
+    nbz = M.shape[0] // (nbx * nby)
     for k in prange(lo, hi):
         a = k % nbx
         b = k // nbx
+        c = 0
+        if dim == 3:
+            b, c = b % nby, b // nby
         for s in range(centre):
-            j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
+            if dim == 3:
+                j = _slot_dof3(a, b, c, s, p, width, nbx, nby, nbz)
+            else:
+                j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
             M[k, s] = M[j, ns - 1 - s] if j >= 0 else 0.0
 
 
@@ -525,6 +622,14 @@ class Kernels:
             if self.dim == 1:
                 cols = k[:, None] + (np.arange(width) - p)[None, :]
                 valid = (cols >= 0) & (cols < nd)
+            elif self.dim == 3:  # slot ((dc + p) width + db + p) width + da + p
+                nbx, nby, nbz = self.grid.basis_per_axis
+                a, b, c = k % nbx, (k // nbx) % nby, k // (nbx * nby)
+                dc, db, da = (o.ravel() - p for o in np.indices((width,) * 3))
+                aa, bb, cc = a[:, None] + da, b[:, None] + db, c[:, None] + dc
+                valid = ((aa >= 0) & (aa < nbx) & (bb >= 0) & (bb < nby) & (cc >= 0)
+                         & (cc < nbz))
+                cols = (cc * nby + bb) * nbx + aa
             else:
                 nbx, nby = self.grid.basis_per_axis
                 a, b = k % nbx, k // nbx
@@ -566,6 +671,10 @@ class Kernels:
             (bx, ux, ihx, Cx), = self.args
             consistent_1d(p.x, p.m, bx, ux, ihx, Cx, self.p, self._stencil_copies,
                           self._stiff_copies, touched)
+        elif self.dim == 3:
+            consistent_axes(p.x, p.m, *self.args[0], *self.args[1], *self.args[2], self.p,
+                            self.nbx, self.grid.basis_per_axis[1], self._stencil_copies,
+                            self._stiff_copies, touched)
         else:
             (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
             consistent_2d(p.x, p.m, bx, by, ux, uy, ihx, ihy, Cx, Cy, self.p, self.nbx,
@@ -588,10 +697,11 @@ class Kernels:
 
     @property
     def stencil_geometry(self):
-        """(p, nbx, nby, dim) of the stencil helpers (1D: nbx = dofs)."""
+        """(p, nbx, nby, dim) of the stencil helpers (1D: nbx = dofs; 3D:
+        nbz = dofs / (nbx nby), derived by the helpers from the stencil)."""
         if self.dim == 1:
             return self.p, self.ndofs, 1, 1
-        return (self.p, *self.grid.basis_per_axis, 2)
+        return (self.p, *self.grid.basis_per_axis[:2], self.dim)
 
     def axis_mass(self):
         """([bands per axis], [row sums per axis]) of the unit-density Gauss
@@ -689,6 +799,18 @@ def _slot_dof(a, b, s, p, pb, width, nbx, nby):
     return bb * nbx + aa
 
 
+@njit(cache=True, inline="always")
+def _slot_dof3(a, b, c, s, p, width, nbx, nby, nbz):
+    """Dof at stencil slot s = ((dc + p) width + db + p) width + da + p of
+    the dof (a, b, c) of a 3D grid, or -1 outside the grid."""
+    aa = a + s % width - p
+    bb = b + (s // width) % width - p
+    cc = c + s // (width * width) - p
+    if aa < 0 or aa >= nbx or bb < 0 or bb >= nby or cc < 0 or cc >= nbz:
+        return -1
+    return (cc * nby + bb) * nbx + aa
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, write_cols,
                    write_fixed):
@@ -706,12 +828,16 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
     ns = M.shape[1]
     centre = (ns - 1) // 2
     width = 2 * p + 1
-    pb = p if dim == 2 else 0
+    pb = p if dim >= 2 else 0
+    nbz = M.shape[0] // (nbx * nby)
     for r in prange(nr):
         k = rows[r]
         diag = M[k, centre]
         a = k % nbx
         b = k // nbx
+        c = 0
+        if dim == 3:
+            b, c = b % nby, b // nby
         for s in range(ns):
             A[r, s] = 0.0
             if write_cols:
@@ -721,7 +847,10 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
                 fcols[r, s] = k
             if s == centre:
                 continue
-            j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
+            if dim == 3:
+                j = _slot_dof3(a, b, c, s, p, width, nbx, nby, nbz)
+            else:
+                j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
             if j < 0:
                 continue
             mks = M[k, s]
@@ -791,18 +920,25 @@ def stencil_rows_product(M, p, nbx, nby, dim, rows, inactive, fast, x, y):
     nc = x.shape[1]
     centre = (ns - 1) // 2
     width = 2 * p + 1
-    pb = p if dim == 2 else 0
+    pb = p if dim >= 2 else 0
+    nbz = M.shape[0] // (nbx * nby)
     for r in prange(rows.shape[0]):
         k = rows[r]
         diag = M[k, centre]
         a = k % nbx
         b = k // nbx
+        cz = 0
+        if dim == 3:
+            b, cz = b % nby, b // nby
         for c in range(nc):
             y[r, c] = 0.0
         for s in range(ns):
             if s == centre:
                 continue
-            j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
+            if dim == 3:
+                j = _slot_dof3(a, b, cz, s, p, width, nbx, nby, nbz)
+            else:
+                j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
             if j < 0:
                 continue
             theta = fast[k] if fast[k] > fast[j] else fast[j]
@@ -913,6 +1049,36 @@ def _dots(r, z, partial):
             partial[t, c] = s
 
 
+def apply_kron(kron, r, z):
+    """z = P^-1 r with the Kronecker arguments ``kron``: those of
+    :func:`~skfem_mpm.kernels.kronecker.apply_kronecker` (two factors, 1D
+    and 2D) or, a tuple of seven, of ``apply_kronecker_axes`` (three
+    factors, 3D). Compiled code only (chosen by the tuple's type)."""
+    raise NotImplementedError("apply_kron is called from compiled code only")
+
+
+@overload(apply_kron)
+def _apply_kron_typed(kron, r, z):
+    if len(kron) == 7:
+        return lambda kron, r, z: apply_kronecker_axes(*kron, r, z)
+    return lambda kron, r, z: apply_kronecker(*kron, r, z)
+
+
+def narrow_kron(kron, now, n):
+    """The Kronecker arguments ``kron`` with the work box of ``now`` (the
+    current ones) narrowed to n columns. Compiled code only."""
+    raise NotImplementedError("narrow_kron is called from compiled code only")
+
+
+@overload(narrow_kron)
+def _narrow_kron_typed(kron, now, n):
+    if len(kron) == 7:
+        return lambda kron, now, n: (kron[0], kron[1], kron[2], kron[3], kron[4],
+                                     _narrow(now[5], n), kron[6])
+    return lambda kron, now, n: (kron[0], kron[1], kron[2], kron[3], _narrow(now[4], n),
+                                 kron[5])
+
+
 @njit(cache=True, error_model="numpy", fastmath=FAST)
 def _precondition(A, cols, r, z, t, inv_diag, kron, fringe):
     """z = P^-1 r: the Kronecker preconditioner with the fringe correction
@@ -923,7 +1089,7 @@ def _precondition(A, cols, r, z, t, inv_diag, kron, fringe):
     if fringe is not None:
         apply_corrected(A, cols, *kron, *fringe, r, z, t)
     elif kron is not None:
-        apply_kronecker(*kron, r, z)
+        apply_kron(kron, r, z)
     else:
         for i in range(r.shape[0]):
             for c in range(r.shape[1]):
@@ -1045,8 +1211,7 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
             beta = beta[keep]
             active = active[keep]
             if kron is not None:  # the preconditioners' work space
-                kron_now = (kron[0], kron[1], kron[2], kron[3], _narrow(kron_now[4], n),
-                            kron[5])
+                kron_now = narrow_kron(kron, kron_now, n)
             if fringe is not None:
                 fringe_now = fringe[:11] + (_narrow(fringe_now[11], n),
                                             _narrow(fringe_now[12], n),
