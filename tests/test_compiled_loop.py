@@ -14,6 +14,7 @@ import pytest
 
 from skfem_mpm import (Body, Fixed, Gravity, LinearElastic, Method, Particles, Scene,
                        SimulationError, SplineGrid, simulate)
+from skfem_mpm.kernels import serial
 from skfem_mpm.solve import compiled_loop
 from skfem_mpm.solve.compiled import CompiledExecutor
 from skfem_mpm.solve.state import prepare
@@ -123,11 +124,13 @@ def test_the_scene_is_never_written(monkeypatch):
 ], ids=lambda c: f"{c['scheme']}-{c['dim']}d")
 def test_parallel_kernels_give_the_same_bits(monkeypatch, case):
     """Above SERIAL_BELOW particles the loop calls the parallel kernels, a
-    few steps per call so that the thread policy can act between calls."""
+    few steps per call so that the thread policy can act between calls; the
+    executor stepping alone below it calls their serial copies: the same
+    bits."""
     scene = scene_for(case, steps=23)
     method = Method(scheme=case["scheme"], mass="lumped")
     with monkeypatch.context() as m:
-        m.setattr(compiled_loop, "SERIAL_BELOW", 0)
+        m.setattr(serial, "SERIAL_BELOW", 0)
         m.setattr(compiled_loop.StepLoop, "CALL_SECONDS", 1e-9)  # one step per call
         looped = simulate(scene, method, save_every=5)
     stepped = without_loop(monkeypatch, scene, method, save_every=5)
@@ -213,7 +216,7 @@ def test_consistent_mass_gives_the_executors_bits_everywhere(monkeypatch, case):
 def test_consistent_mass_with_parallel_kernels(monkeypatch):
     case = MASS_CASES[0]
     with monkeypatch.context() as m:
-        m.setattr(compiled_loop, "SERIAL_BELOW", 0)
+        m.setattr(serial, "SERIAL_BELOW", 0)
         m.setattr(compiled_loop.StepLoop, "CALL_SECONDS", 1e-9)  # one step per call
         looped = check_mass_case(monkeypatch, case)
     assert looped.counts["compiled_loop_steps"] >= 20

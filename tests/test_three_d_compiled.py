@@ -12,7 +12,6 @@ import pytest
 from skfem_mpm import (Body, BodyForce, Damping, Fixed, Gravity, LinearElastic, Method,
                        NeoHookean, Particles, Scene, SplineGrid, Traction, simulate)
 from skfem_mpm.kernels.mpm import small_mass_1d, small_mass_2d, small_mass_axes
-from skfem_mpm.kernels.tiny_mass import merged_lumped_solve, merged_lumped_solve_axes
 from skfem_mpm.solve.compiled import compiled_executor_applies
 from skfem_mpm.solve.state import prepare
 
@@ -168,21 +167,6 @@ def test_small_mass_axes_is_the_1d_and_2d_rule():
                         max(0, a - p):a + p + 1]
             expected[k] = 0 < m3[k] < 1e-3 * near.max()
         assert np.array_equal(b, expected) and count == expected.sum() > 0
-
-
-def test_merged_solve_on_three_axes_reduces_to_two():
-    """merged_lumped_solve (the loop's 1D/2D entry) is the 3-axis kernel
-    with nbz = 1, bit for bit."""
-    rng = np.random.default_rng(4)
-    nbx, nby = 7, 6
-    m = rng.random(nbx * nby) ** 8 * (rng.random(nbx * nby) > 0.2)
-    rhs = rng.standard_normal((nbx * nby, 2))
-    fixed = rng.random((nbx * nby, 2)) < 0.1
-    out2, out3 = np.empty_like(rhs), np.empty_like(rhs)
-    g = np.array([0.0, -1.0])
-    n2 = merged_lumped_solve(m, rhs, g, fixed, rhs, False, nbx, nby, 2, 1e-3, out2)
-    n3 = merged_lumped_solve_axes(m, rhs, g, fixed, rhs, False, nbx, nby, 1, 2, 1e-3, out3)
-    assert n2 == n3 > 0 and np.array_equal(out2, out3)
 
 
 def test_3d_refusals_name_their_reason():

@@ -24,6 +24,7 @@ from numba.extending import overload
 from .fringe import apply_corrected
 from .kronecker import apply_kronecker, apply_kronecker_axes
 from .scatter import holders
+from .serial import for_threads
 from .tiny_mass import merged_lumped_solve_axes
 from .transfer import Transfers
 from .weights import FAST, extracted_functions, locate_axis_point
@@ -560,14 +561,20 @@ class Kernels:
     count (the number of numba threads when bound): the particle-grid
     transfers (:class:`skfem_mpm.kernels.transfer.Transfers`, generated per
     dimension and degree), the consistent mass stencil and the lumped and
-    tiny-mass grid solves."""
+    tiny-mass grid solves.
 
-    def __init__(self, grid):
+    ``parallel`` False: every kernel is its serial copy (same blocks, same
+    bits; see :mod:`skfem_mpm.kernels.serial`), for runs too small for
+    threads; no parallel kernel is compiled for them."""
+
+    def __init__(self, grid, parallel=True):
         self.grid = grid
         self.dim = grid.dim
         self.p = grid.degree
+        self.parallel = bool(parallel)
+        self._threaded = {}
         self.nthreads = get_num_threads()
-        self.transfers = Transfers(grid, self.nthreads)
+        self.transfers = Transfers(grid, self.nthreads, parallel=self.parallel)
         b = grid.breakpoints
         self.args = []
         for axis in range(grid.dim):
@@ -578,6 +585,13 @@ class Kernels:
         self.nbx = grid.basis_per_axis[0]
         self._scratch = {}
         self._small = np.empty(grid.ndofs, dtype=np.bool_)
+
+    def kernel(self, kernel):
+        """``kernel`` as this run calls it: itself, or its serial copy."""
+        bound = self._threaded.get(kernel)
+        if bound is None:
+            bound = self._threaded[kernel] = for_threads(kernel, self.parallel)
+        return bound
 
     def p2g(self, particles, fext):
         """(lumped mass (dofs,), momentum (dofs, dim), force (dofs, dim)),
@@ -669,16 +683,17 @@ class Kernels:
         touched = self._stencil_touched
         if self.dim == 1:
             (bx, ux, ihx, Cx), = self.args
-            consistent_1d(p.x, p.m, bx, ux, ihx, Cx, self.p, self._stencil_copies,
+            self.kernel(consistent_1d)(p.x, p.m, bx, ux, ihx, Cx, self.p, self._stencil_copies,
                           self._stiff_copies, touched)
         elif self.dim == 3:
-            consistent_axes(p.x, p.m, *self.args[0], *self.args[1], *self.args[2], self.p,
-                            self.nbx, self.grid.basis_per_axis[1], self._stencil_copies,
-                            self._stiff_copies, touched)
+            self.kernel(consistent_axes)(p.x, p.m, *self.args[0], *self.args[1], *self.args[2],
+                                         self.p, self.nbx, self.grid.basis_per_axis[1],
+                                         self._stencil_copies, self._stiff_copies, touched)
         else:
             (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
-            consistent_2d(p.x, p.m, bx, by, ux, uy, ihx, ihy, Cx, Cy, self.p, self.nbx,
-                          self._stencil_copies, self._stiff_copies, touched)
+            self.kernel(consistent_2d)(p.x, p.m, bx, by, ux, uy, ihx, ihy, Cx, Cy, self.p,
+                                       self.nbx, self._stencil_copies, self._stiff_copies,
+                                       touched)
         K = self.scratch("stiffness", self.ndofs)
         stencil = self.scratch("stencil", self._stencil_shape)
         # rows outside the touched union are zero: clear those that held
@@ -691,7 +706,7 @@ class Kernels:
             stencil[a:b] = 0.0
             K[a:b] = 0.0
         self._stencil_rows = (lo, hi)
-        reduce_stencil(self._stencil_copies, self._stiff_copies, touched, lo, hi,
+        self.kernel(reduce_stencil)(self._stencil_copies, self._stiff_copies, touched, lo, hi,
                        *self.stencil_geometry, stencil, K)
         return stencil, K
 
@@ -728,7 +743,7 @@ class Kernels:
         to dt g . sum_k m_k v_k with m_k the lumped mass of that step's p2g,
         since du_p = dt sum_k N_kp v_k and m_k = sum_p m_p N_kp."""
         sums = self.scratch("work_sums", self.dim)
-        mass_weighted_sum(mass, v_grid, sums)
+        self.kernel(mass_weighted_sum)(mass, v_grid, sums)
         return work_increment(sums, float(dt), gravity)
 
     def small_mass(self, lumped, tol):
@@ -744,27 +759,28 @@ class Kernels:
                 small[:] = False
                 return small, 0
         if self.dim == 2:
-            count = small_mass_2d(lumped, self.nbx, self.grid.basis_per_axis[1], self.p, tol,
-                                  small)
+            count = self.kernel(small_mass_2d)(lumped, self.nbx, self.grid.basis_per_axis[1],
+                                               self.p, tol, small)
         elif self.dim == 1:
-            count = small_mass_1d(lumped, self.p, tol, small)
+            count = self.kernel(small_mass_1d)(lumped, self.p, tol, small)
         else:
-            count = small_mass_axes(lumped, *self.axes_shape, self.p, tol, small)
+            count = self.kernel(small_mass_axes)(lumped, *self.axes_shape, self.p, tol, small)
         return small, int(count)
 
     def usl_grid(self, mass, momentum, force, gravity, constrained, v_values, a_values, vdt,
                  a, v_new):
         """One pass of the USL/CD grid step (see usl_grid)."""
         has = v_values is not None
-        usl_grid(mass, momentum, force, gravity, constrained, v_values if has else force,
-                 a_values if has else force, has, vdt, a, v_new)
+        self.kernel(usl_grid)(mass, momentum, force, gravity, constrained,
+                              v_values if has else force, a_values if has else force, has, vdt,
+                              a, v_new)
 
     def merged_solve(self, mass, rhs, gravity, constrained, values, tol, out):
         """Lumped solve with the tiny-mass merge into ``out``; returns the
         number of small dofs, or -1 when the reference merge must be used
         (see :mod:`skfem_mpm.kernels.tiny_mass`)."""
         has = values is not None
-        return merged_lumped_solve_axes(mass, rhs, gravity, constrained,
+        return self.kernel(merged_lumped_solve_axes)(mass, rhs, gravity, constrained,
                                         values if has else rhs, has, *self.axes_shape, self.p,
                                         tol, out)
 
@@ -776,7 +792,8 @@ class Kernels:
     def solve(self, mass, rhs, gravity, constrained, values, out):
         """Lumped solve into ``out`` (see lumped_solve)."""
         has = values is not None
-        lumped_solve(mass, rhs, gravity, constrained, values if has else rhs, has, out)
+        self.kernel(lumped_solve)(mass, rhs, gravity, constrained, values if has else rhs, has,
+                                  out)
         return out
 
 

@@ -28,7 +28,7 @@ span index offsets -p..p on each axis.
 import numpy as np
 from numba import njit
 
-__all__ = ["merged_lumped_solve", "merged_lumped_solve_axes", "TIE", "MAX_ENTRIES"]
+__all__ = ["merged_lumped_solve_axes", "TIE", "MAX_ENTRIES"]
 
 TIE = 1e-9          # as grid_system._Reduction.TIE
 MAX_ENTRIES = 32    # (kept dof, weight) pairs of one small dof's row
@@ -58,14 +58,6 @@ def _neighbour_max(mass, k, nbx, nby, nbz, p):
                 if m > big:
                     big = m
     return big
-
-
-@njit(cache=True, error_model="numpy")
-def merged_lumped_solve(mass, rhs, gravity, constrained, values, has_values, nbx, nby, p, tol,
-                        out):
-    """:func:`merged_lumped_solve_axes` on a 1D (nby = 1) or 2D grid."""
-    return merged_lumped_solve_axes(mass, rhs, gravity, constrained, values, has_values, nbx,
-                                    nby, 1, p, tol, out)
 
 
 @njit(cache=True, error_model="numpy")

@@ -11,6 +11,7 @@ from numba import get_num_threads
 from .gather import g2p_kernel, rates_kernel
 from .records import grid_record, particle_record
 from .scatter import g2p2g_kernel, p2g_kernel, reduce_copies, reduce_fields
+from .serial import for_threads
 
 __all__ = ["Transfers"]
 
@@ -24,15 +25,19 @@ class Transfers:
     dimension). ``window``: the run window of the scatter kernels (None:
     where it pays, see :func:`skfem_mpm.kernels.scatter.p2g_kernel`).
     ``mass`` and ``mass_range`` hold the lumped mass of the last p2g call
-    and each reduction chunk's (smallest positive, largest) entry."""
+    and each reduction chunk's (smallest positive, largest) entry.
+    ``parallel`` False: the serial kernels (the same blocks, the same bits)."""
 
-    def __init__(self, grid, nthreads=None, window=None):
+    def __init__(self, grid, nthreads=None, window=None, parallel=True):
         self.dim = grid.dim
         self.p = grid.degree
         self.ndofs = grid.ndofs
         self.record = grid_record(grid)
         self.nthreads = get_num_threads() if nthreads is None else nthreads
         self.window = window
+        self.parallel = bool(parallel)
+        self._reduce_fields = for_threads(reduce_fields, self.parallel)
+        self._reduce_copies = for_threads(reduce_copies, self.parallel)
         self._copies = {}
         nd, dim = self.ndofs, self.dim
         self.mass = np.empty(nd)
@@ -57,18 +62,19 @@ class Transfers:
         arrays are reused by the next call."""
         copies, touched = self.copies(1 + 2 * self.dim)
         has = fext is not None
-        p2g_kernel(self.dim, self.p, self.window)(
+        p2g_kernel(self.dim, self.p, self.window, self.parallel)(
             particle_record(particles), self.record, fext if has else self._no_force, has,
             copies, touched)
-        reduce_fields(copies, touched, self.mass, self._momentum, self._force, self.mass_range)
+        self._reduce_fields(copies, touched, self.mass, self._momentum, self._force,
+                            self.mass_range)
         return self.mass, self._momentum, self._force
 
     def g2p2g(self, particles, grid_a, dt, v_new):
         """MUSL: v_new = v + dt N a; returns the grid momentum of m v_new."""
         copies, touched = self.copies(self.dim)
-        g2p2g_kernel(self.dim, self.p, self.window)(
+        g2p2g_kernel(self.dim, self.p, self.window, self.parallel)(
             particle_record(particles), self.record, grid_a, float(dt), v_new, copies, touched)
-        reduce_copies(copies, touched, self._projected)
+        self._reduce_copies(copies, touched, self._projected)
         return self._projected
 
     def g2p(self, particles, grid_a, grid_v, dt, vfactor, flip, new, L_out, acc_out=None,
@@ -81,7 +87,7 @@ class Transfers:
         lam, mu = (float(lame[0]), float(lame[1])) if fused else (0.0, 0.0)
         store = acc_out is not None
         update = (float(dt), float(vfactor), bool(flip), fused, lam, mu, store)  # Update
-        g2p_kernel(self.dim, self.p)(
+        g2p_kernel(self.dim, self.p, self.parallel)(
             particle_record(particles), self.record, grid_a, grid_v, update,
             particle_record(new), L_out, acc_out if store else self._no_acc, self.flags)
         found = [-1, -1, -1]
@@ -99,6 +105,6 @@ class Transfers:
         :mod:`skfem_mpm.kernels.gather`)."""
         fused = lame is not None
         lam, mu = (float(lame[0]), float(lame[1])) if fused else (0.0, 0.0)
-        rates_kernel(self.dim, self.p)(
+        rates_kernel(self.dim, self.p, self.parallel)(
             particle_record(particles), self.record, grid_a, grid_v, (fused, lam, mu),
             self.nthreads, x_rate, v_rate, L_out, stress_rate, V_rate)

@@ -43,6 +43,7 @@ import numpy as np
 
 from ..errors import InvalidState
 from ..kernels.constitutive import material_update
+from ..kernels import serial
 from ..kernels.mpm import Kernels, fast_row_fractions
 from ..materials import LinearElastic
 from ..materials.state import PackedState, state_layout
@@ -110,7 +111,8 @@ class CompiledExecutor(CompiledRungeKutta):
     path = "fast"
 
     def __init__(self, state):
-        self.kernels = Kernels(state.grid)
+        # a run below SERIAL_BELOW particles calls serial kernels only
+        self.kernels = Kernels(state.grid, parallel=state.particles.n >= serial.SERIAL_BELOW)
         self.gravity = np.zeros(state.grid.dim)
         self.gravity_work = False
         self.other_forces = []
@@ -290,7 +292,7 @@ class CompiledExecutor(CompiledRungeKutta):
         if self._use_cg(state) and not small:
             fast = self.kernels.scratch("fast_rows", mass.size)
             if limit is not None:  # fast_rows of the dofs with mass, in one kernel
-                fast_row_fractions(K, stencil, mass, limit, fast)
+                self.kernels.kernel(fast_row_fractions)(K, stencil, mass, limit, fast)
             else:
                 fast[:] = 0.0
             return StencilSystem(self.kernels, stencil, mass, state.constraints, fast, state.warm)
@@ -506,7 +508,7 @@ class CompiledExecutor(CompiledRungeKutta):
                 else:
                     state_in = packed.layout.pack(p.state, index)
                     state_out = np.empty_like(state_in)
-                material_update(material.point_update.address(),
+                self.kernels.kernel(material_update)(material.point_update.address(),
                                 material.point_parameters(p.dim),
                                 self._no_index if every else index, every, grid.L, state.dt,
                                 self.finite, p.stress, F, p.V, p.V0, state_in, new.stress,

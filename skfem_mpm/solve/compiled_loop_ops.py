@@ -189,7 +189,7 @@ def _lumped_solve(run, rhs, gravity, out):
         dofs the compiled merge (a merge it cannot do stops the loop)."""
         if run.small_count == 0:
             LUMPED_SOLVE(run.mass, rhs, gravity, run.mask, rhs, False, out)
-        elif MERGED_SOLVE(run.mass, rhs, gravity, run.mask, rhs, False, run.nbx, run.nby,
+        elif MERGED_SOLVE(run.mass, rhs, gravity, run.mask, rhs, False, run.nbx, run.nby, 1,
                           run.degree, run.small_tol, out) < 0:
             run.stop = 1
     return impl

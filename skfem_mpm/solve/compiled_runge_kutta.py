@@ -175,9 +175,10 @@ class CompiledRungeKutta:
         F = p.F if finite else rk.L
         F_out = out["F"] if finite else rk.L
         with state.timer("g2p"):
-            combine_stages(c, p.x, p.u, p.v, p.stress, p.V, F, rk.x, rk.v, rk.stress, rk.V,
-                           rk.F, small, finite, out["x"], out["u"], out["v"], out["stress"],
-                           out["V"], F_out, self.kernels.nthreads)
+            combine = self.kernels.kernel(combine_stages)
+            combine(c, p.x, p.u, p.v, p.stress, p.V, F, rk.x, rk.v, rk.stress, rk.V, rk.F, small,
+                    finite, out["x"], out["u"], out["v"], out["stress"], out["V"], F_out,
+                    self.kernels.nthreads)
         if finite:
             finite_strain_stage(state, F_out, out["stress"], out["V"])
         check_stage_volumes(out["V"])

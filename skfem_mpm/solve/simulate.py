@@ -8,6 +8,7 @@ import numpy as np
 from numpy.linalg import LinAlgError
 
 from ..errors import InvalidState, SimulationError
+from ..kernels import serial
 from ..scene import Scene
 from .method import Method
 from .result import Recorder
@@ -77,7 +78,8 @@ def warm_up(state, fast, loop=None):
     from .warmup import warm_up_kernels
 
     t0 = time.perf_counter()
-    warm_up_kernels(state.grid, fast=fast, materials=state.materials, method=state.method)
+    warm_up_kernels(state.grid, fast=fast, materials=state.materials, method=state.method,
+                    parallel=state.particles.n >= serial.SERIAL_BELOW)
     if loop is not None:
         loop.compile()
     return time.perf_counter() - t0

@@ -15,6 +15,7 @@ from ..kernels.fringe import FringeFactor, FringePattern
 from ..kernels.kronecker import KroneckerData
 from ..kernels.mpm import (compact_problem, compact_system, ell_pcg, expand_problem,
                            stencil_rows_product)
+from ..kernels.serial import for_threads
 from ..validation import check_choice
 from .grid_system import shift_guess
 
@@ -107,8 +108,8 @@ class StencilSystem:
         fcols = self.k.scratch(f"fcols{g}", (rows.size, ns), np.int32)
         key = rows.tobytes()
         write_cols = self.memo.get(f"cols{g}") != key  # cols{g} holds this set's columns
-        compact_system(self.stencil, *self.geometry, rows, index, self.fast, A, cols, F,
-                       fcols, write_cols, need_fixed)
+        self.k.kernel(compact_system)(self.stencil, *self.geometry, rows, index, self.fast, A,
+                                      cols, F, fcols, write_cols, need_fixed)
         self.memo[f"cols{g}"] = key
         if built is not None:  # F added to this step's system (A rewritten, equal)
             built = group[3] = built[:7] + (True,)
@@ -212,7 +213,7 @@ class StencilSystem:
             for i, (rhs, values, kind) in enumerate(problems):
                 prev = self.warm.get(kind)
                 has_prev = prev is not None and prev.shape == rhs.shape
-                compact_problem(rows, rhs, values, has_values[i],
+                self.k.kernel(compact_problem)(rows, rhs, values, has_values[i],
                                 prev if has_prev else rhs, has_prev, comps, i * comps.size,
                                 F, fcols, b, x)
             if rows.size:
@@ -223,15 +224,16 @@ class StencilSystem:
                 work = self.k.scratch("cg", (6,) + b.shape)
                 limit = self.max_iterations or 10 * rows.size + 100
                 problem = np.repeat(np.arange(len(problems)), comps.size)
-                its = ell_pcg(A, cols, inv_diag, pre, extra, b, x, problem, self.rtol,
-                              limit, nt, work)
+                pcg = self.k.kernel(ell_pcg)
+                its = pcg(A, cols, inv_diag, pre, extra, b, x, problem, self.rtol, limit, nt,
+                          work)
                 if its < 0 and fringe is not None and self._stale_fringe[g]:
                     # factors of an earlier step: retry with the current block's
                     self.warm.pop(f"fringe{g}_rows", None)
                     fringe = self._fringe(g, rows, A, cols)
                     group[3] = group[3][:6] + (fringe,) + group[3][7:]
-                    more = ell_pcg(A, cols, inv_diag, pre, fringe.args(b.shape[1]), b, x,
-                                   problem, self.rtol, limit, nt, work)
+                    more = pcg(A, cols, inv_diag, pre, fringe.args(b.shape[1]), b, x, problem,
+                               self.rtol, limit, nt, work)
                     its = -its + more if more > 0 else its - abs(more)
                 if its < 0:
                     raise InvalidState(f"consistent-mass CG stopped above its tolerance "
@@ -246,7 +248,7 @@ class StencilSystem:
                 if self.iteration_log is not None:
                     self.iteration_log.append(self.iterations - before)
             for i, out in enumerate(outs):
-                expand_problem(rows, x, comps, i * comps.size, out)
+                self.k.kernel(expand_problem)(rows, x, comps, i * comps.size, out)
         return outs
 
     def remember(self, kind, x):
@@ -259,18 +261,21 @@ class StencilSystem:
         """M x - rhs with the fast rows lumped, on the constrained dofs (the
         rows the reactions read; zero elsewhere)."""
         return stencil_residual(self.stencil, self.geometry, self.constraints.mask,
-                                self.inactive, self.fast, x, rhs, self.reaction_rows)
+                                self.inactive, self.fast, x, rhs, self.reaction_rows,
+                                parallel=self.k.parallel)
 
 
-def stencil_residual(stencil, geometry, mask, inactive, fast, x, rhs, rows=None):
+def stencil_residual(stencil, geometry, mask, inactive, fast, x, rhs, rows=None, parallel=True):
     """M x - rhs on the dofs constrained in any component (``rows``, when
     known; zero elsewhere): what the reactions read. M is the stencil with
     the fast rows lumped (fractions ``fast``) and the columns of the
-    massless (``inactive``) dofs removed, as the solves see it."""
+    massless (``inactive``) dofs removed, as the solves see it (with
+    ``parallel`` False, by the serial kernel)."""
     if rows is None:
         rows = np.flatnonzero(mask.any(axis=1))
     y = np.empty((rows.size, x.shape[1]))
-    stencil_rows_product(stencil, *geometry, rows, inactive, fast, np.ascontiguousarray(x), y)
+    for_threads(stencil_rows_product, parallel)(stencil, *geometry, rows, inactive, fast,
+                                                np.ascontiguousarray(x), y)
     out = np.zeros_like(rhs)
     out[rows] = y - rhs[rows]
     return out

@@ -5,16 +5,19 @@ import numpy as np
 __all__ = ["warm_up_kernels"]
 
 
-def warm_up_kernels(grid, fast=False, materials=(), method=None):
+def warm_up_kernels(grid, fast=False, materials=(), method=None, parallel=True):
     """Compile on a small grid of the same dimension and degree (the machine
     code does not depend on the grid's size, and no grid-sized buffer is
     allocated); with ``fast``, also the constitutive kernel and the point
-    laws of ``materials`` that have one. With a ``method``, only what its
-    run calls: the consistent-mass assembly and CG (the largest share of
-    the compile time) only for consistent or hybrid mass, the MUSL re-projection only
-    for MUSL, the one-pass USL grid step only for USL and CD, the g2p kernel
-    for every scheme but RK4, whose stage rates and combination only it,
-    the tiny-mass scan only when the merge is on."""
+    laws of ``materials`` that have one: the parallel kernels, or with
+    ``parallel`` False their serial copies (what a run below
+    :data:`~skfem_mpm.kernels.serial.SERIAL_BELOW` particles calls). With a
+    ``method``, only what its run calls: the consistent-mass assembly and
+    CG (the largest share of the compile time) only for consistent or
+    hybrid mass, the MUSL re-projection only for MUSL, the one-pass USL grid
+    step only for USL and CD, the g2p kernel for every scheme but RK4, whose
+    stage rates and combination only it, the tiny-mass scan only when the
+    merge is on."""
     if not hasattr(grid, "breakpoints"):
         return
     from ..spline import SplineGrid
@@ -25,8 +28,8 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
     x = np.array([b[0] + 0.5 * (b[1] - b[0]) for b in grid.bounds])[None, :]
     from ..kernels.weights import SERIAL_BELOW
 
-    for axis in range(grid.dim):  # the serial and the threaded evaluation
-        for n in (1, SERIAL_BELOW):
+    for axis in range(grid.dim):  # the serial and (parallel) the threaded evaluation
+        for n in (1, SERIAL_BELOW) if parallel else (1,):
             grid.axis_functions(axis, np.repeat(x[:, axis], n), backend="numba")
     if not fast:
         return
@@ -34,7 +37,7 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
     from ..materials import LinearElastic
     from ..particles import Particles
 
-    k = Kernels(grid)
+    k = Kernels(grid, parallel)
     p = Particles(x.copy(), np.ones(1), np.ones(1))
     new = p.copy()
     dim = grid.dim
@@ -67,7 +70,7 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
         from ..kernels.staging import combine_stages
 
         rates = [np.zeros((4,) + a.shape) for a in (p.x, p.v, p.stress, p.V, p.stress)]
-        combine_stages(np.zeros(4), p.x, p.u, p.v, p.stress, p.V, p.stress, *rates, True,
+        k.kernel(combine_stages)(np.zeros(4), p.x, p.u, p.v, p.stress, p.V, p.stress, *rates, True,
                        True, new.x, new.u, new.v, new.stress, new.V, new.stress.copy(),
                        k.nthreads)
     if needs("small_mass"):
@@ -86,7 +89,7 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None):
         if needs("usl_grid"):
             k.usl_grid(np.ones(grid.ndofs), zeros, zeros, np.zeros(dim), mask, values, values,
                        0.0, out, zeros.copy())
-    _warm_up_point_laws(grid.dim, materials)
+    _warm_up_point_laws(k, grid.dim, materials)
     if method is None or method.reconstruction != "none":
         _warm_up_reconstruction(grid, method)
 
@@ -109,7 +112,7 @@ def _warm_up_consistent(k, p, grid):
         system.FRINGE_FROM = fringe_from
         system.solve(np.ones((grid.ndofs, dim)), np.zeros((grid.ndofs, dim)), "velocity")
     system.residual(np.ones((grid.ndofs, dim)), np.ones((grid.ndofs, dim)))
-    fast_row_fractions(K, st, np.ones(grid.ndofs), 1.0, np.empty(grid.ndofs))
+    k.kernel(fast_row_fractions)(K, st, np.ones(grid.ndofs), 1.0, np.empty(grid.ndofs))
 
 
 def _warm_up_reconstruction(grid, method):
@@ -127,7 +130,7 @@ def _warm_up_reconstruction(grid, method):
                       np.empty((rule[3].size, 2)))
 
 
-def _warm_up_point_laws(dim, materials):
+def _warm_up_point_laws(k, dim, materials):
     """Compile (or load) the constitutive kernel and each material's point
     law on one particle."""
     from numba import get_num_threads
@@ -143,7 +146,7 @@ def _warm_up_point_laws(dim, materials):
         F = np.broadcast_to(np.eye(dim), (1, dim, dim)).copy()
         layout = state_layout(material, dim)
         state = layout.pack(layout.initial_arrays(1)) if layout else np.zeros((1, 0))
-        material_update(material.point_update.address(), material.point_parameters(dim),
+        k.kernel(material_update)(material.point_update.address(), material.point_parameters(dim),
                         np.zeros(0, dtype=np.int64), True, one, 0.0, finite, one.copy(), F,
                         np.ones(1), np.ones(1), state, one.copy(), F.copy(), np.ones(1),
                         state.copy(), np.full(get_num_threads(), -1, dtype=np.int64))
