@@ -68,16 +68,18 @@ def _names(code):
 
 
 def _callees(func):
-    """(name, kernel or (stub, overload)) of the kernels and overloaded
-    stubs ``func`` calls, from its module's globals."""
+    """The kernels and the (stub, overload) pairs ``func`` calls, from its
+    module's globals."""
     module = inspect.getmodule(func)
     found = []
-    for name in _names(func.__code__):
+    for name in dict.fromkeys(_names(func.__code__)):  # each once, in order
         value = vars(module).get(name)
         if _is_kernel(value):
             found.append(value)
-        elif _overload_of(module, name) is not None:
-            found.append((value, _overload_of(module, name)))
+        else:
+            overload = _overload_of(module, name)
+            if overload is not None:
+                found.append((value, overload))
     return found
 
 
