@@ -44,6 +44,7 @@ import numpy as np
 from ..errors import InvalidState
 from ..kernels.constitutive import material_update
 from ..kernels import serial
+from ..kernels.fast_dof import limit_by_effective_mass
 from ..kernels.mpm import Kernels, fast_row_fractions
 from ..materials import LinearElastic
 from ..materials.state import PackedState, state_layout
@@ -53,7 +54,7 @@ from .compiled_reconstruct import CompiledReconstruction, unsupported
 from .compiled_runge_kutta import CompiledRungeKutta
 from .grid_system import GridSystem
 from .stencil_system import StencilSystem
-from .timestep import fast_dof_limit, lumping_fraction
+from .timestep import effective_mass_ratio, fast_dof_limit, lumping_fraction
 
 __all__ = ["compiled_executor_applies", "CompiledExecutor"]
 
@@ -285,8 +286,14 @@ class CompiledExecutor(CompiledRungeKutta):
         if guard > 0:
             limit = guard * fast_dof_limit(state.grid.degree, state.method.scheme) / (state.dt * state.wave_speed_now) ** 2
             centre = (stencil.shape[1] - 1) // 2
-            K = np.multiply(K, state.guard_weights(mass, stencil[:, centre]),
-                            out=self.kernels.scratch("guard_K", K.size))
+            guarded = np.multiply(K, state.guard_weights(mass, stencil[:, centre]),
+                                  out=self.kernels.scratch("guard_K", K.size))
+            grid = state.grid
+            nbx, nby = (grid.ndofs, 1) if grid.dim == 1 else tuple(grid.basis_per_axis[:2])
+            self.kernels.kernel(limit_by_effective_mass)(
+                guarded, K, stencil, mass, limit, effective_mass_ratio(grid.degree),
+                grid.degree, nbx, nby, grid.dim)
+            K = guarded
         fast_rows = None if limit is None else (
             lambda diag: lumping_fraction(K / (limit * np.maximum(diag, 1e-300))))
         if self._use_cg(state) and not small:

@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from ..kernels import kronecker, mpm, scatter, tiny_mass
+from ..kernels import fast_dof, kronecker, mpm, scatter, tiny_mass
 from ..kernels.gather import g2p_kernel
 from ..kernels.generated import load
 from ..kernels.records import grid_record
@@ -38,7 +38,7 @@ from ..kernels.scatter import g2p2g_kernel, p2g_kernel
 from ..kernels.serial import for_threads
 from . import schemes
 from .stencil_system import StencilSystem, stencil_residual
-from .timestep import COVERED, fast_dof_limit
+from .timestep import COVERED, effective_mass_ratio, fast_dof_limit
 
 __all__ = ["ENABLED", "StepLoop", "loop_applies"]
 
@@ -65,6 +65,7 @@ _GRID_KERNELS = {
     "REDUCE_STENCIL": mpm.reduce_stencil,
     "COMPACT_SYSTEM": mpm.compact_system,
     "FAST_ROW_FRACTIONS": mpm.fast_row_fractions,
+    "LIMIT_BY_EFFECTIVE_MASS": fast_dof.limit_by_effective_mass,
     "COMPACT_PROBLEM": mpm.compact_problem,
     "EXPAND_PROBLEM": mpm.expand_problem,
     "ELL_PCG": mpm.ell_pcg,
@@ -174,7 +175,7 @@ def loop_module(dim, p, parallel, window):
         "\n\n".join(templates)
     # the operations' callees are not tracked by numba's cache: their
     # sources go into the file's name (kernels.generated.load hashes it)
-    depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass))
+    depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass, fast_dof))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{dim}d_p{p}_{threads}_{tag}", source)
 
@@ -273,7 +274,7 @@ class StepLoop:
             weights=np.ascontiguousarray(weights, dtype=np.float64),
             mass_ratios=np.ascontiguousarray(ratios, dtype=np.float64),
             moving=np.asarray(moving, dtype=np.float64), covered=np.array(COVERED, dtype=float),
-            guarded=zeros(nd), fast=zeros(nd),
+            guarded=zeros(nd), fast=zeros(nd), effective_ratio=effective_mass_ratio(p),
             group_comps=group_comps,
             group_size=np.array([len(c) for c in groups.values()], dtype=np.int64),
             rows=zeros((G, nd), dtype=np.int64), n_rows=zeros(G, dtype=np.int64),

@@ -12,6 +12,8 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
     prepare         the fast-row lumping fractions theta_k of
                     :func:`skfem_mpm.solve.timestep.lumping_fraction`, with K
                     scaled by :func:`skfem_mpm.solve.timestep.covered_weights`
+                    and bounded by the effective-mass rule of
+                    :func:`skfem_mpm.solve.timestep.guarded_stiffness`
                     (hybrid mass: no guard, theta = 0); for each constraint
                     pattern ("group") its free dofs (not constrained, with
                     mass), their rows in ELL form (compact_system), and the
@@ -49,8 +51,10 @@ MASS_FIELDS = (
     # extraction)
     "stencil", "stiffness", "copies", "stiff_copies", "touched", "row_range", "axes",
     # fast-dof guard: on?, its limit, covered_weights' w, mu, the moving
-    # dofs (1.0 / 0.0), COVERED, the scaled K, the lumping fractions
+    # dofs (1.0 / 0.0), COVERED, the scaled K, the lumping fractions,
+    # q / Lambda (timestep.effective_mass_ratio)
     "guard", "limit", "weights", "mass_ratios", "moving", "covered", "guarded", "fast",
+    "effective_ratio",
     # groups: their components, the free rows and dof -> row, the ELL rows
     "group_comps", "group_size", "rows", "n_rows", "index", "A", "cols", "F", "fcols",
     "inv_diag",
@@ -199,7 +203,7 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim):
     stencil = cm.stencil
     nd, ns = stencil.shape
     centre = (ns - 1) // 2
-    if cm.guard:  # K_k covered_weights_k moving_k, then theta (fast_row_fractions)
+    if cm.guard:  # K_k covered_weights_k moving_k (timestep.guarded_stiffness), then theta
         lo = cm.covered[0]
         hi = cm.covered[1]
         for k in range(nd):
@@ -207,6 +211,8 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim):
             s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
             w = 1.0 - (1.0 - cm.weights[k]) * (s * s * (3.0 - 2.0 * s))
             cm.guarded[k] = cm.stiffness[k] * (w * cm.moving[k])
+        LIMIT_BY_EFFECTIVE_MASS(cm.guarded, cm.stiffness, stencil, mass, cm.limit,
+                                cm.effective_ratio, p, nbx, nby, dim)
         FAST_ROW_FRACTIONS(cm.guarded, stencil, mass, cm.limit, cm.fast)
     else:
         cm.fast[:] = 0.0

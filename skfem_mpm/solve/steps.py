@@ -32,7 +32,7 @@ from ..errors import InvalidState
 from ..materials.state import split_update
 from ..quadrature import _csr, _csr_pattern, transfer_matrices
 from ..reconstruct import RECONSTRUCTORS, integration_rule
-from .timestep import fast_dof_limit, lumping_fraction
+from .timestep import fast_dof_limit, guarded_stiffness, lumping_fraction
 
 __all__ = ["Transfer", "GridData", "particles_to_grid", "solve_velocity", "solve_grid",
            "update_particle_velocities", "project_velocity", "move_particles",
@@ -278,7 +278,9 @@ def step_system(state, data, kind="acceleration"):
 
             def fast_rows(mass_diagonal):
                 # sum over points of mass |grad N_i|^2, scaled per dof
-                k = data.stiffness_weights() * state.guard_weights(data.lumped, mass_diagonal)
+                k = guarded_stiffness(state.grid, data.stiffness_weights(),
+                                      state.guard_weights(data.lumped, mass_diagonal), limit,
+                                      data.consistent, data.lumped)
                 return lumping_fraction(k / (limit * np.maximum(mass_diagonal, 1e-300)))
 
         data.system = GridSystem(data.lumped, state.constraints, consistent,
