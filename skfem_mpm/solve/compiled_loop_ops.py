@@ -6,8 +6,10 @@ binds the kernel names used below (``P2G``, ``G2P2G``, ``G2P``,
 ``REDUCE_FIELDS``, ``REDUCE_COPIES``, ``LUMPED_SOLVE``, ``MERGED_SOLVE``, ``USL_GRID``,
 ``MASS_WEIGHTED_SUM``, ``WORK_INCREMENT``, ``SMALL_MASS``, ``monotonic_ns``) to the compiled
 kernels of one grid dimension, degree and threading (serial copies for
-small problems), into one generated file per variant, so that numba caches
-the loop with its kernels.
+small problems), into one generated file per variant that numba caches.
+The kernels, and the heavy mass-system functions below, are called by
+symbol (``call``, :mod:`skfem_mpm.kernels.by_symbol`): each compiles once,
+on its own, instead of again inside every function above it.
 
 A run (:class:`Run`, a numba ``structref``) holds the particle arrays (the
 current state and the one the step writes), the grid arrays and the step's
@@ -176,7 +178,7 @@ def _particles_to_grid(run, state):
             if run.small_count > 0:  # the general grid system merges them
                 run.stop = 4
                 return run
-            assemble_mass(run.cm, run.x, run.m, run.degree, run.nbx, run.nby, run.x.shape[1])
+            call(assemble_mass, run.cm, run.x, run.m, run.degree, run.nbx, run.nby, run.x.shape[1])
             run.phase_ns[3] += monotonic_ns() - t1
         return run
     return impl
@@ -199,7 +201,7 @@ def _lumped_solve(run, rhs, gravity, out):
 def _mass_solve(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
     def impl(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
         """Consistent M x = rhs for 1 or 2 problems (see compiled_loop_mass)."""
-        if not mass_solve(run.cm, run.nthreads, count, rhs0, kind0, out0, rhs1, kind1, out1):
+        if not call(mass_solve, run.cm, run.nthreads, count, rhs0, kind0, out0, rhs1, kind1, out1):
             run.stop = 3
     return impl
 
@@ -215,8 +217,8 @@ def _prepare_grid(run):
             for k in range(run.force.shape[0]):
                 for c in range(run.force.shape[1]):
                     run.force[k, c] = run.force[k, c] + run.mass[k] * run.gravity[c]
-        prepare_mass(run.cm, run.mass, run.mask, run.degree, run.nbx, run.nby,
-                     run.x.shape[1])
+        call(prepare_mass, run.cm, run.mass, run.mask, run.degree, run.nbx, run.nby,
+             run.x.shape[1])
     return impl
 
 

@@ -1,0 +1,112 @@
+"""kernels.by_symbol: a kernel called by symbol is compiled once, not linked
+into its callers, gives the direct call's result, propagates its errors,
+and its callers load from numba's cache in a fresh process."""
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+from numba import njit
+
+from skfem_mpm.kernels.by_symbol import call
+
+
+@njit(cache=False)
+def _axpy_sum(a, b, s):
+    for i in range(a.shape[0]):
+        a[i] += s * b[i]
+    return a.sum()
+
+
+@njit(cache=False)
+def _checked(n):
+    if n < 0:
+        raise ValueError("n must be non-negative")
+    return 2 * n
+
+
+@njit(cache=False)
+def _through_symbol(a, b):
+    return call(_axpy_sum, a, b, 2)  # the literal 2 is cast to the kernel's float
+
+
+@njit(cache=False)
+def _outer(a, b):
+    t = 0.0
+    for _ in range(3):
+        t += _through_symbol(a, b)
+    return t
+
+
+@njit(cache=False)
+def _checked_by_symbol(n):
+    return call(_checked, n)
+
+
+def test_same_result_as_the_direct_call():
+    a, b = np.linspace(0.0, 1.0, 7), np.arange(7.0)
+    direct = a.copy()
+    expected = sum(_axpy_sum(direct, b, 2.0) for _ in range(3))
+    got = a.copy()
+    assert _outer(got, b) == expected
+    np.testing.assert_array_equal(got, direct)
+
+
+def test_the_kernel_is_declared_not_linked():
+    a, b = np.ones(3), np.ones(3)
+    _outer(a, b)
+    for caller in (_through_symbol, _outer):
+        ir = caller.inspect_llvm(caller.signatures[0])
+        defined = [line for line in ir.splitlines() if line.startswith("define")]
+        assert defined and not any("_axpy_sum" in line for line in defined)
+        assert "declare" in ir
+
+
+def test_errors_propagate():
+    assert _checked_by_symbol(4) == 8
+    with pytest.raises(ValueError, match="non-negative"):
+        _checked_by_symbol(-1)
+
+
+def test_callers_load_from_the_cache_in_a_fresh_process(tmp_path):
+    (tmp_path / "kern_mod.py").write_text(textwrap.dedent("""
+        from numba import njit
+
+        @njit(cache=True)
+        def scaled_sum(a, s):
+            t = 0.0
+            for i in range(a.shape[0]):
+                t += s * a[i]
+            return t
+        """))
+    (tmp_path / "caller_mod.py").write_text(textwrap.dedent("""
+        from numba import njit
+        from skfem_mpm.kernels.by_symbol import call
+        from kern_mod import scaled_sum
+
+        @njit(cache=True)
+        def middle(a):
+            return call(scaled_sum, a, 3.0)
+
+        @njit(cache=True)
+        def top(a):
+            return middle(a) + 1.0
+        """))
+    script = textwrap.dedent("""
+        import numpy as np
+        from caller_mod import top
+        print(top(np.arange(4.0)), top.stats.cache_hits.total(), top.stats.cache_misses.total())
+        """)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"),
+               PYTHONPATH=os.pathsep.join([str(tmp_path), *sys.path]))
+
+    def run():
+        out = subprocess.run([sys.executable, "-c", script], env=env, cwd=tmp_path,
+                             capture_output=True, text=True, check=True)
+        value, hits, misses = out.stdout.split()
+        return float(value), int(hits), int(misses)
+
+    assert run() == (19.0, 0, 1)  # compiled, and cached
+    assert run() == (19.0, 1, 0)  # loaded: the kernel's symbol registered on load
