@@ -397,8 +397,9 @@ class StepLoop:
         if consistent:
             self._load_warm(state)
         if self._loaded is not p:
-            mod.load_state(run, p.x, p.v, p.u, p.V, p.stress, float(state.t), int(state.step),
-                           float(state.external_work))
+            c = np.ascontiguousarray  # (load_state copies flat: no copy when already so)
+            mod.load_state(run, c(p.x), c(p.v), c(p.u), c(p.V), c(p.stress), float(state.t),
+                           int(state.step), float(state.external_work))
         else:
             mod.set_work(run, float(state.external_work))
         mod.reset_step_records(run)

@@ -93,10 +93,10 @@ def new_mass_system(*fields):
 @njit(cache=True)
 def load_warm(cm, warm, has_warm):
     """Set the warm starts (the executor's, when it took steps between calls)."""
-    cm.warm[:] = warm
-    cm.has_warm[:] = has_warm
-    cm.warm_good[:] = warm
-    cm.has_good[:] = has_warm
+    copy_into(cm.warm, warm)
+    copy_into(cm.has_warm, has_warm)
+    copy_into(cm.warm_good, warm)
+    copy_into(cm.has_good, has_warm)
     cm.fringe_on[:] = False
 
 
@@ -104,8 +104,8 @@ def load_warm(cm, warm, has_warm):
 def commit_mass(cm):
     """The step is taken: its warm starts are the good ones; True when a
     group turned the fringe correction on (the executor takes over)."""
-    cm.warm_good[:] = cm.warm
-    cm.has_good[:] = cm.has_warm
+    copy_into(cm.warm_good, cm.warm)
+    copy_into(cm.has_good, cm.has_warm)
     for g in range(cm.fringe_on.shape[0]):
         if cm.fringe_on[g]:
             return True
@@ -291,10 +291,10 @@ def mass_solve(cm, nt, count, rhs0, kind0, out0, rhs1, kind1, out1):
         EXPAND_PROBLEM(rows, x, comps, 0, out0)
         if count == 2:
             EXPAND_PROBLEM(rows, x, comps, ncomp, out1)
-    cm.warm[kind0][:] = out0
+    copy_into(cm.warm[kind0], out0)
     cm.has_warm[kind0] = True
     if count == 2:
-        cm.warm[kind1][:] = out1
+        copy_into(cm.warm[kind1], out1)
         cm.has_warm[kind1] = True
     return True
 

@@ -93,6 +93,17 @@ structref.define_proxy(Run, RunType, list(FIELDS))
 
 
 @njit(cache=True)
+def copy_into(dst, src):
+    """dst[...] = src, both C-contiguous of one size: an explicit loop
+    (numba's slice assignment between arrays compiles its broadcasting and
+    error-message machinery, seconds per signature)."""
+    d = dst.reshape(dst.size)
+    s = src.reshape(src.size)
+    for i in range(d.size):
+        d[i] = s[i]
+
+
+@njit(cache=True)
 def new_run(*fields):
     """A run with ``fields`` in the order of FIELDS (built in compiled code,
     which numba caches: the proxy's own constructor compiles in every
@@ -104,11 +115,11 @@ def new_run(*fields):
 def load_state(run, x, v, u, V, stress, t, step, work):
     """Copy a particle state (its time, step and external work) into the
     run's current arrays (the run never writes arrays it did not allocate)."""
-    run.x[:] = x
-    run.v[:] = v
-    run.u[:] = u
-    run.V[:] = V
-    run.stress[:] = stress
+    copy_into(run.x, x)
+    copy_into(run.v, v)
+    copy_into(run.u, u)
+    copy_into(run.V, V)
+    copy_into(run.stress, stress)
     run.t = t
     run.step = step
     run.work = work
@@ -265,7 +276,7 @@ def _solve_grid(run, state, grid, end_velocity=None):
                 for k in range(run.a.shape[0]):
                     for c in range(run.a.shape[1]):
                         run.v_grid[k, c] = run.a[k, c] * vdt + run.v_old[k, c]
-                run.cm.warm[1][:] = run.v_grid  # see steps.remember_end_velocity
+                copy_into(run.cm.warm[1], run.v_grid)  # see steps.remember_end_velocity
             run.phase_ns[1] += monotonic_ns() - t0
             return run.a
         return impl
