@@ -420,3 +420,15 @@ def test_three_factor_kronecker_on_one_layer_is_the_two_factor_one():
     M = np.kron(dense(Lz), np.kron(dense(Ly), dense(Lx)))
     S = np.diag(1.0 / inv)
     assert np.abs(S @ M @ S @ z - r).max() < 1e-10 * np.abs(r).max()
+
+
+def test_sorted_distinct_is_np_unique():
+    """kernels.scatter._sorted_distinct (insertion sort for the few cut
+    points of the per-thread reduction) gives np.unique's result."""
+    from skfem_mpm.kernels.scatter import _sorted_distinct
+
+    rng = np.random.default_rng(1)
+    for n in (0, 1, 2, 5, 9, 40):
+        for _ in range(10):
+            values = rng.integers(-3, 9, size=n + 1).astype(np.int64)
+            np.testing.assert_array_equal(_sorted_distinct(values), np.unique(values))

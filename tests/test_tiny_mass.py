@@ -94,3 +94,17 @@ def test_a_tiny_dof_whose_heaviest_neighbour_is_tiny_follows_it_to_a_kept_dof(de
                                       out) == 2
     assert np.allclose(out, expected, rtol=1e-13)
     assert out[5, 0] == out[5 + degree, 0]
+
+
+def test_heaviest_first_is_the_stable_descending_argsort():
+    """kernels.tiny_mass._heaviest_first (a hand-written merge sort, cheap
+    to compile) orders as a stable argsort of -mass, ties included."""
+    from skfem_mpm.kernels.tiny_mass import _heaviest_first
+
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 2, 3, 5, 8, 17, 100, 1000):
+        for _ in range(10):
+            mass = rng.integers(0, 5, size=2 * n + 3) * rng.choice([1.0, 0.5])
+            dofs = np.sort(rng.choice(mass.size, size=n, replace=False)).astype(np.int64)
+            expected = dofs[np.argsort(-mass[dofs], kind="stable")]
+            np.testing.assert_array_equal(_heaviest_first(dofs, mass), expected)

@@ -1267,7 +1267,9 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
         if kron is not None:  # z = P^-1 r and its r.z
             _precondition(A, cols, r, z, spare, inv_diag, kron_now, fringe_now)
             _dots(r, z, partial)
-            sums[:, 0, :] = partial
+            for t in range(partial.shape[0]):  # sums[:, 0, :] = partial
+                for j in range(partial.shape[1]):
+                    sums[t, 0, j] = partial[t, j]
         for j in range(width):
             if not active[j]:
                 continue

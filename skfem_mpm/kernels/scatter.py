@@ -277,6 +277,26 @@ def g2p2g_kernel(dim, p, window=None, parallel=True):
 
 # ---------------------------------------------------------------- reduction
 @njit(cache=True, error_model="numpy")
+def _sorted_distinct(values):
+    """np.unique of a short integer array (insertion sort: a few dozen
+    values; numba's np.unique compiles a general sort, seconds cold)."""
+    out = values.copy()
+    for i in range(1, out.shape[0]):
+        v = out[i]
+        j = i - 1
+        while j >= 0 and out[j] > v:
+            out[j + 1] = out[j]
+            j -= 1
+        out[j + 1] = v
+    n = 0
+    for i in range(out.shape[0]):
+        if n == 0 or out[i] != out[n - 1]:
+            out[n] = out[i]
+            n += 1
+    return out[:n]
+
+
+@njit(cache=True, error_model="numpy")
 def holders(touched, lo, hi):
     """Nodes lo..hi-1 cut where the set of threads whose touched range holds
     them changes: (cuts, threads, counts); piece j is nodes
@@ -288,7 +308,7 @@ def holders(touched, lo, hi):
     for t in range(nt):
         bounds[2 + 2 * t] = min(max(touched[t, 0], lo), hi)
         bounds[3 + 2 * t] = min(max(touched[t, 1], lo), hi)
-    cuts = np.unique(bounds)
+    cuts = _sorted_distinct(bounds)
     threads = np.empty((cuts.shape[0], nt), dtype=np.int64)
     counts = np.zeros(cuts.shape[0], dtype=np.int64)
     for j in range(cuts.shape[0] - 1):
