@@ -8,7 +8,7 @@ import textwrap
 
 import numpy as np
 import pytest
-from numba import njit
+from numba import njit, types
 
 from skfem_mpm.kernels.by_symbol import call
 
@@ -110,3 +110,68 @@ def test_callers_load_from_the_cache_in_a_fresh_process(tmp_path):
 
     assert run() == (19.0, 0, 1)  # compiled, and cached
     assert run() == (19.0, 1, 0)  # loaded: the kernel's symbol registered on load
+
+
+def test_one_caller_serves_kernels_at_run_time_addresses(tmp_path):
+    """call_at: the kernel is data; one compiled caller runs either kernel
+    of the same argument types, recorded at compile time and again when the
+    caller loads from the cache in a fresh process."""
+    (tmp_path / "at_mod.py").write_text(textwrap.dedent("""
+        from numba import njit
+        from skfem_mpm.kernels.by_symbol import call_at
+
+        @njit(cache=True)
+        def add(a, s):
+            for i in range(a.shape[0]):
+                a[i] += s
+
+        @njit(cache=True)
+        def scale(a, s):
+            for i in range(a.shape[0]):
+                a[i] *= s
+
+        _AT = call_at("test:kernel")
+
+        @njit(cache=True)
+        def apply(address, a, n):
+            for _ in range(n):
+                _AT(address, a, 2)  # the literal 2 is cast to the recorded float
+        """))
+    script = textwrap.dedent("""
+        import numpy as np
+        from numba import types
+        from skfem_mpm.kernels.by_symbol import ARGUMENT_TYPES, native_address
+        from at_mod import add, apply, scale
+        a = np.ones(3)
+        apply(0, a, 0)  # compiles or loads apply: records the argument types
+        argtypes = ARGUMENT_TYPES["test:kernel"]
+        apply(native_address(add, argtypes), a, 3)
+        apply(native_address(scale, argtypes), a, 2)
+        print(a[0], len(apply.signatures), apply.stats.cache_hits.total())
+        """)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"),
+               PYTHONPATH=os.pathsep.join([str(tmp_path), *sys.path]))
+
+    def run():
+        out = subprocess.run([sys.executable, "-c", script], env=env, cwd=tmp_path,
+                             capture_output=True, text=True, check=True)
+        value, signatures, hits = out.stdout.split()
+        return float(value), int(signatures), int(hits)
+
+    assert run() == ((1 + 3 * 2.0) * 4, 1, 0)  # one compile serves both kernels
+    assert run() == (28.0, 1, 1)  # loaded from the cache, argument types recorded again
+
+
+def test_a_site_compiled_for_two_type_lists_is_ambiguous():
+    from skfem_mpm.kernels.by_symbol import ARGUMENT_TYPES, call_at
+
+    at = call_at("test:ambiguous")
+
+    @njit(cache=False)
+    def through(address, a):
+        at(address, a)
+
+    through.compile((types.int64, types.float64[::1]))  # compiled, never run
+    assert ARGUMENT_TYPES["test:ambiguous"] == (types.float64[::1],)
+    through.compile((types.int64, types.float64[:, ::1]))
+    assert ARGUMENT_TYPES["test:ambiguous"] is None

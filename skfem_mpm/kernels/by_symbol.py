@@ -13,6 +13,11 @@ convention (status and exception propagated); it is not inlined, so it
 suits kernels that do a pass over particles or dofs, not per-element
 helpers.
 
+``call_at(site)`` makes the other kind of call: through an address the
+caller holds at run time (``native_address``), so that one compiled caller
+serves several kernels of the same argument types (the compiled loop: the
+transfer kernels of every degree).
+
 Caching: the symbol's name depends only on the kernel's module, name and
 argument types, so the caller's cached machine code stays valid across
 processes; the caller's library carries a reload hook (numba's
@@ -28,7 +33,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-__all__ = ["call", "register"]
+__all__ = ["ARGUMENT_TYPES", "call", "call_at", "native_address", "register"]
 
 _ADDRESSES = {}  # symbol name -> the address registered in this process
 
@@ -84,3 +89,68 @@ def call(typingctx, kernel, *args):
         return result
 
     return restype(kernel, types.StarArgTuple(args)), codegen
+
+
+# ---------------------------------------------------- calls through an address
+ARGUMENT_TYPES = {}
+"""label -> the argument types a :func:`call_at` site of that label was
+compiled with (recorded when the caller compiles, and again when it loads
+from numba's cache)."""
+
+
+def record_argument_types(label, argtypes):
+    """Remember the argument types of the call site ``label``; a site
+    compiled for two lists of types is marked ambiguous (None): no address
+    can then be chosen for it safely."""
+    argtypes = tuple(argtypes)
+    ARGUMENT_TYPES[label] = argtypes if ARGUMENT_TYPES.get(label, argtypes) == argtypes \
+        else None
+
+
+def native_address(kernel, argtypes):
+    """The native entry point of ``kernel`` compiled (or loaded) for
+    ``argtypes``, for :func:`call_at`."""
+    kernel.compile(tuple(argtypes))
+    cres = kernel.overloads[tuple(argtypes)]
+    if cres.signature.return_type != types.none:
+        raise TypeError(f"{kernel.py_func.__name__}: call_at calls kernels that return "
+                        f"nothing, this one returns {cres.signature.return_type}")
+    address = cres.library.get_pointer_to_function(cres.fndesc.llvm_func_name)
+    if not address:
+        raise RuntimeError(f"{kernel.py_func.__name__}{tuple(argtypes)}: no native entry point")
+    return address
+
+
+def call_at(site):
+    """An intrinsic ``f(address, *args)`` calling the kernel whose native
+    entry point is at ``address`` (an integer held at run time, from
+    :func:`native_address`) with ``args``; the kernel returns nothing. One
+    compiled caller serves every kernel of the same argument types: which
+    one runs is data, not code. ``site`` names the call site: its argument
+    types are recorded under it in :data:`ARGUMENT_TYPES` when the caller
+    compiles and when it loads from the cache, so that Python can compile
+    the kernel it will point the caller at."""
+
+    @intrinsic
+    def call_at_site(typingctx, address, *args):
+        if not isinstance(address, types.Integer):
+            raise TypeError(f"{site}: the address must be an integer, got {address}")
+        argtypes = tuple(types.unliteral(a) for a in args)
+        record_argument_types(site, argtypes)
+
+        def codegen(context, builder, signature, llargs):
+            context.active_code_library._reload_init.add(
+                functools.partial(record_argument_types, site, argtypes))
+            values = [context.cast(builder, value, actual, wanted) for value, actual, wanted
+                      in zip(cgutils.unpack_tuple(builder, llargs[1]), args, argtypes)]
+            fnty = context.call_conv.get_function_type(types.none, argtypes)
+            fn = builder.inttoptr(llargs[0], fnty.as_pointer())
+            status, _ = context.call_conv.call_function(builder, fn, types.none, argtypes,
+                                                        values)
+            with cgutils.if_unlikely(builder, status.is_error):
+                context.call_conv.return_status_propagate(builder, status)
+            return context.get_dummy_value()
+
+        return types.none(address, types.StarArgTuple(args)), codegen
+
+    return call_at_site

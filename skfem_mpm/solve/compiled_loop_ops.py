@@ -5,8 +5,11 @@ modules (not imported as a module).
 binds the kernel names used below (``P2G``, ``G2P2G``, ``G2P``,
 ``REDUCE_FIELDS``, ``REDUCE_COPIES``, ``LUMPED_SOLVE``, ``MERGED_SOLVE``, ``USL_GRID``,
 ``MASS_WEIGHTED_SUM``, ``WORK_INCREMENT``, ``SMALL_MASS``, ``monotonic_ns``) to the compiled
-kernels of one grid dimension, degree and threading (serial copies for
-small problems), into one generated file per variant that numba caches.
+kernels of one grid dimension and threading (serial copies for small
+problems), into one generated file per variant that numba caches. The
+transfer kernels (``P2G``, ``G2P2G``, ``G2P``) are called through the
+addresses the run holds (``run.p2g_at``...: ``call_at``), so one compiled
+loop serves every degree.
 The kernels, and the heavy mass-system functions below, are called by
 symbol (``call``, :mod:`skfem_mpm.kernels.by_symbol`): each compiles once,
 on its own, instead of again inside every function above it.
@@ -73,6 +76,8 @@ FIELDS = (
     "gravity_work", "work", "work_sum", "stop", "handover", "phase_ns",
     # consistent or hybrid mass: a MassSystem (None: lumped mass)
     "cm", "nthreads",
+    # the native entry points of the run's degree's transfer kernels (call_at)
+    "p2g_at", "g2p2g_at", "g2p_at",
 )
 
 
@@ -109,6 +114,15 @@ def new_run(*fields):
     which numba caches: the proxy's own constructor compiles in every
     process)."""
     return Run(*fields)
+
+
+@njit(cache=True)
+def set_transfers(run, p2g_at, g2p2g_at, g2p_at):
+    """Point the run at its degree's transfer kernels (native entry points:
+    kernels.by_symbol.native_address)."""
+    run.p2g_at = p2g_at
+    run.g2p2g_at = g2p2g_at
+    run.g2p_at = g2p_at
 
 
 @njit(cache=True)
@@ -168,7 +182,7 @@ def _particles_to_grid(run, state):
     def impl(run, state):
         t0 = monotonic_ns()
         particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
-        P2G(particles, run.grid, run.no_force, False, run.copies_p2g, run.touched_p2g)
+        P2G(run.p2g_at, particles, run.grid, run.no_force, False, run.copies_p2g, run.touched_p2g)
         REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, run.mass, run.momentum, run.force,
                       run.mass_range)
         run.small_count = 0  # tiny-mass dofs (see Kernels.small_mass): merged solves
@@ -327,7 +341,7 @@ def _project_velocity(run, state, grid):
             return
         t0 = monotonic_ns()
         particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
-        G2P2G(particles, run.grid, run.a, run.vfactor * run.dt, run.v_new, run.copies_g2p2g,
+        G2P2G(run.g2p2g_at, particles, run.grid, run.a, run.vfactor * run.dt, run.v_new, run.copies_g2p2g,
               run.touched_g2p2g)
         REDUCE_COPIES(run.copies_g2p2g, run.touched_g2p2g, run.momentum_new)
         run.velocities_done = True
@@ -348,7 +362,7 @@ def _move_particles(run, state, grid):
         new = (run.x_new, run.v_new, run.u_new, run.m, run.V_new, run.stress_new)
         update = (run.dt, run.vfactor, not run.velocities_done, True, run.lam, run.mu,
                   run.store_acc)  # kernels.records.Update
-        G2P(particles, run.grid, run.a, run.v_grid, update, new, run.L, run.acc, run.flags)
+        G2P(run.g2p_at, particles, run.grid, run.a, run.v_grid, update, new, run.L, run.acc, run.flags)
         for t in range(run.flags.shape[0]):  # non-finite, outside, J <= 0
             for j in range(3):
                 if run.flags[t, j] >= 0:
