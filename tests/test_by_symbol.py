@@ -70,6 +70,16 @@ def test_errors_propagate():
         _checked_by_symbol(-1)
 
 
+def _fresh_process(tmp_path, script):
+    """The words ``script`` prints, run in a new Python process with the
+    modules of ``tmp_path`` importable and numba's cache in it."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"),
+               PYTHONPATH=os.pathsep.join([str(tmp_path), *sys.path]))
+    out = subprocess.run([sys.executable, "-c", script], env=env, cwd=tmp_path,
+                         capture_output=True, text=True, check=True)
+    return out.stdout.split()
+
+
 def test_callers_load_from_the_cache_in_a_fresh_process(tmp_path):
     (tmp_path / "kern_mod.py").write_text(textwrap.dedent("""
         from numba import njit
@@ -99,13 +109,8 @@ def test_callers_load_from_the_cache_in_a_fresh_process(tmp_path):
         from caller_mod import top
         print(top(np.arange(4.0)), top.stats.cache_hits.total(), top.stats.cache_misses.total())
         """)
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"),
-               PYTHONPATH=os.pathsep.join([str(tmp_path), *sys.path]))
-
     def run():
-        out = subprocess.run([sys.executable, "-c", script], env=env, cwd=tmp_path,
-                             capture_output=True, text=True, check=True)
-        value, hits, misses = out.stdout.split()
+        value, hits, misses = _fresh_process(tmp_path, script)
         return float(value), int(hits), int(misses)
 
     assert run() == (19.0, 0, 1)  # compiled, and cached
@@ -149,13 +154,8 @@ def test_one_caller_serves_kernels_at_run_time_addresses(tmp_path):
         apply(native_address(scale, argtypes), a, 2)
         print(a[0], len(apply.signatures), apply.stats.cache_hits.total())
         """)
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"),
-               PYTHONPATH=os.pathsep.join([str(tmp_path), *sys.path]))
-
     def run():
-        out = subprocess.run([sys.executable, "-c", script], env=env, cwd=tmp_path,
-                             capture_output=True, text=True, check=True)
-        value, signatures, hits = out.stdout.split()
+        value, signatures, hits = _fresh_process(tmp_path, script)
         return float(value), int(signatures), int(hits)
 
     assert run() == ((1 + 3 * 2.0) * 4, 1, 0)  # one compile serves both kernels
@@ -175,3 +175,11 @@ def test_a_site_compiled_for_two_type_lists_is_ambiguous():
     assert ARGUMENT_TYPES["test:ambiguous"] == (types.float64[::1],)
     through.compile((types.int64, types.float64[:, ::1]))
     assert ARGUMENT_TYPES["test:ambiguous"] is None
+
+
+def test_a_call_site_must_be_named():
+    from skfem_mpm.kernels.by_symbol import call_at
+
+    for site in ("", None, 3):
+        with pytest.raises(ValueError, match="site must be a non-empty string"):
+            call_at(site)

@@ -45,16 +45,35 @@ def symbol_name(module, name, argtypes):
     return "skfem_mpm.kernel." + hashlib.sha1(text.encode()).hexdigest()[:24]
 
 
+def _entry_point(kernel, argtypes):
+    """(compile result, address of the native entry point) of ``kernel``
+    compiled (or loaded from numba's cache) for ``argtypes``."""
+    argtypes = tuple(argtypes)
+    kernel.compile(argtypes)
+    cres = kernel.overloads[argtypes]
+    address = cres.library.get_pointer_to_function(cres.fndesc.llvm_func_name)
+    if not address:
+        raise RuntimeError(f"{kernel.py_func.__name__}{argtypes}: no native entry point")
+    return cres, address
+
+
+def _native_call(context, builder, fn, restype, argtypes, args, values):
+    """Call ``fn`` with numba's calling convention: ``values`` (of the
+    caller's types ``args``) cast to ``argtypes``; an error status returns
+    from the caller with it. Returns the result."""
+    values = [context.cast(builder, value, actual, wanted)
+              for value, actual, wanted in zip(values, args, argtypes)]
+    status, result = context.call_conv.call_function(builder, fn, restype, argtypes, values)
+    with cgutils.if_unlikely(builder, status.is_error):
+        context.call_conv.return_status_propagate(builder, status)
+    return result
+
+
 def register(symbol, module, name, argtypes):
     """Compile (or load) ``module.name`` for ``argtypes`` and make
     ``symbol`` resolve to its native entry point; returns the compile
     result."""
-    kernel = getattr(importlib.import_module(module), name)
-    kernel.compile(argtypes)
-    cres = kernel.overloads[tuple(argtypes)]
-    address = cres.library.get_pointer_to_function(cres.fndesc.llvm_func_name)
-    if not address:
-        raise RuntimeError(f"{module}.{name}{tuple(argtypes)}: no native entry point")
+    cres, address = _entry_point(getattr(importlib.import_module(module), name), argtypes)
     if _ADDRESSES.get(symbol) != address:
         llvm.add_symbol(symbol, address)
         _ADDRESSES[symbol] = address
@@ -79,14 +98,10 @@ def call(typingctx, kernel, *args):
         register(symbol, module, name, argtypes)
         context.active_code_library._reload_init.add(
             functools.partial(register, symbol, module, name, argtypes))
-        values = [context.cast(builder, value, actual, wanted) for value, actual, wanted in
-                  zip(cgutils.unpack_tuple(builder, llargs[1]), args, argtypes)]
         fnty = context.call_conv.get_function_type(restype, argtypes)
         fn = cgutils.get_or_insert_function(builder.module, fnty, symbol)
-        status, result = context.call_conv.call_function(builder, fn, restype, argtypes, values)
-        with cgutils.if_unlikely(builder, status.is_error):
-            context.call_conv.return_status_propagate(builder, status)
-        return result
+        return _native_call(context, builder, fn, restype, argtypes, args,
+                            cgutils.unpack_tuple(builder, llargs[1]))
 
     return restype(kernel, types.StarArgTuple(args)), codegen
 
@@ -110,14 +125,10 @@ def record_argument_types(label, argtypes):
 def native_address(kernel, argtypes):
     """The native entry point of ``kernel`` compiled (or loaded) for
     ``argtypes``, for :func:`call_at`."""
-    kernel.compile(tuple(argtypes))
-    cres = kernel.overloads[tuple(argtypes)]
+    cres, address = _entry_point(kernel, argtypes)
     if cres.signature.return_type != types.none:
         raise TypeError(f"{kernel.py_func.__name__}: call_at calls kernels that return "
                         f"nothing, this one returns {cres.signature.return_type}")
-    address = cres.library.get_pointer_to_function(cres.fndesc.llvm_func_name)
-    if not address:
-        raise RuntimeError(f"{kernel.py_func.__name__}{tuple(argtypes)}: no native entry point")
     return address
 
 
@@ -130,6 +141,9 @@ def call_at(site):
     types are recorded under it in :data:`ARGUMENT_TYPES` when the caller
     compiles and when it loads from the cache, so that Python can compile
     the kernel it will point the caller at."""
+    if not isinstance(site, str) or not site:
+        raise ValueError(f"call_at: site must be a non-empty string naming the call site, "
+                         f"got {site!r}")
 
     @intrinsic
     def call_at_site(typingctx, address, *args):
@@ -141,14 +155,10 @@ def call_at(site):
         def codegen(context, builder, signature, llargs):
             context.active_code_library._reload_init.add(
                 functools.partial(record_argument_types, site, argtypes))
-            values = [context.cast(builder, value, actual, wanted) for value, actual, wanted
-                      in zip(cgutils.unpack_tuple(builder, llargs[1]), args, argtypes)]
             fnty = context.call_conv.get_function_type(types.none, argtypes)
             fn = builder.inttoptr(llargs[0], fnty.as_pointer())
-            status, _ = context.call_conv.call_function(builder, fn, types.none, argtypes,
-                                                        values)
-            with cgutils.if_unlikely(builder, status.is_error):
-                context.call_conv.return_status_propagate(builder, status)
+            _native_call(context, builder, fn, types.none, argtypes, args,
+                         cgutils.unpack_tuple(builder, llargs[1]))
             return context.get_dummy_value()
 
         return types.none(address, types.StarArgTuple(args)), codegen

@@ -150,10 +150,6 @@ def _by_symbol(label, func):
             ""]
 
 
-# the transfer kernels, called through the addresses of the run's degree
-_TRANSFERS = {"P2G": p2g_kernel, "G2P2G": g2p2g_kernel, "G2P": g2p_kernel}
-
-
 def _transfer_kernels(dim, p, parallel, window):
     """The run's transfer kernels under the names the operations use."""
     return {"P2G": p2g_kernel(dim, p, window, parallel),
@@ -290,18 +286,17 @@ class StepLoop:
         self.run_state = self.module.new_run(*(fields[name] for name in self.module.FIELDS))
         self.retired = False  # the executor takes every further step
         self._loop = self.module.LOOPS[self.scheme]
-        self._dim = dim
-        self._point_at_transfers(grid.degree, window)
+        self._point_at_transfers(dim, grid.degree, window)
         self._loaded = None  # the particles whose arrays the run holds
         self._steps_per_call = 1  # parallel: grows to CALL_SECONDS of steps
 
-    def _point_at_transfers(self, degree, window):
+    def _point_at_transfers(self, dim, degree, window):
         """Compile (or load) the loop, which records the argument types of
         its transfer calls, then compile (or load) this degree's transfer
         kernels for them and set their addresses in the run (0: a transfer
         this scheme's loop does not call)."""
         self._loop.compile((numba.typeof(self.run_state), numba.types.int64))
-        kernels = _transfer_kernels(self._dim, degree, self.parallel, window)
+        kernels = _transfer_kernels(dim, degree, self.parallel, window)
         addresses = []
         for label in ("P2G", "G2P2G", "G2P"):
             site = f"{self.module.VARIANT}:{label}"
