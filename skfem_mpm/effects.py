@@ -44,7 +44,7 @@ import numpy as np
 
 from .errors import InvalidState
 from .spline.grid import SIDE_AXES, side_axis
-from .validation import check_finite_array, check_positive
+from .validation import _short, check_finite_array, check_positive
 
 __all__ = ["Effect", "ParticleForce", "Gravity", "BodyForce", "Traction", "Fixed", "Prescribed",
            "Damping", "Wall", "Footing"]
@@ -216,11 +216,13 @@ class Traction(Effect):
             if where not in SIDES:
                 raise ValueError(f"where must be one of {SIDES} or a boolean mask, got {where!r}")
         else:
-            where = np.asarray(where)
+            given, where = where, np.asarray(where)
             if where.dtype != bool or where.ndim != 1:
-                raise ValueError("where must be a side name or a 1-D boolean particle mask")
+                raise ValueError(f"where must be one of {SIDES} or a 1-D boolean particle mask, "
+                                 f"got {_short(given)} (dtype {where.dtype}, shape {where.shape})")
             if not where.any():
-                raise ValueError("the traction mask selects no particle")
+                raise ValueError(f"where: the traction mask selects no particle (all "
+                                 f"{where.size} entries are False)")
         if not callable(tau):
             value = check_finite_array("tau", _numbers(
                 "tau", tau, "a number, a vector or a callable tau(t) / tau(x, t)"))

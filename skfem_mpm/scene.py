@@ -73,6 +73,9 @@ class Scene:
             raise ValueError(f"bodies must be a Body or a non-empty list of Body objects, "
                              f"got {given!r}")
         for i, b in enumerate(bodies):
+            if b.particles.n == 0:
+                raise ValueError(f"bodies: body {i} has no particles (n = 0); a body needs at "
+                                 f"least one particle")
             if b.particles.dim != grid.dim:
                 raise ValueError(
                     f"body {i} has {b.particles.dim}D particles on a {grid.dim}D grid"

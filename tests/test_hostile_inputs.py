@@ -174,7 +174,7 @@ each("Prescribed velocity", "velocity", ["a", float("nan"), [1.0, 2.0], None,
      lambda v: Scene(g1(), body1(), 0.01, effects=[Prescribed("left", 0, v)]))
 each("Prescribed component", "component", [None, 3, -1, "0"],
      lambda v: Scene(g1(), body1(), 0.01, effects=[Prescribed("left", v, 1.0)]))
-each("Traction where", "where|mask", ["north", 5, np.zeros(3, dtype=bool), np.ones(3),
+each("Traction where", "where.*(got|no particle)", ["north", 5, np.zeros(3, dtype=bool), np.ones(3),
                                       "top"],
      lambda v: Scene(g1(), body1(), 0.01, effects=[Traction(v, 1.0)]))
 each("Traction tau", "tau", ["a", float("nan"), None, 1j],
@@ -196,6 +196,11 @@ each("Scene t_end", "t_end", NUMBERS_POS, lambda v: Scene(g1(), body1(), v))
 each("Scene effects", "effects", [Gravity(-1.0), "gravity", [1], [None], 5, [Gravity]],
      lambda v: Scene(g1(), body1(), 0.01, effects=v))
 case("Scene dim", "2D|dim", lambda: Scene(g2(), body1(), 0.01))
+EMPTY = Particles(np.zeros((0, 1)), np.zeros(0), np.zeros(0))  # e.g. a region that missed
+case("Scene body without particles", r"bodies: body 0 has no particles \(n = 0\)",
+     lambda: Scene(g1(), Body(EMPTY, LinearElastic(1.0)), 0.01))
+case("Scene second body without particles", r"bodies: body 1 has no particles",
+     lambda: Scene(g1(), [body1(), Body(EMPTY, LinearElastic(1.0))], 0.01))
 case("Scene outside", "outside the grid",
      lambda: Scene(g1(), Body(Particles(np.array([[1.5]]), np.ones(1), np.ones(1)),
                               LinearElastic(1.0)), 0.01))
