@@ -355,6 +355,7 @@ def _cmd_study(args):
         QUICK_METHODS,
         convergence,
         markdown_table,
+        parse_method,
         time_to_reach_table,
         verdict_lines,
         write_report,
@@ -372,8 +373,13 @@ def _cmd_study(args):
         raise _UsageError(f"--ppc must be a positive integer, got {args.ppc}")
     if args.cfl is not None and not args.cfl > 0:
         raise _UsageError(f"--cfl must be a positive number, got {args.cfl}")
+    if args.cfl is not None and args.cfl > 1:  # every job would fail on it
+        raise _UsageError(f"--cfl must be at most 1 (above it the time step exceeds the "
+                          f"critical one), got {args.cfl}")
     if args.repeat is not None and args.repeat < 1:
         raise _UsageError(f"--repeat must be a positive integer, got {args.repeat}")
+    for name in methods:  # before the same-model reference is computed
+        parse_method(name)
     repeat = args.repeat or (QUICK["repeat"] if args.quick else 1)
     budget = QUICK["repeat_budget"] if args.quick and args.repeat is None else None
     _check_out(args.out)
@@ -451,8 +457,10 @@ def _check_out(out):
         parent = os.path.dirname(parent)
     if not os.path.isdir(parent):
         raise _UsageError(f"--out {out!r}: {parent!r} is a file, not a folder")
+    from .validation import can_write_in
+
     target = out if os.path.isdir(out) else parent
-    if not os.access(target, os.W_OK):
+    if not can_write_in(target):
         raise _UsageError(f"--out {out!r}: {target!r} is not writable")
 
 

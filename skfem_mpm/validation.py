@@ -1,6 +1,8 @@
 """Input checks shared by the public API: each raises ValueError naming the
 argument, the bad value and what would be valid."""
 import numbers
+import os
+import tempfile
 
 import numpy as np
 
@@ -10,6 +12,7 @@ __all__ = [
     "check_choice",
     "check_positive_int",
     "as_points",
+    "can_write_in",
 ]
 
 
@@ -83,3 +86,16 @@ def as_points(name, x, dim):
     if a.ndim != 2 or a.shape[1] != dim:
         raise ValueError(f"{name} must have shape (n, {dim}), got {a.shape}")
     return check_finite_array(name, a)
+
+
+def can_write_in(folder):
+    """True when a file can be created in the existing ``folder``: tried
+    (a temporary file, removed at once), not asked of ``os.access``, which
+    says yes to root on read-only file systems such as /proc and /sys."""
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".skfem-mpm-check-", dir=folder)
+    except OSError:
+        return False
+    os.close(fd)
+    os.remove(probe)
+    return True

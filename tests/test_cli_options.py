@@ -1,6 +1,7 @@
 """Every command-line option says its choices and default, and a bad value
 is refused before anything runs: exit 2, one line naming the option."""
 import argparse
+import os
 
 import pytest
 
@@ -67,3 +68,98 @@ def test_a_study_beyond_the_exact_solutions_model_says_so(tmp_path, capsys):
         for text in (printed, header):
             assert ("WARNING, variant large: the exact solution is the linear wave equation's"
                     in text) == warned
+
+
+# ------------------------------------------------------ hostile command lines
+# The command-line half of the hostile probe (issue 21 counted 36 bad command
+# lines): each is refused with exit 2 and one line naming the option and the
+# value, before any step, study job, reference or benchmark runs (the
+# fixture turns each of those into a failure of the test).
+VS = ["vibrating-string"]
+HOSTILE_ARGV = [
+    (["run", *VS, "--cfl", "nan"], "--cfl must be a positive number, got nan"),
+    (["run", *VS, "--cfl", "inf"], "cfl must be finite and > 0, got inf"),
+    (["run", *VS, "--cfl", "1.5"], "cfl = 1.5 puts the time step above"),
+    (["run", *VS, "--dt", "nan"], "--dt must be a positive number, got nan"),
+    (["run", *VS, "--dt", "inf"], "dt must be finite and > 0, got inf"),
+    (["run", *VS, "--dt", "1"], "dt = 1 exceeds the critical time step"),
+    (["run", *VS, "--t-end", "nan"], "--t-end must be a positive number, got nan"),
+    (["run", *VS, "--t-end", "inf"], "t_end must be finite and > 0, got inf"),
+    (["run", *VS, "--t-end", "1e300"], "t_end = 1e+300 with dt"),
+    (["run", *VS, "--ppc", "-2"], "--ppc must be a positive integer, got -2"),
+    (["run", *VS, "--ppc", "2.5"], "argument --ppc: invalid int value: '2.5'"),
+    (["run", *VS, "--cells", "abc"], "argument --cells: invalid int value: 'abc'"),
+    (["run", *VS, "--cells", "-3"], "--cells must be a positive integer, got -3"),
+    (["run", *VS, "--variant", "nope"], "variant must be one of"),
+    (["run", *VS, "--set", "nope=1"], "unknown parameter(s) ['nope']"),
+    (["run", *VS, "--set", "E"], "--set expects NAME=VALUE, got 'E'"),
+    (["run", *VS, "--set", "E=-1"], "parameter E must be > 0, got -1.0"),
+    (["run", *VS, "--set", "L=0"], "parameter L must be > 0, got 0.0"),
+    (["run", *VS, "--set", "E=nan"], "parameter E must be a finite number, got nan"),
+    (["run", *VS, "--reconstruction", "fft"], "--reconstruction: invalid choice: 'fft'"),
+    (["run"], "the following arguments are required: benchmark"),
+    (["run", *VS, "--out", "/proc/skfem-mpm-out"], "'/proc' is not writable"),
+    (["run", *VS, "--out", "/sys/skfem-mpm-out/deeper"], "'/sys' is not writable"),
+    (["fem", *VS, "--cfl", "0"], "--cfl must be a positive number, got 0"),
+    (["fem", *VS, "--cfl", "3"], "cfl = 3 puts the time step above"),
+    (["fem", *VS, "--t-end", "nan"], "--t-end must be a positive number, got nan"),
+    (["fem", "nope"], "unknown benchmark 'nope'"),
+    (["fem", *VS, "--out", __file__], "is a file, not a folder"),
+    (["study", *VS, "--cfl", "3"], "--cfl must be at most 1"),
+    (["study", *VS, "--cfl", "1.5"], "--cfl must be at most 1"),
+    (["study", *VS, "--cfl", "nan"], "--cfl must be a positive number, got nan"),
+    (["study", *VS, "--cfl", "-1"], "--cfl must be a positive number, got -1"),
+    (["study", *VS, "--ppc", "-1"], "--ppc must be a positive integer, got -1"),
+    (["study", *VS, "--cells"], "argument --cells: expected at least one argument"),
+    (["study", *VS, "--cells", "x"], "argument --cells: invalid int value: 'x'"),
+    (["study", *VS, "--methods", "foo"], "method must look like mpm-p2-consistent"),
+    (["study", *VS, "--methods", "mpm-p2-heavy"], "mass in 'mpm-p2-heavy' must be one of"),
+    (["study", *VS, "--methods", "fem-p1-lumped", "mpm-p2-lumped-fft"], "unknown part 'fft'"),
+    (["study", *VS, "--compare-with", "x"], "--compare-with: invalid choice: 'x'"),
+    (["study", *VS, "--repeat", "abc"], "argument --repeat: invalid int value: 'abc'"),
+    (["study", "nope"], "unknown benchmark 'nope'"),
+    (["study", "colliding-disks"], "colliding-disks has no exact solution to study"),
+    (["study", *VS, "--out", "/proc/skfem-mpm-report"], "'/proc' is not writable"),
+    (["study", *VS, "--variant", "nope"], "variant must be one of"),
+    (["study", *VS, "--set", "E=x"], "--set E: value must be a number, got 'x'"),
+    (["bench", "--repeat", "abc"], "argument --repeat: invalid int value: 'abc'"),
+    (["bench", "--bogus"], "unrecognized arguments: --bogus"),
+    (["list", "extra"], "unrecognized arguments: extra"),
+    ([], "the following arguments are required: command"),
+]
+
+
+@pytest.fixture
+def nothing_runs(monkeypatch):
+    """Any step, study, same-model reference or benchmark fails the test."""
+    import importlib
+
+    import skfem_mpm.bench
+    import skfem_mpm.model_reference
+    import skfem_mpm.study
+
+    def ran(*args, **kwargs):
+        raise AssertionError("a bad command line started running")
+
+    simulate_module = importlib.import_module("skfem_mpm.solve.simulate")
+    monkeypatch.setenv("SKFEM_MPM_BACKEND", "numpy")  # every step through SCHEME_STEPS
+    monkeypatch.setattr(simulate_module, "SCHEME_STEPS",
+                        {k: ran for k in simulate_module.SCHEME_STEPS})
+    for module, name in ((skfem_mpm.study, "convergence"),
+                         (skfem_mpm.model_reference, "model_reference"),
+                         (skfem_mpm.bench, "main")):
+        monkeypatch.setattr(module, name, ran)
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="the /proc and /sys cases need Linux")
+@pytest.mark.parametrize("argv, fragment", HOSTILE_ARGV, ids=[" ".join(a) or "(none)"
+                                                             for a, _ in HOSTILE_ARGV])
+def test_a_hostile_command_line_is_refused_before_anything_runs(argv, fragment, capsys,
+                                                                 nothing_runs):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("skfem-mpm: error:") and fragment in err, err
+
+
+def test_the_command_line_probe_counts_at_least_as_many_cases_as_the_issue():
+    assert len(HOSTILE_ARGV) >= 36

@@ -10,6 +10,7 @@ from numpy.linalg import LinAlgError
 from ..errors import InvalidState, SimulationError
 from ..kernels import serial
 from ..scene import Scene
+from ..validation import can_write_in
 from .method import Method
 from .result import Recorder
 from .compiled import CompiledExecutor, compiled_executor_applies
@@ -44,7 +45,7 @@ def _check_checkpoint(checkpoint):
         raise ValueError(f"checkpoint path {os.fspath(path)!r} is a folder; give a file "
                          f"name such as {os.path.join(os.fspath(path), 'run.npz')!r}")
     folder = os.path.dirname(os.path.abspath(os.fspath(path)))
-    if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+    if not os.path.isdir(folder) or not can_write_in(folder):
         raise ValueError(f"checkpoint path {os.fspath(path)!r}: folder {folder!r} does not "
                          f"exist or is not writable (it is checked before the first step)")
     return path, _check_every("checkpoint every_steps", every)
