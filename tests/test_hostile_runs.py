@@ -91,15 +91,21 @@ def test_a_checkpoint_path_that_is_a_folder_is_refused_before_the_first_step(tmp
 
 
 # ----------------------------------------------------------- handed out
+def _arrays(p):
+    arrays = {k: getattr(p, k) for k in ("x", "v", "u", "stress", "V", "F")
+              if getattr(p, k) is not None}
+    arrays.update({f"state.{k}": a for k, a in p.state.items()})
+    return arrays
+
+
 def _kept_states(scene, method):
+    """What each callback was handed: the Particles object, its arrays and
+    copies of them."""
     kept = []
 
     def keep(step, state):
         p = state.particles
-        arrays = {k: getattr(p, k) for k in ("x", "v", "u", "stress", "V", "F")
-                  if getattr(p, k) is not None}
-        arrays.update({f"state.{k}": a for k, a in p.state.items()})
-        kept.append({k: (a, a.copy()) for k, a in arrays.items()})
+        kept.append((p, {k: (a, a.copy()) for k, a in _arrays(p).items()}))
 
     r = simulate(scene, method, callback=keep)
     return r, kept
@@ -128,9 +134,13 @@ def test_particles_handed_to_a_callback_are_never_written_again(which, options):
              "2d-neo": lambda: block_2d(NeoHookean(100.0, 0.3)),
              "plastic-1d": lambda: plastic(1), "plastic-2d": lambda: plastic(2)}[which]()
     r, kept = _kept_states(scene, Method(backend="numba", **options))
-    changed = [(i, k) for i, arrays in enumerate(kept) for k, (a, copy) in arrays.items()
+    changed = [(i, k) for i, (_, arrays) in enumerate(kept) for k, (a, copy) in arrays.items()
                if not np.array_equal(a, copy)]
     assert not changed, f"{len(changed)} handed-out arrays changed, first {changed[:3]}"
+    # nor is the Particles object handed out given other arrays
+    rebound = [(i, k) for i, (p, arrays) in enumerate(kept) for k, a in _arrays(p).items()
+               if k not in arrays or a is not arrays[k][0]]
+    assert not rebound, f"{len(rebound)} handed-out attributes re-bound, first {rebound[:3]}"
     final = {k: getattr(r.particles, k).copy() for k in ("x", "v", "stress")}
     simulate(scene, Method(backend="numba", **options))  # another run on the same kernels
     for k, a in final.items():
