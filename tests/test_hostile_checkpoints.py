@@ -246,6 +246,29 @@ def test_a_callable_is_compared_by_name():
     assert digest(lambda t, *, _v=np.ones(1): _v) != digest(lambda t, *, _v=np.zeros(1): _v)
 
 
+def _tau_a(t):
+    return 0.1
+
+
+def _tau_b(t):
+    return 0.1
+
+
+def test_a_checkpoint_of_a_scene_with_another_callable_is_refused(tmp_path):
+    """Through a restart: a traction tau(t) given by another function (same
+    body, other name) is refused naming the effect; the same function
+    continues the run. (A changed body under the same name is not
+    detected: README, "Reliability".)"""
+    path = tmp_path / "run.npz"
+    write_genuine(path, lambda: scene_1d(tau=_tau_a))
+    with pytest.raises(ValueError, match=r"different scene or method: effect 2 \(Traction\) "
+                                         r"differ"):
+        restart(path, lambda: scene_1d(tau=_tau_b))
+    full = simulate(scene_1d(tau=_tau_a), Method(**NUMPY), save_every=2)
+    assert np.array_equal(restart(path, lambda: scene_1d(tau=_tau_a)).particles.x,
+                          full.particles.x)
+
+
 # ---------------------------------------------------------------- crafted
 def _npy_header(shape, dtype="<f8"):
     """The bytes of a .npy header announcing ``shape`` (no data follows)."""
