@@ -154,8 +154,7 @@ def check_checkpoint(state, data):
     for key in ("X", "V0", "m", "body"):
         if not np.array_equal(data[key], getattr(fresh, key)[index]):
             c.fail(key, "differs from the scene's particles (it never changes in a run)")
-    extent = float(np.max(np.ptp(grid.mesh.p, axis=1)))
-    volume = float(np.prod(np.ptp(grid.mesh.p, axis=1)))
+    extent, volume = _grid_extent(grid)
     if data["V"].max() > volume:
         c.fail("V", f"holds a volume {data['V'].max():.6g} above the grid's {volume:.6g}")
     drift = np.abs(x - data["X"] - data["u"]).max()
@@ -239,6 +238,13 @@ def check_checkpoint(state, data):
         c.fail(unknown[0], "is not an array this version writes")
 
 
+def _grid_extent(grid):
+    """The grid's largest side and its volume (bounds of positions and
+    particle volumes)."""
+    sides = np.ptp(grid.mesh.p, axis=1)
+    return float(np.max(sides)), float(np.prod(sides))
+
+
 def _check_records(c, data, state, fresh, n0, dim, known):
     """The saves recorded before the checkpoint."""
     times = c.array("rec_times", "f", (None,), low=0.0, high=state.scene.t_end)
@@ -254,6 +260,7 @@ def _check_records(c, data, state, fresh, n0, dim, known):
     # the output fields (mass, volume, body id) of checkpoints that hold them
     shapes.update({name: () for name in OUTPUT_FIELDS if f"rec_n_{name}" in data})
     shapes.update({name: fresh.state[name].shape[1:] for name in rec_names})
+    extent, volume = _grid_extent(state.grid)
     sizes0 = None
     for name, shape in shapes.items():
         prefix = ("rec_n_", "rec_") if name in HISTORY_FIELDS + OUTPUT_FIELDS \
@@ -274,10 +281,20 @@ def _check_records(c, data, state, fresh, n0, dim, known):
             values = c.array(prefix[1] + name, "f", (total,) + shape)
         known.update(prefix[0] + name for _ in (0,))
         known.add(prefix[1] + name)
-        if name == "X" and not np.array_equal(values, fresh.X[data["rec_index"]]):
-            c.fail("rec_X", "differs from the scene's reference positions")
+        # what a run never changes (reference positions, masses, bodies)
+        # and the bounds of the current state hold at every save too
+        if name in ("X", "m", "body") and \
+                not np.array_equal(values, getattr(fresh, name)[data["rec_index"]]):
+            c.fail(prefix[1] + name, "differs from the scene's particles (it never changes "
+                   "in a run)")
         if name == "x" and not state.grid.inside(values).all():
             c.fail("rec_x", "holds positions outside the grid")
+        if name == "V" and values.max() > volume:
+            c.fail("rec_V", f"holds a volume {values.max():.6g} above the grid's "
+                   f"{volume:.6g}")
+    drift = np.abs(data["rec_x"] - data["rec_X"] - data["rec_u"]).max()
+    if not drift <= 1e-6 * extent:
+        c.fail("rec_u", f"is not x - X at every save (they differ by {drift:.3g})")
     for name in ENERGY_FIELDS:
         c.array(f"rec_e_{name}", "f", (k,))
         known.add(f"rec_e_{name}")
