@@ -294,6 +294,23 @@ def test_a_singular_consistent_mass_is_an_invalid_state_not_a_bare_error():
         system.solve(np.ones((n, 1)), np.zeros((n, 1)), "velocity")
 
 
+def test_a_consistent_mass_cg_that_does_not_converge_is_an_invalid_state():
+    """The reference path's CG (mass_solver="cg") on a singular mass with a
+    right-hand side outside its range: InvalidState (simulate turns it into
+    SimulationError with the last good state), not NaN velocities."""
+    import scipy.sparse as sp
+
+    from skfem_mpm.errors import InvalidState
+    from skfem_mpm.solve.grid_system import Constraints, GridSystem
+
+    grid = SplineGrid.line(0.0, 1.0, 4, 2)
+    n = grid.ndofs
+    M = sp.csr_matrix(np.ones((n, n)))
+    system = GridSystem(np.ones(n), Constraints(grid, []), M, None, 0.0, "cg")
+    with np.errstate(all="ignore"), pytest.raises(InvalidState, match="did not converge"):
+        system.solve(np.arange(n, dtype=float)[:, None], np.zeros((n, 1)), "velocity")
+
+
 def test_a_checkpoint_folder_that_does_not_exist_is_refused_before_the_first_step(tmp_path):
     from skfem_mpm.benchmarks import get_benchmark
 
