@@ -117,6 +117,46 @@ def test_callers_load_from_the_cache_in_a_fresh_process(tmp_path):
     assert run() == (19.0, 1, 0)  # loaded: the kernel's symbol registered on load
 
 
+def test_a_caller_compiled_on_cached_code_keeps_its_hooks(tmp_path):
+    """A function compiled in one process, loaded from the cache in a
+    second where a new caller links it, and that caller loaded in a third:
+    the kernel's symbol must be registered there too (numba rebuilds a
+    cached library without its reload hooks: by_symbol gives them back)."""
+    (tmp_path / "kern2_mod.py").write_text(textwrap.dedent("""
+        from numba import njit
+
+        @njit(cache=True)
+        def doubled_sum(a):
+            return 2.0 * a.sum()
+        """))
+    (tmp_path / "inner_mod.py").write_text(textwrap.dedent("""
+        from numba import njit
+        from skfem_mpm.kernels.by_symbol import call
+        from kern2_mod import doubled_sum
+
+        @njit(cache=True)
+        def inner(a):
+            return call(doubled_sum, a)
+        """))
+    (tmp_path / "outer_mod.py").write_text(textwrap.dedent("""
+        from numba import njit
+        from inner_mod import inner
+
+        @njit(cache=True)
+        def outer(a):
+            return inner(a) + 1.0
+        """))
+    inner_only = "import numpy as np\nfrom inner_mod import inner\nprint(inner(np.ones(3)))"
+    assert _fresh_process(tmp_path, inner_only) == ["6.0"]  # inner compiled and cached
+    both = textwrap.dedent("""
+        import numpy as np
+        from outer_mod import outer
+        print(outer(np.ones(3)), outer.stats.cache_hits.total())
+        """)
+    assert _fresh_process(tmp_path, both) == ["7.0", "0"]  # outer compiled on cached inner
+    assert _fresh_process(tmp_path, both) == ["7.0", "1"]  # outer loaded: hooks kept
+
+
 def test_one_caller_serves_kernels_at_run_time_addresses(tmp_path):
     """call_at: the kernel is data; one compiled caller runs either kernel
     of the same argument types, recorded at compile time and again when the

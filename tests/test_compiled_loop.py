@@ -258,6 +258,34 @@ def test_consistent_mass_with_parallel_kernels(monkeypatch):
     assert looped.counts["compiled_loop_steps"] >= 20
 
 
+# ----------------------------------------------------------------------- rk4
+# Classical Runge-Kutta in the loop: four stages of particles to grid, grid
+# solves and the rates gather, the stage combinations of kernels.staging;
+# the reactions of the first stage. Lumped and consistent mass, 1D and 2D.
+RK4_CASES = [dict(scheme="rk4", mass="lumped", degree=2, dim=1),
+             dict(scheme="rk4", mass="lumped", degree=1, dim=2),
+             dict(scheme="rk4", mass="consistent", degree=3, dim=1),
+             dict(scheme="rk4", mass="consistent", degree=2, dim=2)]
+
+
+@pytest.mark.parametrize("case", RK4_CASES, ids=lambda c: "-".join(map(str, c.values())))
+def test_rk4_gives_the_executors_bits(monkeypatch, case):
+    looped = check_mass_case(monkeypatch, case)
+    assert looped.counts["compiled_loop_steps"] >= 20
+    assert any(np.any(r != 0) for r in looped.reactions[-1].values())  # compared above
+
+
+def test_rk4_particles_leaving_are_removed_as_without_the_loop(monkeypatch):
+    scene, _ = falling_block("remove")
+    method = Method(scheme="rk4", on_exit="remove")
+    looped = simulate(scene, method, save_every=10)
+    stepped = without_loop(monkeypatch, scene, method, save_every=10)
+    assert looped.counts["removed"] == stepped.counts["removed"] > 0
+    assert 0 < looped.counts["compiled_loop_steps"] < looped.counts["steps"]
+    for a, b in zip(looped.history["x"], stepped.history["x"]):
+        assert np.array_equal(a, b)
+
+
 def test_what_the_loop_leaves_to_the_executor():
     case = mass_case(MASS_CASES[0])
     scene = scene_for(case, steps=5)

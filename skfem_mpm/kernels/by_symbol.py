@@ -23,10 +23,13 @@ argument types, so the caller's cached machine code stays valid across
 processes; the caller's library carries a reload hook (numba's
 ``reload_init``, run before cached code is loaded) that compiles or loads
 the kernel in the new process and registers its address under that name.
+A function that links a caller compiled earlier inherits its hooks, also
+when that caller was loaded from the cache (:func:`_keep_reload_hooks`).
 """
 import functools
 import hashlib
 import importlib
+import inspect
 
 from llvmlite import binding as llvm
 from numba import types
@@ -36,6 +39,39 @@ from numba.extending import intrinsic
 __all__ = ["ARGUMENT_TYPES", "call", "call_at", "native_address", "register"]
 
 _ADDRESSES = {}  # symbol name -> the address registered in this process
+
+
+def _keep_reload_hooks():
+    """Give a function loaded from numba's cache its reload hooks back.
+
+    numba runs a cached function's hooks when it loads it, but the code
+    library it rebuilds starts with none (``CompileResult._rebuild`` in
+    numba/core/compiler.py), while a function compiled later that calls
+    the loaded one inherits the hooks of the libraries it links
+    (``CPUCodeLibrary._finalize_specific``): its own cache entry would then
+    lack them, and in a third process the symbols it calls would be
+    unresolved (LLVM aborts: "Symbol not found"). Wrapping ``_rebuild``
+    puts the loaded hooks on the rebuilt library."""
+    from numba.core.compiler import CompileResult
+
+    rebuild = CompileResult._rebuild.__func__
+    if getattr(rebuild, "keeps_reload_hooks", False):
+        return
+    parameters = inspect.signature(rebuild)
+
+    @functools.wraps(rebuild)
+    def rebuild_with_hooks(cls, *args, **kwargs):
+        result = rebuild(cls, *args, **kwargs)
+        hooks = parameters.bind(cls, *args, **kwargs).arguments.get("reload_init")
+        if hooks:
+            result.library._reload_init.update(hooks)
+        return result
+
+    rebuild_with_hooks.keeps_reload_hooks = True
+    CompileResult._rebuild = classmethod(rebuild_with_hooks)
+
+
+_keep_reload_hooks()
 
 
 def symbol_name(module, name, argtypes):

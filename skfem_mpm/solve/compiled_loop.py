@@ -38,9 +38,9 @@ import time
 import numba
 import numpy as np
 
-from ..kernels import by_symbol, fast_dof, kronecker, mpm, scatter, tiny_mass
+from ..kernels import by_symbol, fast_dof, kronecker, mpm, scatter, staging, tiny_mass
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
-from ..kernels.gather import g2p_kernel
+from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
 from ..kernels.records import grid_record
 from ..kernels.scatter import g2p2g_kernel, p2g_kernel
@@ -68,6 +68,7 @@ _GRID_KERNELS = {
     "MASS_WEIGHTED_SUM": mpm.mass_weighted_sum,
     "SMALL_MASS_1D": mpm.small_mass_1d,
     "SMALL_MASS_2D": mpm.small_mass_2d,
+    "COMBINE_STAGES": staging.combine_stages,
     # consistent mass (compiled_loop_mass)
     "CONSISTENT_1D": mpm.consistent_1d,
     "CONSISTENT_2D": mpm.consistent_2d,
@@ -90,7 +91,7 @@ def loop_applies(state, executor):
     reasons = (
         (not ENABLED, "the compiled loop is switched off (compiled_loop.ENABLED)"),
         (executor is None or executor.path != "fast", "not the compiled executor"),
-        (m.scheme not in ("musl", "usl", "cd"), f"scheme {m.scheme}"),
+        (m.scheme not in ("musl", "usl", "cd", "rk4"), f"scheme {m.scheme}"),
         (not executor.fused if executor is not None else True,
          "a material other than one linear elastic body"),
         (bool(executor.other_forces) if executor is not None else True,
@@ -154,7 +155,8 @@ def _transfer_kernels(dim, p, parallel, window):
     """The run's transfer kernels under the names the operations use."""
     return {"P2G": p2g_kernel(dim, p, window, parallel),
             "G2P2G": g2p2g_kernel(dim, p, window, parallel),
-            "G2P": g2p_kernel(dim, p, parallel)}
+            "G2P": g2p_kernel(dim, p, parallel),
+            "RATES": rates_kernel(dim, p, parallel)}
 
 
 def _at_address(label, func, site):
@@ -226,7 +228,8 @@ def loop_module(dim, parallel, window):
         "\n\n" + "\n\n".join(templates)
     # the operations' callees are not tracked by numba's cache: their
     # sources go into the file's name (kernels.generated.load hashes it)
-    depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass, fast_dof, by_symbol))
+    depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass,
+                                                     fast_dof, staging, by_symbol))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -279,7 +282,8 @@ class StepLoop:
             store_acc=cd, velocities_done=False, gravity_work=gravity_work, work=0.0,
             work_sum=np.zeros(dim), stop=0, handover=False,
             phase_ns=np.zeros(4, dtype=np.int64), nthreads=int(k.nthreads),
-            p2g_at=0, g2p2g_at=0, g2p_at=0)
+            p2g_at=0, g2p2g_at=0, g2p_at=0, rates_at=0)
+        fields.update(self._stage_arrays(n if self.scheme == "rk4" else 1, dim, fields))
         # consistent or hybrid mass: the run's mass system (None: lumped)
         self.cm = fields["cm"] = None if state.method.mass == "lumped" else \
             self._mass_system(state, k)
@@ -290,6 +294,22 @@ class StepLoop:
         self._loaded = None  # the particles whose arrays the run holds
         self._steps_per_call = 1  # parallel: grows to CALL_SECONDS of steps
 
+    def _stage_arrays(self, n, dim, fields):
+        """The rk4 arrays of n particles (see compiled_loop_ops.FIELDS; other
+        schemes: n = 1, and the reactions read the step's own grid arrays)."""
+        empty, zeros = np.empty, np.zeros
+        stages = 4
+        arrays = dict(
+            x_stage=empty((n, dim)), v_stage=empty((n, dim)), u_stage=empty((n, dim)),
+            V_stage=empty(n), stress_stage=empty((n, dim, dim)), rate_x=zeros((stages, n, dim)),
+            rate_v=zeros((stages, n, dim)), rate_stress=zeros((stages, n, dim, dim)),
+            rate_V=zeros((stages, n)), rate_F=zeros((1, 1, 1, 1)), power=zeros(stages),
+            stage_weights=zeros(stages), next_stage=0)
+        for name in ("mass", "a", "force"):
+            own = fields[name]
+            arrays[f"reaction_{name}"] = empty(own.shape) if self.scheme == "rk4" else own
+        return arrays
+
     def _point_at_transfers(self, dim, degree, window):
         """Compile (or load) the loop, which records the argument types of
         its transfer calls, then compile (or load) this degree's transfer
@@ -298,7 +318,7 @@ class StepLoop:
         self._loop.compile((numba.typeof(self.run_state), numba.types.int64))
         kernels = _transfer_kernels(dim, degree, self.parallel, window)
         addresses = []
-        for label in ("P2G", "G2P2G", "G2P"):
+        for label in ("P2G", "G2P2G", "G2P", "RATES"):
             site = f"{self.module.VARIANT}:{label}"
             if site not in ARGUMENT_TYPES:
                 addresses.append(0)
@@ -375,6 +395,10 @@ class StepLoop:
             warm=zeros((2, nd, dim)), has_warm=zeros(2, dtype=np.bool_),
             warm_good=zeros((2, nd, dim)), has_good=zeros(2, dtype=np.bool_),
             hybrid=hybrid)
+        rk4 = method.scheme == "rk4"
+        for name in ("stencil", "fast"):
+            own = fields[name]
+            fields[f"reaction_{name}"] = np.zeros(own.shape) if rk4 else own
         self._groups = G
         return self.module.new_mass_system(*(fields[n] for n in self.module.MASS_FIELDS))
 

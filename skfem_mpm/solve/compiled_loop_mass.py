@@ -71,6 +71,9 @@ MASS_FIELDS = (
     "warm", "has_warm", "warm_good", "has_good",
     # hybrid mass: the acceleration is solved with the lumped mass
     "hybrid",
+    # the stencil and lumping fractions of the last step's reactions: the
+    # step's own, or with rk4 copies of its first stage's
+    "reaction_stencil", "reaction_fast",
 )
 
 
@@ -116,8 +119,15 @@ def commit_mass(cm):
 def mass_records(cm):
     """The warm starts of the last step taken, the groups that turned the
     fringe correction on, the stencil and lumping fractions of the last
-    step (for reactions)."""
-    return cm.warm_good, cm.has_good, cm.fringe_on, cm.stencil, cm.fast
+    step's reactions."""
+    return cm.warm_good, cm.has_good, cm.fringe_on, cm.reaction_stencil, cm.reaction_fast
+
+
+@njit(cache=True)
+def keep_stage_mass(cm):
+    """rk4: the first stage's stencil and lumping fractions, for the reactions."""
+    copy_into(cm.reaction_stencil, cm.stencil)
+    copy_into(cm.reaction_fast, cm.fast)
 
 
 @njit(cache=True)

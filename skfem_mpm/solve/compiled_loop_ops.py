@@ -40,7 +40,7 @@ Phase times (nanoseconds of the monotonic clock) add up in ``run.phase_ns``:
 """
 import numpy as np
 from numba import njit, types
-from numba.core.extending import overload_method
+from numba.core.extending import overload_attribute, overload_method
 from numba.experimental import structref
 
 from skfem_mpm.solve import schemes
@@ -77,7 +77,16 @@ FIELDS = (
     # consistent or hybrid mass: a MassSystem (None: lumped mass)
     "cm", "nthreads",
     # the native entry points of the run's degree's transfer kernels (call_at)
-    "p2g_at", "g2p2g_at", "g2p_at",
+    "p2g_at", "g2p2g_at", "g2p_at", "rates_at",
+    # rk4 (placeholders of one particle for the other schemes): the stage
+    # particles, the rates of the four stages (leading stage axis), each
+    # stage's power of the external forces, the weights times dt of a
+    # combination, the next stage's slot
+    "x_stage", "v_stage", "u_stage", "V_stage", "stress_stage", "rate_x", "rate_v",
+    "rate_stress", "rate_V", "rate_F", "power", "stage_weights", "next_stage",
+    # the grid arrays the reactions come from: the step's own (mass, a,
+    # force), or with rk4 copies of its first stage's
+    "reaction_mass", "reaction_a", "reaction_force",
 )
 
 
@@ -117,12 +126,13 @@ def new_run(*fields):
 
 
 @njit(cache=True)
-def set_transfers(run, p2g_at, g2p2g_at, g2p_at):
+def set_transfers(run, p2g_at, g2p2g_at, g2p_at, rates_at):
     """Point the run at its degree's transfer kernels (native entry points:
     kernels.by_symbol.native_address)."""
     run.p2g_at = p2g_at
     run.g2p2g_at = g2p2g_at
     run.g2p_at = g2p_at
+    run.rates_at = rates_at
 
 
 @njit(cache=True)
@@ -147,8 +157,10 @@ def set_work(run, work):
 @njit(cache=True)
 def reset_step_records(run):
     """Clear what a call of the loop reports: the stop flag, the most
-    tiny-mass dofs of a step and the phase times."""
+    tiny-mass dofs of a step and the phase times (and an rk4 step's stage
+    count, which a stopped step leaves behind)."""
     run.stop = 0
+    run.next_stage = 0
     run.handover = False
     run.small_max = 0
     run.phase_ns[:] = 0
@@ -163,8 +175,9 @@ def current(run):
 
 @njit(cache=True)
 def grid_arrays(run):
-    """The last step's lumped mass, acceleration and force (reactions)."""
-    return run.mass, run.a, run.force
+    """The lumped mass, acceleration and force of the last step's reactions
+    (rk4: of its first stage)."""
+    return run.reaction_mass, run.reaction_a, run.reaction_force
 
 
 @njit(cache=True)
@@ -175,13 +188,25 @@ def records(run):
 
 
 # ------------------------------------------------------------- operations
+@overload_attribute(RunType, "particles")
+def _particles(run):
+    """The current particles as the transfer kernels' record (x, v, u, m, V, stress)."""
+    return lambda run: (run.x, run.v, run.u, run.m, run.V, run.stress)
+
+
 @overload_method(RunType, "particles_to_grid")
 def _particles_to_grid(run, state):
+    return lambda run, state: run.scatter(run.particles)
+
+
+@overload_method(RunType, "scatter")
+def _scatter(run, particles):
     consistent = _consistent(run)
 
-    def impl(run, state):
+    def impl(run, particles):
+        """Lumped mass, momentum, force (and the consistent mass) of
+        ``particles``; the tiny-mass dofs counted."""
         t0 = monotonic_ns()
-        particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
         P2G(run.p2g_at, particles, run.grid, run.no_force, False, run.copies_p2g, run.touched_p2g)
         REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, run.mass, run.momentum, run.force,
                       run.mass_range)
@@ -203,7 +228,8 @@ def _particles_to_grid(run, state):
             if run.small_count > 0:  # the general grid system merges them
                 run.stop = 4
                 return run
-            call(assemble_mass, run.cm, run.x, run.m, run.degree, run.nbx, run.nby, run.x.shape[1])
+            call(assemble_mass, run.cm, particles[0], run.m, run.degree, run.nbx, run.nby,
+                 run.x.shape[1])
             run.phase_ns[3] += monotonic_ns() - t1
         return run
     return impl
@@ -378,9 +404,30 @@ def _update_stress(run, state, grid, velocity=None):
     return impl
 
 
+@njit(cache=True)
+def _advance(run):
+    """The new state becomes current; t += dt (the end time exactly at the last step)."""
+    run.x, run.x_new = run.x_new, run.x
+    run.v, run.v_new = run.v_new, run.v
+    run.u, run.u_new = run.u_new, run.u
+    run.V, run.V_new = run.V_new, run.V
+    run.stress, run.stress_new = run.stress_new, run.stress
+    run.step += 1
+    run.t = run.step * run.dt if run.step < run.n_steps else run.t_end
+
+
 @overload_method(RunType, "commit")
 def _commit(run, state, grid):
     consistent = _consistent(run)
+    if isinstance(grid, types.Float):  # rk4: ``grid`` is the step's external work
+        def impl(run, state, grid):
+            if run.stop:
+                return
+            if consistent and commit_mass(run.cm):  # the fringe correction is on
+                run.handover = True
+            run.work += grid
+            _advance(run)
+        return impl
 
     def impl(run, state, grid):
         if run.stop:
@@ -390,14 +437,134 @@ def _commit(run, state, grid):
         if run.gravity_work:  # see Kernels.gravity_work
             MASS_WEIGHTED_SUM(run.mass, run.v_grid, run.work_sum)
             run.work += WORK_INCREMENT(run.work_sum, run.dt, run.gravity)
-        run.x, run.x_new = run.x_new, run.x
-        run.v, run.v_new = run.v_new, run.v
-        run.u, run.u_new = run.u_new, run.u
-        run.V, run.V_new = run.V_new, run.V
-        run.stress, run.stress_new = run.stress_new, run.stress
-        run.step += 1
-        run.t = run.step * run.dt if run.step < run.n_steps else run.t_end
+        _advance(run)
     return impl
+
+
+# ------------------------------------------------------------- rk4 stages
+# The Runge-Kutta operations of skfem_mpm.solve.compiled_runge_kutta (its
+# docstring gives the method): a stage's rates are an int, their slot in
+# the rate arrays; the stage particles a record like ``run.particles``.
+@overload_method(RunType, "stage_rates")
+def _stage_rates(run, state, particles, c, reactions=False):
+    consistent = _consistent(run)
+
+    def impl(run, state, particles, c, reactions=False):
+        """R(t + c dt, particles): particles to grid, M v = P and M a = f,
+        the rates gather; the first stage keeps its grid arrays for the
+        reactions."""
+        slot = run.next_stage
+        run.next_stage += 1
+        if run.stop:
+            return slot
+        run.scatter(particles)
+        if run.stop:
+            return slot
+        t0 = monotonic_ns()
+        run.prepare_grid()
+        if not consistent:
+            run.lumped_solve(run.momentum, run.no_gravity, run.v_old)
+            run.lumped_solve(run.force, run.gravity, run.a)
+        elif run.cm.hybrid:  # lumped acceleration (gravity is in the force)
+            run.mass_solve(1, run.momentum, 1, run.v_old, run.momentum, 1, run.v_old)
+            run.lumped_solve(run.force, run.no_gravity, run.a)
+        else:
+            run.mass_solve(2, run.force, 0, run.a, run.momentum, 1, run.v_old)
+        if run.stop:
+            return slot
+        if reactions:
+            copy_into(run.reaction_mass, run.mass)
+            copy_into(run.reaction_a, run.a)
+            copy_into(run.reaction_force, run.force)
+            if consistent:
+                keep_stage_mass(run.cm)
+        t1 = monotonic_ns()
+        RATES(run.rates_at, particles, run.grid, run.a, run.v_old, (True, run.lam, run.mu),
+              run.nthreads, run.rate_x[slot], run.rate_v[slot], run.L, run.rate_stress[slot],
+              run.rate_V[slot])
+        power = 0.0
+        if run.gravity_work:  # see Kernels.gravity_work: the power m v . g
+            MASS_WEIGHTED_SUM(run.mass, run.v_old, run.work_sum)
+            power = WORK_INCREMENT(run.work_sum, 1.0, run.gravity)
+        run.power[slot] = power
+        t2 = monotonic_ns()
+        run.phase_ns[1] += t1 - t0
+        run.phase_ns[2] += t2 - t1
+        return slot
+    return impl
+
+
+@overload_method(RunType, "combine_into")
+def _combine_into(run, rates, weights, x, u, v, stress, V):
+    def impl(run, rates, weights, x, u, v, stress, V):
+        """(x, u, v, stress, V) = y_n + dt sum_s w_s k_s (kernels.staging)."""
+        c = run.stage_weights
+        c[:] = 0.0
+        for s in range(len(rates)):
+            c[rates[s]] += weights[s] * run.dt
+        COMBINE_STAGES(c, run.x, run.u, run.v, run.stress, run.V, run.L, run.rate_x,
+                       run.rate_v, run.rate_stress, run.rate_V, run.rate_F, True, False, x, u,
+                       v, stress, V, run.L, run.nthreads)
+    return impl
+
+
+@overload_method(RunType, "stage")
+def _stage(run, state, rates, weights):
+    def impl(run, state, rates, weights):
+        """The stage particles y_n + dt sum_s w_s k_s; a volume <= 0 stops."""
+        stage = (run.x_stage, run.v_stage, run.u_stage, run.m, run.V_stage, run.stress_stage)
+        if run.stop:
+            return stage
+        t0 = monotonic_ns()
+        run.combine_into(rates, weights, run.x_stage, run.u_stage, run.v_stage,
+                         run.stress_stage, run.V_stage)
+        for i in range(run.V_stage.shape[0]):
+            if not run.V_stage[i] > 0.0:
+                run.stop = 2
+        run.phase_ns[2] += monotonic_ns() - t0
+        return stage
+    return impl
+
+
+@overload_method(RunType, "combine")
+def _combine(run, state, rates, weights):
+    def impl(run, state, rates, weights):
+        """The step's new state y_n + dt sum_s b_s k_s and its external work
+        dt sum_s b_s P_s; a volume <= 0, a non-finite value or a particle
+        outside the grid stops (the executor takes the step)."""
+        run.next_stage = 0
+        if run.stop:
+            return 0.0
+        t0 = monotonic_ns()
+        run.combine_into(rates, weights, run.x_new, run.u_new, run.v_new, run.stress_new,
+                         run.V_new)
+        if not _valid_state(run.x_new, run.v_new, run.stress_new, run.V_new, run.grid[0]):
+            run.stop = 2
+        run.phase_ns[2] += monotonic_ns() - t0
+        power = 0.0
+        for s in range(len(rates)):
+            power += weights[s] * run.power[rates[s]]
+        return run.dt * power
+    return impl
+
+
+@njit(cache=True)
+def _valid_state(x, v, stress, V, axes):
+    """All volumes > 0, positions, velocities and stresses finite, every
+    particle inside the grid (breakpoints[0] <= x <= breakpoints[-1])."""
+    n, dim = x.shape
+    for i in range(n):
+        if not V[i] > 0.0:
+            return False
+        for a in range(dim):
+            lo = axes[a][0][0]
+            hi = axes[a][0][-1]
+            if not (x[i, a] >= lo and x[i, a] <= hi and np.isfinite(v[i, a])):
+                return False
+            for b in range(dim):
+                if not np.isfinite(stress[i, a, b]):
+                    return False
+    return True
 
 
 # ------------------------------------------------------------------ loops
@@ -438,4 +605,16 @@ def run_cd(run, n):
     return n
 
 
-LOOPS = {"musl": run_musl, "usl": run_usl, "cd": run_cd}
+@njit(cache=True)
+def run_rk4(run, n):
+    """Up to n classical Runge-Kutta steps; returns the number taken."""
+    for k in range(n):
+        schemes.step_rk4(run, run)
+        if run.stop:
+            return k
+        if run.handover:
+            return k + 1
+    return n
+
+
+LOOPS = {"musl": run_musl, "usl": run_usl, "cd": run_cd, "rk4": run_rk4}

@@ -41,8 +41,10 @@ and grid-to-particles pass (:mod:`skfem_mpm.solve.runge_kutta`). Its own
 operations:
 
     stage_rates            k = (N v, N a, the stress or F rate, dV/dt) of the
-                           given particles at time t (v: M v = P, a: M a = f)
-    stage                  the particles y_n + dt sum_s w_s k_s
+                           given particles at time t (v: M v = P, a: M a = f);
+                           the first stage's call (``reactions``) sets the reactions
+    stage                  the particles y_n + dt sum_s w_s k_s (rates and
+                           weights: tuples, one entry per stage)
     combine                the step's new state y_n + dt sum_s b_s k_s and its
                            external work
 """
@@ -103,12 +105,13 @@ def step_usf(ops, state):
     return grid
 
 
+@register_jitable
 def step_rk4(ops, state):
-    k1 = ops.stage_rates(state, state.particles, 0.0, reactions=True)
-    k2 = ops.stage_rates(state, ops.stage(state, [k1], [0.5]), 0.5)
-    k3 = ops.stage_rates(state, ops.stage(state, [k2], [0.5]), 0.5)
-    k4 = ops.stage_rates(state, ops.stage(state, [k3], [1.0]), 1.0)
-    step = ops.combine(state, [k1, k2, k3, k4], [1 / 6, 1 / 3, 1 / 3, 1 / 6])
+    k1 = ops.stage_rates(state, state.particles, 0.0, True)
+    k2 = ops.stage_rates(state, ops.stage(state, (k1,), (0.5,)), 0.5)
+    k3 = ops.stage_rates(state, ops.stage(state, (k2,), (0.5,)), 0.5)
+    k4 = ops.stage_rates(state, ops.stage(state, (k3,), (1.0,)), 1.0)
+    step = ops.combine(state, (k1, k2, k3, k4), (1 / 6, 1 / 3, 1 / 3, 1 / 6))
     ops.commit(state, step)
     return step
 
