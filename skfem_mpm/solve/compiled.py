@@ -570,7 +570,8 @@ class CompiledExecutor(CompiledRungeKutta):
             state.external_work += grid.work
         else:
             if self.gravity_work and self.recon is not None:  # grid.mass is not the particles'
-                state.external_work += float((p.m @ (new.u - p.u)) @ self.gravity)
+                state.external_work += self.kernels.gravity_work(p.m, new.u - p.u, 1.0,
+                                                                 self.gravity)
             elif self.gravity_work:
                 state.external_work += self.kernels.gravity_work(grid.mass, grid.velocity, dt,
                                                                  self.gravity)

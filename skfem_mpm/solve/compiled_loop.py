@@ -38,7 +38,8 @@ import time
 import numba
 import numpy as np
 
-from ..kernels import by_symbol, fast_dof, kronecker, mpm, scatter, staging, tiny_mass
+from ..kernels import (by_symbol, fast_dof, gauss_rule, kronecker, mpm, scatter, spline_1d,
+                       staging, tiny_mass)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
@@ -57,7 +58,8 @@ the tests check that both give the same bits)."""
 
 _HERE = os.path.dirname(os.path.abspath(__file__))
 _TEMPLATES = [os.path.join(_HERE, name)
-              for name in ("compiled_loop_ops.py", "compiled_loop_mass.py")]
+              for name in ("compiled_loop_ops.py", "compiled_loop_mass.py",
+                           "compiled_loop_reconstruct.py")]
 
 # the grid kernels the operations call, under the names the operations use
 _GRID_KERNELS = {
@@ -69,6 +71,9 @@ _GRID_KERNELS = {
     "SMALL_MASS_1D": mpm.small_mass_1d,
     "SMALL_MASS_2D": mpm.small_mass_2d,
     "COMBINE_STAGES": staging.combine_stages,
+    # reconstruction (compiled_loop_reconstruct)
+    "GAUSS_RULE_1D": gauss_rule.gauss_rule_1d,
+    "NOT_A_KNOT_SPLINE": spline_1d.not_a_knot_spline,
     # consistent mass (compiled_loop_mass)
     "CONSISTENT_1D": mpm.consistent_1d,
     "CONSISTENT_2D": mpm.consistent_2d,
@@ -88,9 +93,12 @@ def loop_applies(state, executor):
     ``executor`` (a :class:`~skfem_mpm.solve.compiled.CompiledExecutor`),
     else (False, the first reason it cannot)."""
     m = state.method
+    recon = getattr(executor, "recon", None)
     reasons = (
         (not ENABLED, "the compiled loop is switched off (compiled_loop.ENABLED)"),
-        (executor is None or executor.path != "fast", "not the compiled executor"),
+        (executor is None or not executor.path.startswith("fast"), "not the compiled executor"),
+        (recon is not None and (recon.name, recon.dim) != ("spline", 1),
+         f"reconstruction {m.reconstruction} in {state.grid.dim}D"),
         (m.scheme not in ("musl", "usl", "cd", "rk4"), f"scheme {m.scheme}"),
         (not executor.fused if executor is not None else True,
          "a material other than one linear elastic body"),
@@ -229,7 +237,8 @@ def loop_module(dim, parallel, window):
     # the operations' callees are not tracked by numba's cache: their
     # sources go into the file's name (kernels.generated.load hashes it)
     depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass,
-                                                     fast_dof, staging, by_symbol))
+                                                     fast_dof, staging, gauss_rule, spline_1d,
+                                                     by_symbol))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -281,9 +290,13 @@ class StepLoop:
             n_steps=int(state.n_steps), t_end=float(state.scene.t_end), vfactor=1.0,
             store_acc=cd, velocities_done=False, gravity_work=gravity_work, work=0.0,
             work_sum=np.zeros(dim), stop=0, handover=False,
-            phase_ns=np.zeros(4, dtype=np.int64), nthreads=int(k.nthreads),
+            phase_ns=np.zeros(5, dtype=np.int64), nthreads=int(k.nthreads),
             p2g_at=0, g2p2g_at=0, g2p_at=0, rates_at=0)
         fields.update(self._stage_arrays(n if self.scheme == "rk4" else 1, dim, fields))
+        recon = executor.recon
+        fields.update(rc=None if recon is None else self._reconstruction(recon, p),
+                      no_acceleration=np.zeros((nd, dim)),
+                      displacement=empty((n if recon is not None else 1, dim)))
         # consistent or hybrid mass: the run's mass system (None: lumped)
         self.cm = fields["cm"] = None if state.method.mass == "lumped" else \
             self._mass_system(state, k)
@@ -309,6 +322,23 @@ class StepLoop:
             own = fields[name]
             arrays[f"reaction_{name}"] = empty(own.shape) if self.scheme == "rk4" else own
         return arrays
+
+    def _reconstruction(self, recon, p):
+        """The reconstruction data of the run (compiled_loop_reconstruct), with
+        the rule's constants of the executor's CompiledReconstruction."""
+        n, dim = p.n, p.dim
+        empty = np.empty
+        fields = dict(
+            ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
+            values=empty((n, 1 + dim + dim * dim)), rho=empty(n),
+            order=empty(0, dtype=np.int64), piece_particles=empty(0, dtype=np.int64),
+            piece_points=empty(0, dtype=np.int64), xg=empty(0), fit=empty((0, 1 + dim + dim * dim)),
+            xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),
+            sq=empty((0, dim, dim)), momentum_values=empty((n, dim)),
+            momentum_fit=empty((0, dim)), no_stress=empty((0, dim, dim)),
+            point_velocities=empty((0, dim)))
+        return self.module.new_reconstruction(
+            *(fields[name] for name in self.module.RECONSTRUCTION_FIELDS))
 
     def _point_at_transfers(self, dim, degree, window):
         """Compile (or load) the loop, which records the argument types of
@@ -503,7 +533,8 @@ class StepLoop:
             mass, a, force = mod.grid_arrays(run)
             gravity = self.executor.gravity if self.executor.gravity_work else None
             state.defer_reactions(state.constraints, mass, a, force, gravity)
-        for phase, ns in zip(("p2g", "solve", "g2p", "mass_matrix"), phase_ns.tolist()):
+        for phase, ns in zip(("p2g", "solve", "g2p", "mass_matrix", "reconstruct"),
+                             phase_ns.tolist()):
             if ns:
                 state.timer.add(phase, ns * 1e-9)
         state.small_dofs_max = max(state.small_dofs_max, int(small_max))

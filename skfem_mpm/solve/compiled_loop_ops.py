@@ -36,7 +36,7 @@ what happened. ``run.handover``: the step was taken, and the next ones
 need the executor (the fringe correction turned on).
 
 Phase times (nanoseconds of the monotonic clock) add up in ``run.phase_ns``:
-0 p2g, 1 solve, 2 g2p, 3 mass_matrix.
+0 p2g, 1 solve, 2 g2p, 3 mass_matrix, 4 reconstruct.
 """
 import numpy as np
 from numba import njit, types
@@ -87,12 +87,21 @@ FIELDS = (
     # the grid arrays the reactions come from: the step's own (mass, a,
     # force), or with rk4 copies of its first stage's
     "reaction_mass", "reaction_a", "reaction_force",
+    # reconstruction: a Reconstruction (None: particle quadrature), zero
+    # grid accelerations, the particle displacements of a step (the work of
+    # gravity: placeholder of one particle without reconstruction)
+    "rc", "no_acceleration", "displacement",
 )
 
 
 def _consistent(run):
     """Whether the run (its numba type) has a consistent-mass system."""
     return not isinstance(run.field_dict["cm"], types.NoneType)
+
+
+def _reconstructed(run):
+    """Whether the run (its numba type) reconstructs its particle data."""
+    return not isinstance(run.field_dict["rc"], types.NoneType)
 
 
 class Run(structref.StructRefProxy):
@@ -202,12 +211,26 @@ def _particles_to_grid(run, state):
 @overload_method(RunType, "scatter")
 def _scatter(run, particles):
     consistent = _consistent(run)
+    reconstructed = _reconstructed(run)
 
     def impl(run, particles):
         """Lumped mass, momentum, force (and the consistent mass) of
-        ``particles``; the tiny-mass dofs counted."""
+        ``particles``, or with reconstruction of the quadrature points of
+        their fitted fields; the tiny-mass dofs counted."""
         t0 = monotonic_ns()
-        P2G(run.p2g_at, particles, run.grid, run.no_force, False, run.copies_p2g, run.touched_p2g)
+        if reconstructed:
+            if not call(reconstruct_points, run.rc, particles[0], particles[1], run.m,
+                        particles[4], particles[5]):
+                run.stop = 5  # a fitted density 0: the executor takes the step
+                return run
+            rc = run.rc
+            points = (rc.xq, rc.vq, rc.vq, rc.mq, rc.Vq, rc.sq)
+            t_fit = monotonic_ns()
+            run.phase_ns[4] += t_fit - t0
+            t0 = t_fit
+        else:
+            points = particles
+        P2G(run.p2g_at, points, run.grid, run.no_force, False, run.copies_p2g, run.touched_p2g)
         REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, run.mass, run.momentum, run.force,
                       run.mass_range)
         run.small_count = 0  # tiny-mass dofs (see Kernels.small_mass): merged solves
@@ -228,7 +251,7 @@ def _scatter(run, particles):
             if run.small_count > 0:  # the general grid system merges them
                 run.stop = 4
                 return run
-            call(assemble_mass, run.cm, particles[0], run.m, run.degree, run.nbx, run.nby,
+            call(assemble_mass, run.cm, points[0], points[3], run.degree, run.nbx, run.nby,
                  run.x.shape[1])
             run.phase_ns[3] += monotonic_ns() - t1
         return run
@@ -362,13 +385,24 @@ def _solve_projected_velocity(run):
 
 @overload_method(RunType, "project_velocity")
 def _project_velocity(run, state, grid):
+    reconstructed = _reconstructed(run)
+
     def impl(run, state, grid):
         if run.stop:
             return
         t0 = monotonic_ns()
-        particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
-        G2P2G(run.g2p2g_at, particles, run.grid, run.a, run.vfactor * run.dt, run.v_new, run.copies_g2p2g,
-              run.touched_g2p2g)
+        G2P2G(run.g2p2g_at, run.particles, run.grid, run.a, run.vfactor * run.dt, run.v_new,
+              run.copies_g2p2g, run.touched_g2p2g)
+        if reconstructed:  # the momentum of the fitted rho v^new at the step's points
+            t_fit = monotonic_ns()
+            call(project_points, run.rc, run.x, run.v_new)
+            rc = run.rc
+            t_points = monotonic_ns()
+            run.phase_ns[4] += t_points - t_fit
+            t0 += t_points - t_fit
+            points = (rc.xq, rc.momentum_fit, rc.momentum_fit, rc.Vq, rc.Vq, rc.no_stress)
+            G2P2G(run.g2p2g_at, points, run.grid, run.no_acceleration, 0.0,
+                  rc.point_velocities, run.copies_g2p2g, run.touched_g2p2g)
         REDUCE_COPIES(run.copies_g2p2g, run.touched_g2p2g, run.momentum_new)
         run.velocities_done = True
         t1 = monotonic_ns()
@@ -416,9 +450,19 @@ def _advance(run):
     run.t = run.step * run.dt if run.step < run.n_steps else run.t_end
 
 
+@overload_method(RunType, "gravity_power")
+def _gravity_power(run, mass, velocity):
+    def impl(run, mass, velocity):
+        """g . sum_k m_k v_k (kernels.mpm.mass_weighted_sum, work_increment)."""
+        MASS_WEIGHTED_SUM(mass, velocity, run.work_sum)
+        return WORK_INCREMENT(run.work_sum, 1.0, run.gravity)
+    return impl
+
+
 @overload_method(RunType, "commit")
 def _commit(run, state, grid):
     consistent = _consistent(run)
+    reconstructed = _reconstructed(run)
     if isinstance(grid, types.Float):  # rk4: ``grid`` is the step's external work
         def impl(run, state, grid):
             if run.stop:
@@ -434,7 +478,13 @@ def _commit(run, state, grid):
             return
         if consistent and commit_mass(run.cm):  # the fringe correction is on
             run.handover = True
-        if run.gravity_work:  # see Kernels.gravity_work
+        if run.gravity_work and reconstructed:  # the grid mass is not the particles'
+            du = run.displacement
+            for i in range(du.shape[0]):
+                for c in range(du.shape[1]):
+                    du[i, c] = run.u_new[i, c] - run.u[i, c]
+            run.work += run.gravity_power(run.m, du)
+        elif run.gravity_work:  # see Kernels.gravity_work
             MASS_WEIGHTED_SUM(run.mass, run.v_grid, run.work_sum)
             run.work += WORK_INCREMENT(run.work_sum, run.dt, run.gravity)
         _advance(run)
@@ -448,6 +498,7 @@ def _commit(run, state, grid):
 @overload_method(RunType, "stage_rates")
 def _stage_rates(run, state, particles, c, reactions=False):
     consistent = _consistent(run)
+    reconstructed = _reconstructed(run)
 
     def impl(run, state, particles, c, reactions=False):
         """R(t + c dt, particles): particles to grid, M v = P and M a = f,
@@ -483,9 +534,10 @@ def _stage_rates(run, state, particles, c, reactions=False):
               run.nthreads, run.rate_x[slot], run.rate_v[slot], run.L, run.rate_stress[slot],
               run.rate_V[slot])
         power = 0.0
-        if run.gravity_work:  # see Kernels.gravity_work: the power m v . g
-            MASS_WEIGHTED_SUM(run.mass, run.v_old, run.work_sum)
-            power = WORK_INCREMENT(run.work_sum, 1.0, run.gravity)
+        if run.gravity_work and reconstructed:  # the particles' m_p dx_p/dt . g
+            power = run.gravity_power(run.m, run.rate_x[slot])
+        elif run.gravity_work:  # see Kernels.gravity_work: the power m v . g
+            power = run.gravity_power(run.mass, run.v_old)
         run.power[slot] = power
         t2 = monotonic_ns()
         run.phase_ns[1] += t1 - t0

@@ -140,7 +140,7 @@ class CompiledRungeKutta:
             self._material_rates(state, particles, rk, slot)
         power = 0.0
         if self.gravity_work and self.recon is not None:  # mass is not the particles'
-            power += float((particles.m @ rk.x[slot]) @ self.gravity)
+            power += self.kernels.gravity_work(particles.m, rk.x[slot], 1.0, self.gravity)
         elif self.gravity_work:
             power += self.kernels.gravity_work(mass, v, 1.0, self.gravity)
         if grid.work_forces is not None:
