@@ -23,7 +23,7 @@ same bits), where starting the threads of a parallel region costs more
 than the region's work.
 
 Compiling: one generated module per dimension, threading and transfer
-layout serves every degree, scheme and mass (each scheme's loop and each
+layout serves every degree, scheme, mass and reconstruction (each scheme's loop and each
 mass kind compile on first use). The kernels are called by symbol and the
 transfer kernels through the addresses the run holds
 (:mod:`skfem_mpm.kernels.by_symbol`): each kernel compiles once, on its

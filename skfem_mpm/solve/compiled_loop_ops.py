@@ -23,15 +23,19 @@ run)``: the run is both the executor and the state) and looped over steps
 by :func:`run_musl` and its siblings, without Python between the steps.
 
 What a compiled run covers (:func:`skfem_mpm.solve.compiled_loop.loop_applies`
-says which runs): lumped, consistent and hybrid mass (``run.cm``: None, or
-the consistent-mass system of :mod:`skfem_mpm.solve.compiled_loop_mass`; a
-run of each kind compiles only its own operations), one linear elastic
-body (its stress update fused into g2p), gravity, fixed constraints. A
-step that would need anything else stops the loop before it writes the
-current state (``run.stop``): a non-finite value, J <= 0 or a particle
-outside the grid (flags of the g2p kernel), a tiny-mass merge the lumped
-kernel cannot do (1), tiny-mass dofs with consistent mass (4), a CG run
-above its tolerance (3). The Python step then takes that step and says
+says which runs): the schemes MUSL, USL, CD and rk4; lumped, consistent
+and hybrid mass (``run.cm``: None, or the consistent-mass system of
+:mod:`skfem_mpm.solve.compiled_loop_mass`); particle quadrature or the 1D
+particle-knot spline reconstruction (``run.rc``: None, or the data of
+:mod:`skfem_mpm.solve.compiled_loop_reconstruct`); a run of each kind
+compiles only its own operations; one linear elastic body (its stress
+update fused into g2p, its stress rate into the rk4 rates gather),
+gravity, fixed constraints. A step that would need anything else stops
+the loop before it writes the current state (``run.stop``): a non-finite
+value, J <= 0, a volume <= 0 or a particle outside the grid (2), a
+tiny-mass merge the lumped kernel cannot do (1), tiny-mass dofs with
+consistent mass (4), a CG run above its tolerance (3), a fitted density 0
+at a Gauss point (5). The Python step then takes that step and says
 what happened. ``run.handover``: the step was taken, and the next ones
 need the executor (the fringe correction turned on).
 

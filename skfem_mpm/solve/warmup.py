@@ -23,8 +23,10 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None, parallel=True):
     from ..spline import SplineGrid
 
     cells = 2 * grid.degree + 2  # interior and boundary cells both occur
+    unit = ((0.0, 1.0),) * grid.dim  # the same dimension: 3D kernels for a 3D grid
     grid = (SplineGrid.line(0.0, 1.0, cells, grid.degree) if grid.dim == 1
-            else SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), cells, grid.degree))
+            else SplineGrid.rectangle(*unit, cells, grid.degree) if grid.dim == 2
+            else SplineGrid.box(*unit, cells, grid.degree))
     x = np.array([b[0] + 0.5 * (b[1] - b[0]) for b in grid.bounds])[None, :]
     from ..kernels.weights import SERIAL_BELOW
 
