@@ -295,7 +295,7 @@ class StepLoop:
         fields.update(self._stage_arrays(n if self.scheme == "rk4" else 1, dim, fields))
         recon = executor.recon
         fields.update(rc=None if recon is None else self._reconstruction(recon, p),
-                      no_acceleration=np.zeros((nd, dim)),
+                      no_acceleration=np.zeros((nd if recon is not None else 1, dim)),
                       displacement=empty((n if recon is not None else 1, dim)))
         # consistent or hybrid mass: the run's mass system (None: lumped)
         self.cm = fields["cm"] = None if state.method.mass == "lumped" else \

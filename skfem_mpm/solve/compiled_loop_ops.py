@@ -93,7 +93,7 @@ FIELDS = (
     "reaction_mass", "reaction_a", "reaction_force",
     # reconstruction: a Reconstruction (None: particle quadrature), zero
     # grid accelerations, the particle displacements of a step (the work of
-    # gravity: placeholder of one particle without reconstruction)
+    # gravity); both placeholders of one row without reconstruction
     "rc", "no_acceleration", "displacement",
 )
 
