@@ -52,6 +52,9 @@ class Benchmark:
     #: {variant: why its exact solution is not the model's}: a study of such
     #: a variant measures the model's departure, and says so in its header
     model_gaps = {}
+    #: the parameters that set the exact displacement's amplitude (errors are
+    #: relative to it, so it must not vanish)
+    amplitude_params = ()
 
     def __init__(self, variant=None, **params):
         names = list(self.variants)
@@ -72,7 +75,16 @@ class Benchmark:
             if not isinstance(v, (int, float, np.floating, np.integer)) or not np.isfinite(v):
                 raise ValueError(f"parameter {k} must be a finite number, got {v!r}")
         self._check_params()
-        self.t_end = float(self.params["t_end"]) if self.params.get("t_end") else self.default_t_end()
+        t_end = self.params.get("t_end")
+        if t_end is not None and not t_end > 0:  # 0 once silently meant the default
+            raise ValueError(f"parameter t_end must be > 0 (or omitted for {self.name}'s own end "
+                             f"time), got {t_end}")
+        self.t_end = float(t_end) if t_end is not None else self.default_t_end()
+        if self.has_exact and not abs(self.amplitude) > 0:
+            given = ", ".join(f"{k}={self.params[k]}" for k in self.amplitude_params)
+            raise ValueError(f"parameters {given}: the exact displacement of {self.name} is 0 "
+                             f"everywhere, and its errors are relative to its amplitude; give "
+                             f"a nonzero {' or '.join(self.amplitude_params)}")
 
     def _check_params(self):
         for k in ("E", "rho", "rho0", "L", "H"):
@@ -119,18 +131,18 @@ class Benchmark:
             rms.append(float(np.sqrt(np.mean(np.sum(du * du, axis=1)))))
         X, t = h["X"][-1], result.times[-1]
         out = {
-            "error_rms": rms[-1] / self.amplitude,
-            "error_max": max(rms) / self.amplitude,
+            "error_rms": rms[-1] / abs(self.amplitude),
+            "error_max": max(rms) / abs(self.amplitude),
             "error_rms_abs": rms[-1],
         }
         dv = h["v"][-1] - self.velocity(X, t)
         out["velocity_error_rms"] = float(np.sqrt(np.mean(np.sum(dv * dv, axis=1)))) \
-            / self.velocity_amplitude()
+            / abs(self.velocity_amplitude())
         s_exact = self.stress(X, t)
         if s_exact is not None:
             ds = h["stress"][-1] - s_exact
             out["stress_error_rms"] = float(np.sqrt(np.mean(np.sum(ds * ds, axis=(1, 2))))) \
-                / self.stress_amplitude()
+                / abs(self.stress_amplitude())
         return out
 
 
@@ -147,6 +159,7 @@ class VibratingString(Benchmark):
     title = "S1 vibrating string"
     defaults = {"L": 25.0, "E": 100.0, "rho": 1.0, "v0": 0.1, "t_end": None}
     variants = {"small": {}, "seed": {"v0": 0.1}}
+    amplitude_params = ("v0",)
 
     @property
     def c(self):
@@ -207,12 +220,23 @@ class SoilColumn(Benchmark):
     defaults = {"H": 1.0, "E": 1e5, "rho": 1e3, "g": 9.81, "p0": 0.0, "periods": 2.0,
                 "t_end": None, "terms": 200}
     variants = {"large": {"E": 1e5}, "small": {"E": 1e10}}
+    amplitude_params = ("g", "p0")
     model_gaps = {"large": (
         "the exact solution is the linear wave equation's, but at this variant's 10% strain "
         "the updated-Lagrangian LinearElastic follows sigma = E ln F (Hencky in 1D), which "
         "departs from it by about 15% of the amplitude: errors near that level measure the "
         "model, not the method (tests/hard compares with a fine FEM of the same model); "
         "use --variant small for the method's convergence")}
+
+    def _check_params(self):
+        super()._check_params()
+        if not self.params["periods"] > 0:
+            raise ValueError(f"parameter periods (the end time in periods of the column) must be "
+                             f"> 0, got {self.params['periods']}")
+        terms = self.params["terms"]
+        if not (terms >= 1 and float(terms).is_integer()):  # int() truncated 2.5 and kept 0
+            raise ValueError(f"parameter terms (modes of the series solution) must be a whole "
+                             f"number >= 1, got {terms}")
 
     @property
     def c(self):
@@ -288,6 +312,7 @@ class TractionBar(Benchmark):
     saves = 20
     defaults = {"L": 1.0, "E": 100.0, "rho": 1.0, "A": 0.01, "margin": 0.25, "t_end": None}
     variants = {"small": {"A": 1e-7}, "large": {"A": 0.01}}
+    amplitude_params = ("A",)
 
     @property
     def c(self):
@@ -344,6 +369,7 @@ class NeoHookeanBar(Benchmark):
     title = "S4 large-deformation neo-Hookean bar"
     defaults = {"E": 1e7, "rho0": 1e3, "G": 0.05, "t_end": 0.02}
     variants = {"large": {"G": 0.05}, "small": {"G": 1e-4}}
+    amplitude_params = ("G",)
 
     @property
     def c(self):
@@ -413,6 +439,7 @@ class AxisAligned2D(Benchmark):
     dim = 2
     defaults = {"E": 1e4, "nu": 0.3, "rho0": 1.0, "A": 0.05, "t_end": None}
     variants = {"large": {"A": 0.05}, "small": {"A": 1e-4}}
+    amplitude_params = ("A",)
 
     @property
     def c(self):
@@ -497,6 +524,7 @@ class VibratingPlate2D(Benchmark):
     dim = 2
     defaults = {"E": 100.0, "nu": 0.3, "rho": 1.0, "A": 1e-3, "t_end": None}
     variants = {"small": {"A": 1e-7}, "large": {"A": 1e-3}}
+    amplitude_params = ("A",)
 
     @property
     def omega(self):
@@ -566,6 +594,7 @@ class VibratingCube3D(Benchmark):
     dim = 3
     defaults = {"E": 100.0, "nu": 0.3, "rho": 1.0, "A": 1e-3, "t_end": None}
     variants = {"small": {"A": 1e-7}, "large": {"A": 1e-3}}
+    amplitude_params = ("A",)
 
     @property
     def omega(self):

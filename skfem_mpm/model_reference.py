@@ -199,10 +199,11 @@ class ModelReference:
         _, v, sigma = self._fields(hist["X"][-1], result.times[-1])
         dv = hist["v"][-1][:, 0] - v
         ds = hist["stress"][-1][:, 0, 0] - sigma
-        return {"error_rms": rms[-1] / b.amplitude, "error_max": max(rms) / b.amplitude,
+        return {"error_rms": rms[-1] / abs(b.amplitude), "error_max": max(rms) / abs(b.amplitude),
                 "error_rms_abs": rms[-1],
-                "velocity_error_rms": float(np.sqrt(np.mean(dv * dv))) / b.velocity_amplitude(),
-                "stress_error_rms": float(np.sqrt(np.mean(ds * ds))) / b.stress_amplitude()}
+                "velocity_error_rms": float(np.sqrt(np.mean(dv * dv)))
+                / abs(b.velocity_amplitude()),
+                "stress_error_rms": float(np.sqrt(np.mean(ds * ds))) / abs(b.stress_amplitude())}
 
 
 def model_reference(bench, compute=True):
