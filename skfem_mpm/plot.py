@@ -107,6 +107,20 @@ def plot_convergence(records, path, title=""):
     return path
 
 
+def _keep_inside(fig, ax, labels):
+    """Move a label drawn to the left of its point (``ha="right"``) to its
+    right when its left end would leave the axes (a point near the left
+    edge: the label ran over the tick labels), after the final layout."""
+    ax.get_xlim(), ax.get_ylim()  # the data limits, final before measuring
+    fig.tight_layout()
+    renderer = fig.canvas.get_renderer()
+    left = ax.get_window_extent(renderer).x0
+    for label in labels:
+        if label.get_window_extent(renderer).x0 < left:
+            label.set_horizontalalignment("left")
+            label.xyann = (6, 0)
+
+
 def cheapest_envelope(records, levels=200):
     """The lower-left envelope of the work-precision picture: at ``levels``
     error levels e (log-spaced over the study's errors), the cheapest method
@@ -154,19 +168,24 @@ def plot_work_precision(records, path, title=""):
         ax.plot([], [], color="0.5", linewidth=9, alpha=0.3,
                 label="cheapest method per error (envelope)")
         lo, hi = envelope[0][0], envelope[-1][0]
+        labels = []
         for e in REACH_TARGETS:
             if not lo <= e <= hi:
                 continue
             level, t, method = min(envelope, key=lambda s: abs(math.log(s[0] / e)))
-            ax.annotate(f"{e:.0e}: {method}", (t, level), xytext=(-6, 0),
-                        textcoords="offset points", ha="right", va="center", fontsize=7,
-                        color=colours[method])
+            labels.append(ax.annotate(
+                f"{e:.0e}: {method}", (t, level), xytext=(-6, 0), textcoords="offset points",
+                ha="right", va="center", fontsize=7, color=colours[method],
+                bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none",
+                      "alpha": 0.75}))
             ax.plot([t], [level], marker="|", color=colours[method], markersize=10)
     ax.set_xlabel("wall time of the run [s] (median of repeats, compilation excluded)")
     ax.set_ylabel(_error_label(records))
     ax.set_title(f"Work-precision: {title}")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
+    if envelope:
+        _keep_inside(fig, ax, labels)
     _save(plt, fig, path)
     return path
 
