@@ -167,3 +167,66 @@ def test_a_hostile_command_line_is_refused_before_anything_runs(argv, fragment, 
 
 def test_the_command_line_probe_counts_at_least_as_many_cases_as_the_issue():
     assert len(HOSTILE_ARGV) >= 36
+
+
+# ------------------------------------------------- defaults and what is printed
+def test_run_and_fem_defaults_are_the_apis():
+    """Every option of run and fem that is a Method() argument defaults to
+    Method()'s value (the API's stand)."""
+    import inspect
+
+    from skfem_mpm import Method
+
+    api = {name: p.default for name, p in inspect.signature(Method).parameters.items()}
+    for command in ("run", "fem"):
+        parser = _subcommands()[command]
+        shared = [a for a in parser._actions if a.dest in api and a.option_strings]
+        assert {a.dest for a in shared} >= {"mass", "reconstruction", "scheme", "cfl", "dt"}
+        for action in shared:
+            assert action.default == api[action.dest], (command, action.dest)
+
+
+def _synthetic_study(benchmark, methods, cells, **kwargs):
+    """What convergence returns, without running: error h^2 for p1 and h^3
+    for the rest, times growing with the cells; the keyword arguments kept."""
+    _synthetic_study.kwargs = kwargs
+    records = []
+    for method in methods:
+        order = 2 if "-p1-" in method else 3
+        for n in cells:
+            t = 1e-3 * n * order ** 3
+            records.append({"benchmark": benchmark, "variant": kwargs.get("variant"),
+                            "method": method, "kind": method.split("-")[0], "cells": n,
+                            "h": 1.0 / n, "error": 0.5 * n ** -order, "wall_time_s": t,
+                            "wall_time_min_s": 0.9 * t, "wall_time_max_s": 1.1 * t,
+                            "repeats": kwargs["repeat"], "jit_time_s": 0.1,
+                            "timed_compiles": 0, "status": "ok"})
+    return records
+
+
+def test_the_quick_study_prints_its_settings_table_and_verdict(tmp_path, capsys, monkeypatch):
+    """study --quick hands convergence the quick settings (3 repeats with
+    the 2 s budget, cd, cfl 0.1, 4 particles per cell in 1D) and prints, as
+    study.md writes, the time-to-reach table and the verdict per e."""
+    import skfem_mpm.study
+
+    monkeypatch.setattr(skfem_mpm.study, "convergence", _synthetic_study)
+    out = tmp_path / "quick"
+    assert main(["study", "vibrating-string", "--quick", "--methods", "mpm-p1-lumped",
+                 "mpm-p2-consistent", "--out", str(out)]) == 0
+    kwargs = _synthetic_study.kwargs
+    assert (kwargs["repeat"], kwargs["repeat_budget"], kwargs["scheme"], kwargs["cfl"],
+            kwargs["ppc"]) == (3, 2.0, "cd", 0.1, 4)
+    printed = capsys.readouterr().out
+    report = (out / "study.md").read_text()
+    for text in (printed, report):
+        assert "| method | e = 1e-03 | e = 1e-04 | e = 1e-05 | e = 1e-06 | e = 1e-07 |" in text
+        assert "e = 1e-03: cheapest mpm-p1-lumped" in text
+        assert "1.21x faster than the runner-up mpm-p2-consistent" in text
+        assert "NOT robust: within the repeats' range" in text  # 0.9-1.1 of each time
+        assert "e = 1e-04: cheapest mpm-p2-consistent (0.462 s), the only method" in text
+        assert "the median of up to 3 timed runs" in text
+    assert main(["study", "vibrating-string", "--methods", "mpm-p1-lumped", "--repeat", "5",
+                 "--out", str(tmp_path / "five")]) == 0
+    assert (_synthetic_study.kwargs["repeat"], _synthetic_study.kwargs["repeat_budget"]) == (5,
+                                                                                          None)
