@@ -240,6 +240,14 @@ def run_one(job):
     return record
 
 
+def run_chain(jobs):
+    """Run ``jobs`` one after the other in this process (:func:`run_one`
+    each); returns their records in order. One worker runs a family of
+    first jobs (:func:`compile_first`), so the kernels the family shares
+    compile once, not in two workers at the same time."""
+    return [run_one(job) for job in jobs]
+
+
 def warm_up_run(bench, cells, degree, ppc, method, fem_run=False, t_end=None):
     """Run the scene of ``bench`` briefly, untimed, so that every kernel the
     full run calls is compiled (or loaded from numba's cache) first: MPM,
@@ -284,8 +292,9 @@ def convergence(benchmark, methods, cells, ppc=2, variant=None, params=None, exe
     per-phase times. ``executor`` as in the module
     docstring; ``"serial"`` runs in this process, one run at a time.
     ``compile_notice``: a context manager factory entered around the jobs
-    that run first (the coarsest of each kernel set, :func:`compile_first`:
-    where compilation happens); the command line passes one that says
+    that run first (the coarsest of each kernel set, in families that one
+    worker runs in turn, :func:`compile_first`: where compilation happens);
+    the command line passes one that says
     "compiling kernels" when they take long. None: silent.
     ``compare_with``: ``"auto"`` measures errors against the benchmark's
     exact solution, or, for a variant whose exact solution is not MPM's
@@ -314,13 +323,14 @@ def convergence(benchmark, methods, cells, ppc=2, variant=None, params=None, exe
              "repeat_budget": repeat_budget,
              "compare_with": compare_with}
             for spec in specs for n in cells]
-    first, rest = compile_first(jobs)
+    chains, rest = compile_first(jobs)
     notice = compile_notice or contextlib.nullcontext
     done = {}
     if executor == "serial":
         with notice():
-            for i in first:
-                done[i] = run_one(jobs[i])
+            for chain in chains:
+                for i in chain:
+                    done[i] = run_one(jobs[i])
         for i in _progress(rest, progress):
             done[i] = run_one(jobs[i])
     else:
@@ -329,16 +339,21 @@ def convergence(benchmark, methods, cells, ppc=2, variant=None, params=None, exe
         # to stderr)
         bar = None if compile_notice else _bar(len(jobs), progress)
         try:
-            for batch in (first, rest):
-                context = notice() if batch is first else contextlib.nullcontext()
-                with context:
-                    futures = [(i, pool.submit(run_one, jobs[i])) for i in batch]
-                    for i, f in futures:
-                        done[i] = f.result()
-                        if bar is not None:
-                            bar.update()
-                if bar is None:
-                    bar = _bar(len(jobs), progress, initial=len(first))
+            with notice():
+                futures = [(chain, pool.submit(run_chain, [jobs[i] for i in chain]))
+                           for chain in chains]
+                for chain, f in futures:
+                    for i, record in zip(chain, f.result()):
+                        done[i] = record
+                    if bar is not None:
+                        bar.update(len(chain))
+            if bar is None:
+                bar = _bar(len(jobs), progress, initial=sum(len(c) for c in chains))
+            futures = [(i, pool.submit(run_one, jobs[i])) for i in rest]
+            for i, f in futures:
+                done[i] = f.result()
+                if bar is not None:
+                    bar.update()
         finally:
             if bar is not None:
                 bar.close()
@@ -354,20 +369,33 @@ def _kernel_set(spec):
     return (spec["kind"], spec["degree"], spec["mass"], spec["scheme"], spec["reconstruction"])
 
 
+def _family(spec):
+    """What the kernel sets of one family share: the compiled loop of one
+    kind of run (lumped or not, reconstruction, scheme) and its kernels; the
+    degree only picks the transfer kernels."""
+    return (spec["kind"], spec["mass"] == "lumped", spec["reconstruction"], spec["scheme"])
+
+
 def compile_first(jobs):
-    """(first, rest): indices of the coarsest job of each kernel set, those
-    needing the consistent-mass machinery (the longest compile) alternating
-    with lumped ones, and of the other jobs."""
+    """(chains, rest): the coarsest job of each kernel set, grouped into
+    families (:func:`_family`) that one worker runs in turn, so that what a
+    family shares compiles once; the families needing the consistent-mass
+    machinery (the longest compile) alternate with lumped ones. ``rest``:
+    the other jobs' indices."""
     first = {}
     for i, job in enumerate(jobs):
         key = _kernel_set(job["method"])
         if key not in first or job["cells"] < jobs[first[key]]["cells"]:
             first[key] = i
-    heavy = [i for i in sorted(first.values()) if jobs[i]["method"]["mass"] != "lumped"]
-    light = [i for i in sorted(first.values()) if jobs[i]["method"]["mass"] == "lumped"]
+    families = {}
+    for i in sorted(first.values()):
+        families.setdefault(_family(jobs[i]["method"]), []).append(i)
+    chains = list(families.values())
+    heavy = [c for c in chains if jobs[c[0]]["method"]["mass"] != "lumped"]
+    light = [c for c in chains if jobs[c[0]]["method"]["mass"] == "lumped"]
     # alternate, so that two workers starting together share few kernels
-    order = [i for pair in zip_longest(heavy, light) for i in pair if i is not None]
-    chosen = set(order)
+    order = [c for pair in zip_longest(heavy, light) for c in pair if c is not None]
+    chosen = {i for c in order for i in c}
     return order, [i for i in range(len(jobs)) if i not in chosen]
 
 
