@@ -38,8 +38,8 @@ import time
 import numba
 import numpy as np
 
-from ..kernels import (by_symbol, fast_dof, gauss_rule, kronecker, mpm, scatter, spline_1d,
-                       staging, tiny_mass)
+from ..kernels import (by_symbol, cholesky, fast_dof, gauss_rule, kronecker, mpm, scatter,
+                       spline_1d, staging, tiny_mass, tls, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
@@ -74,6 +74,10 @@ _GRID_KERNELS = {
     # reconstruction (compiled_loop_reconstruct)
     "GAUSS_RULE_1D": gauss_rule.gauss_rule_1d,
     "NOT_A_KNOT_SPLINE": spline_1d.not_a_knot_spline,
+    "LOCATE_CELLS": gauss_rule.locate_cells,
+    "BODY_BOXES_2D": gauss_rule.body_boxes_2d,
+    "GAUSS_RULE_CELLS": gauss_rule.gauss_rule_cells,
+    "TLS_RECONSTRUCT": tls.tls_reconstruct,
     # consistent mass (compiled_loop_mass)
     "CONSISTENT_1D": mpm.consistent_1d,
     "CONSISTENT_2D": mpm.consistent_2d,
@@ -97,7 +101,8 @@ def loop_applies(state, executor):
     reasons = (
         (not ENABLED, "the compiled loop is switched off (compiled_loop.ENABLED)"),
         (executor is None or not executor.path.startswith("fast"), "not the compiled executor"),
-        (recon is not None and (recon.name, recon.dim) != ("spline", 1),
+        (recon is not None and (recon.name, recon.dim) not in (("spline", 1), ("tls", 1),
+                                                               ("tls", 2)),
          f"reconstruction {m.reconstruction} in {state.grid.dim}D"),
         (m.scheme not in ("musl", "usl", "cd", "rk4"), f"scheme {m.scheme}"),
         (not executor.fused if executor is not None else True,
@@ -208,6 +213,9 @@ def _prelude(dim, parallel, window, variant):
                 "    CONSISTENT_2D(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, copies, "
                 "stiff, touched)")
     body = f'''
+DIM = {dim}
+
+
 @njit(cache=True)
 def SMALL_MASS(mass, tol, small, nbx, nby, p):
     """Count of the tiny-mass dofs (see kernels.mpm.small_mass_{dim}d)."""
@@ -238,7 +246,7 @@ def loop_module(dim, parallel, window):
     # sources go into the file's name (kernels.generated.load hashes it)
     depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass,
                                                      fast_dof, staging, gauss_rule, spline_1d,
-                                                     by_symbol))
+                                                     tls, cholesky, weights, by_symbol))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -328,6 +336,19 @@ class StepLoop:
         the rule's constants of the executor's CompiledReconstruction."""
         n, dim = p.n, p.dim
         empty = np.empty
+        if recon.name == "tls":
+            fields = dict(
+                ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
+                breaks1=recon.breaks1, uniform0=bool(recon.uniform[0]),
+                uniform1=bool(recon.uniform[1]), values=empty((n, 1 + dim + dim * dim)),
+                rho=empty(n), pcell=empty(0, dtype=np.int64), xg=empty((0, dim)), wg=empty(0),
+                gcell=empty(0, dtype=np.int64), own=empty(0, dtype=np.int64),
+                xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),
+                sq=empty((0, dim, dim)), momentum_values=empty((n, dim)),
+                momentum_fit=empty((0, dim)), no_stress=empty((0, dim, dim)),
+                point_velocities=empty((0, dim)))
+            return self.module.new_tls_reconstruction(
+                *(fields[name] for name in self.module.TLS_FIELDS))
         fields = dict(
             ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
             values=empty((n, 1 + dim + dim * dim)), rho=empty(n),

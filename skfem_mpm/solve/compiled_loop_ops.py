@@ -4,7 +4,9 @@ modules (not imported as a module).
 :mod:`skfem_mpm.solve.compiled_loop` writes this text, after a prelude that
 binds the kernel names used below (``P2G``, ``G2P2G``, ``G2P``,
 ``REDUCE_FIELDS``, ``REDUCE_COPIES``, ``LUMPED_SOLVE``, ``MERGED_SOLVE``, ``USL_GRID``,
-``MASS_WEIGHTED_SUM``, ``WORK_INCREMENT``, ``SMALL_MASS``, ``monotonic_ns``) to the compiled
+``MASS_WEIGHTED_SUM``, ``WORK_INCREMENT``, ``SMALL_MASS``, ``monotonic_ns``; the
+reconstruction's ``GAUSS_RULE_1D``, ``LOCATE_CELLS``, ``TLS_RECONSTRUCT``...; ``DIM``, the
+grid dimension) to the compiled
 kernels of one grid dimension and threading (serial copies for small
 problems), into one generated file per variant that numba caches. The
 transfer kernels (``P2G``, ``G2P2G``, ``G2P``) are called through the
@@ -22,22 +24,25 @@ functions themselves are compiled against them (``schemes.step_musl(run,
 run)``: the run is both the executor and the state) and looped over steps
 by :func:`run_musl` and its siblings, without Python between the steps.
 
-What a compiled run covers (:func:`skfem_mpm.solve.compiled_loop.loop_applies`
-says which runs): the schemes MUSL, USL, CD and rk4; lumped, consistent
-and hybrid mass (``run.cm``: None, or the consistent-mass system of
-:mod:`skfem_mpm.solve.compiled_loop_mass`); particle quadrature or the 1D
-particle-knot spline reconstruction (``run.rc``: None, or the data of
-:mod:`skfem_mpm.solve.compiled_loop_reconstruct`); a run of each kind
-compiles only its own operations; one linear elastic body (its stress
-update fused into g2p, its stress rate into the rk4 rates gather),
-gravity, fixed constraints. A step that would need anything else stops
-the loop before it writes the current state (``run.stop``): a non-finite
-value, J <= 0, a volume <= 0 or a particle outside the grid (2), a
-tiny-mass merge the lumped kernel cannot do (1), tiny-mass dofs with
-consistent mass (4), a CG run above its tolerance (3), a fitted density 0
-at a Gauss point (5). The Python step then takes that step and says
-what happened. ``run.handover``: the step was taken, and the next ones
-need the executor (the fringe correction turned on).
+What a compiled run covers
+(:func:`skfem_mpm.solve.compiled_loop.loop_applies` says which runs):
+the schemes MUSL, USL, CD and rk4; lumped, consistent and hybrid mass
+(``run.cm``: None, or the consistent-mass system of
+:mod:`skfem_mpm.solve.compiled_loop_mass`); particle quadrature, the 1D
+particle-knot spline reconstruction or the published TLS reconstruction
+(default options) in 1D and 2D (``run.rc``: None, or the data of
+:mod:`skfem_mpm.solve.compiled_loop_reconstruct`, a Reconstruction or a
+TLSReconstruction); a run of each kind compiles only its own operations;
+one linear elastic body (its stress update fused into g2p, its stress
+rate into the rk4 rates gather), gravity, fixed constraints. A step that
+would need anything else stops the loop before it writes the current
+state (``run.stop``): a non-finite value, J <= 0, a volume <= 0 or a
+particle outside the grid (2), a tiny-mass merge the lumped kernel
+cannot do (1), tiny-mass dofs with consistent mass (4), a CG run above
+its tolerance (3), a fitted density 0 at a Gauss point (5). The Python
+step then takes that step and says what happened. ``run.handover``: the
+step was taken, and the next ones need the executor (the fringe
+correction turned on).
 
 Phase times (nanoseconds of the monotonic clock) add up in ``run.phase_ns``:
 0 p2g, 1 solve, 2 g2p, 3 mass_matrix, 4 reconstruct.
@@ -106,6 +111,12 @@ def _consistent(run):
 def _reconstructed(run):
     """Whether the run (its numba type) reconstructs its particle data."""
     return not isinstance(run.field_dict["rc"], types.NoneType)
+
+
+def _tls(run):
+    """Whether the run (its numba type) reconstructs by TLS (else, when it
+    reconstructs, by the 1D spline): see compiled_loop_reconstruct."""
+    return isinstance(run.field_dict["rc"], TLSReconstructionType)
 
 
 class Run(structref.StructRefProxy):
@@ -216,6 +227,7 @@ def _particles_to_grid(run, state):
 def _scatter(run, particles):
     consistent = _consistent(run)
     reconstructed = _reconstructed(run)
+    tls = _tls(run)
 
     def impl(run, particles):
         """Lumped mass, momentum, force (and the consistent mass) of
@@ -223,8 +235,13 @@ def _scatter(run, particles):
         their fitted fields; the tiny-mass dofs counted."""
         t0 = monotonic_ns()
         if reconstructed:
-            if not call(reconstruct_points, run.rc, particles[0], particles[1], run.m,
-                        particles[4], particles[5]):
+            if tls:
+                fitted = call(tls_points, run.rc, particles[0], particles[1], run.m,
+                              particles[4], particles[5])
+            else:
+                fitted = call(reconstruct_points, run.rc, particles[0], particles[1], run.m,
+                              particles[4], particles[5])
+            if not fitted:
                 run.stop = 5  # a fitted density 0: the executor takes the step
                 return run
             rc = run.rc
@@ -390,6 +407,7 @@ def _solve_projected_velocity(run):
 @overload_method(RunType, "project_velocity")
 def _project_velocity(run, state, grid):
     reconstructed = _reconstructed(run)
+    tls = _tls(run)
 
     def impl(run, state, grid):
         if run.stop:
@@ -399,7 +417,10 @@ def _project_velocity(run, state, grid):
               run.copies_g2p2g, run.touched_g2p2g)
         if reconstructed:  # the momentum of the fitted rho v^new at the step's points
             t_fit = monotonic_ns()
-            call(project_points, run.rc, run.x, run.v_new)
+            if tls:
+                call(tls_project, run.rc, run.x, run.V, run.v_new)
+            else:
+                call(project_points, run.rc, run.x, run.v_new)
             rc = run.rc
             t_points = monotonic_ns()
             run.phase_ns[4] += t_points - t_fit

@@ -4,8 +4,14 @@ modules (not imported as a module; see
 
 The compiled executor's reconstructed particles-to-grid
 (:mod:`skfem_mpm.solve.compiled_reconstruct`, whose docstring gives the
-formulas), in the same order on the same kernels, so that a run gives the
-same bits on either path. Covered: the particle-knot spline in 1D.
+formulas), in the same order on the same kernels (called by symbol, with
+the argument types of the executor's calls), so that a run gives the same
+bits on either path. Covered: the particle-knot spline in 1D
+(:class:`Reconstruction`) and the published TLS with its default options
+in 1D and 2D (:class:`TLSReconstruction`); the run's reconstruction type
+says which, so a run compiles only its own kind's functions.
+
+The 1D spline:
 
     reconstruct_points   the step's Gauss rule over the body (x_g, w_g:
                          kernels.gauss_rule.gauss_rule_1d), the fit of the
@@ -18,6 +24,21 @@ same bits on either path. Covered: the particle-knot spline in 1D.
     project_points       MUSL: the fit of rho v^new at the same points, as
                          points of mass w_g and velocity (rho v^new)_h (the
                          g2p2g kernel with a = 0 integrates their momentum)
+
+TLS (CompiledReconstruction.rule, reconstruct and project):
+
+    tls_points           the particles' cells (kernels.gauss_rule.locate_cells)
+                         and the step's rule: in 1D gauss_rule_1d; in 2D the
+                         tensor rule on the body's box of each cell holding
+                         particles (body_boxes_2d, gauss_rule_cells), except
+                         in the cells a free surface cuts (the box is not
+                         the whole cell), whose particles are points of the
+                         rule themselves (``own``, after the Gauss points,
+                         with weight V_p and their own values); the TLS fit
+                         at the Gauss points (kernels.tls.tls_reconstruct);
+                         the points as quadrature particles, as above
+    tls_project          MUSL: the TLS fit of rho v^new at the Gauss points,
+                         the particles' own rho v^new at the particle points
 
 A step whose fitted density is 0 at a point (the executor then integrates
 the momentum apart) stops the loop: the executor takes it.
@@ -124,3 +145,203 @@ def project_points(rc, x, v_new):
             rc.momentum_values[i, c] = rc.rho[i] * v_new[i, c]
     NOT_A_KNOT_SPLINE(x.reshape(n), rc.momentum_values, rc.order, rc.piece_particles,
                       rc.piece_points, rc.xg, rc.momentum_fit)
+
+
+# ------------------------------------------------------------------- tls
+# The published TLS (kernels.tls, default options) in 1D and 2D: a run's
+# Reconstruction of its own type, so that a run compiles only its kind's
+# functions (compiled_loop_ops: _tls).
+@structref.register
+class TLSReconstructionType(types.StructRef):
+    def preprocess_fields(self, fields):
+        return tuple((name, types.unliteral(t)) for name, t in fields)
+
+
+TLSReconstructionType.__name__ = TLSReconstructionType.__qualname__ = \
+    f"TLSReconstructionType_{VARIANT}"
+globals()[TLSReconstructionType.__name__] = TLSReconstructionType
+
+
+TLS_FIELDS = (
+    # the rule: Gauss-Legendre points and weights on [0, 1], the largest
+    # gap inside one piece of the 1D body, the breakpoints per axis (1D:
+    # breaks1 is breaks) and whether each axis is uniform (locate_cells)
+    "ref", "wref", "gap", "breaks", "breaks1", "uniform0", "uniform1",
+    # per particle: the fitted fields [rho, rho v, sigma] (n, 1 + dim + dim^2), rho
+    "values", "rho",
+    # the step's rule: the particles' cells, the Gauss points (ngauss, dim),
+    # their weights and cells, and the particles that are points of the
+    # rule themselves (2D: those in cells a free surface cuts; after the
+    # Gauss points, in particle order)
+    "pcell", "xg", "wg", "gcell", "own",
+    # the points as quadrature particles (x, v, m, V, stress)
+    "xq", "vq", "mq", "Vq", "sq",
+    # the MUSL projection: rho v^new per particle, its fit at the points,
+    # zero stresses, the g2p2g kernel's (unused) point velocities
+    "momentum_values", "momentum_fit", "no_stress", "point_velocities",
+)
+
+
+class TLSReconstruction(structref.StructRefProxy):
+    """The TLS reconstruction data of a compiled run."""
+
+    def __new__(cls, *fields):
+        return structref.StructRefProxy.__new__(cls, *fields)
+
+
+structref.define_proxy(TLSReconstruction, TLSReconstructionType, list(TLS_FIELDS))
+
+
+@njit(cache=True)
+def new_tls_reconstruction(*fields):
+    """A TLSReconstruction with ``fields`` in the order of TLS_FIELDS."""
+    return TLSReconstruction(*fields)
+
+
+@njit(cache=True)
+def _tls_rule_1d(rc, x, V):
+    """The body's Gauss rule (kernels.gauss_rule.gauss_rule_1d) and the
+    particles' cells, as CompiledReconstruction.rule."""
+    n = x.shape[0]
+    rc.pcell = LOCATE_CELLS(x, rc.breaks, rc.breaks1, rc.uniform0, rc.uniform1)
+    _, _, _, xg, wg, gcell = GAUSS_RULE_1D(x.reshape(n), V, rc.gap, rc.breaks, rc.ref, rc.wref)
+    rc.xg = xg.reshape((xg.shape[0], 1))
+    rc.wg = wg
+    rc.gcell = gcell
+    rc.own = np.empty(0, dtype=np.int64)
+
+
+@njit(cache=True)
+def _tls_rule_2d(rc, x, V):
+    """The rule of CompiledReconstruction.rule in 2D: the tensor Gauss rule
+    on the body's box of each cell holding particles
+    (kernels.gauss_rule.body_boxes_2d, gauss_rule_cells), except the cells
+    a free surface cuts (their box is not the whole cell), whose particles
+    are points of the rule themselves (``own``)."""
+    n = x.shape[0]
+    breaks0 = rc.breaks
+    breaks1 = rc.breaks1
+    pcell = LOCATE_CELLS(x, breaks0, breaks1, rc.uniform0, rc.uniform1)
+    lo, hi = BODY_BOXES_2D(x, V, pcell, breaks0, breaks1)
+    nx = breaks0.shape[0] - 1
+    cut = np.empty(n, dtype=np.bool_)
+    nown = 0
+    for i in range(n):
+        c = pcell[i]
+        ix = c % nx
+        iy = c // nx
+        cut[i] = not (lo[c, 0] == breaks0[ix] and hi[c, 0] == breaks0[ix + 1]
+                      and lo[c, 1] == breaks1[iy] and hi[c, 1] == breaks1[iy + 1])
+        if cut[i]:
+            nown += 1
+    own = np.empty(nown, dtype=np.int64)
+    kept = np.empty(n - nown, dtype=np.int64)
+    j = 0
+    for i in range(n):
+        if cut[i]:
+            own[j] = i
+            j += 1
+        else:
+            kept[i - j] = pcell[i]
+    xg, wg, gcell = GAUSS_RULE_CELLS(kept, lo, hi, rc.ref, rc.wref)
+    rc.pcell = pcell
+    rc.xg = xg
+    rc.wg = wg
+    rc.gcell = gcell
+    rc.own = own
+
+
+_TLS_RULE = _tls_rule_1d if DIM == 1 else _tls_rule_2d
+
+
+@njit(cache=True)
+def tls_points(rc, x, v, m, V, stress):
+    """The step's rule, the TLS fit of the per-volume fields at its Gauss
+    points (kernels.tls.tls_reconstruct), the particles' own values at its
+    particle points, and the points as quadrature particles (see
+    reconstruct_points); False when the density is 0 at a point."""
+    n, dim = x.shape
+    values = rc.values
+    k = values.shape[1]
+    for i in range(n):
+        rho = m[i] / V[i]
+        rc.rho[i] = rho
+        values[i, 0] = rho
+        for c in range(dim):
+            values[i, 1 + c] = rho * v[i, c]
+        for a in range(dim):
+            for b in range(dim):
+                values[i, 1 + dim + a * dim + b] = stress[i, a, b]
+    _TLS_RULE(rc, x, V)
+    xg, wg, own = rc.xg, rc.wg, rc.own
+    ngauss = wg.shape[0]
+    ng = ngauss + own.shape[0]
+    fit = np.empty((ngauss, k))
+    TLS_RECONSTRUCT(x, V, values, rc.pcell, xg, wg, rc.gcell, rc.breaks, rc.breaks1, fit)
+    if own.shape[0] == 0:
+        rc.xq = xg
+        rc.Vq = wg
+    else:  # the Gauss points, then the particle points with their own values
+        xq = np.empty((ng, dim))
+        Vq = np.empty(ng)
+        points = np.empty((ng, k))
+        for g in range(ngauss):
+            Vq[g] = wg[g]
+            for c in range(dim):
+                xq[g, c] = xg[g, c]
+            for c in range(k):
+                points[g, c] = fit[g, c]
+        for j in range(own.shape[0]):
+            i = own[j]
+            Vq[ngauss + j] = V[i]
+            for c in range(dim):
+                xq[ngauss + j, c] = x[i, c]
+            for c in range(k):
+                points[ngauss + j, c] = values[i, c]
+        rc.xq = xq
+        rc.Vq = Vq
+        fit = points
+    rc.vq = np.empty((ng, dim))
+    rc.mq = np.empty(ng)
+    rc.sq = np.empty((ng, dim, dim))
+    rc.momentum_fit = np.empty((ng, dim))
+    rc.no_stress = np.zeros((ng, dim, dim))
+    rc.point_velocities = np.empty((ng, dim))
+    for g in range(ng):
+        if fit[g, 0] == 0.0:
+            return False
+    Vq = rc.Vq
+    for g in range(ng):
+        rho = fit[g, 0]
+        rc.mq[g] = Vq[g] * rho
+        for c in range(dim):
+            rc.vq[g, c] = fit[g, 1 + c] / rho
+        for a in range(dim):
+            for b in range(dim):
+                rc.sq[g, a, b] = fit[g, 1 + dim + a * dim + b]
+    return True
+
+
+@njit(cache=True)
+def tls_project(rc, x, V, v_new):
+    """MUSL: the TLS fit of rho v^new at the step's Gauss points, the
+    particles' own rho v^new at its particle points (rc.momentum_fit)."""
+    n, dim = v_new.shape
+    for i in range(n):
+        for c in range(dim):
+            rc.momentum_values[i, c] = rc.rho[i] * v_new[i, c]
+    own = rc.own
+    if own.shape[0] == 0:
+        TLS_RECONSTRUCT(x, V, rc.momentum_values, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.breaks,
+                        rc.breaks1, rc.momentum_fit)
+        return
+    ngauss = rc.wg.shape[0]
+    fit = np.empty((ngauss, dim))
+    TLS_RECONSTRUCT(x, V, rc.momentum_values, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.breaks,
+                    rc.breaks1, fit)
+    for g in range(ngauss):
+        for c in range(dim):
+            rc.momentum_fit[g, c] = fit[g, c]
+    for j in range(own.shape[0]):
+        for c in range(dim):
+            rc.momentum_fit[ngauss + j, c] = rc.momentum_values[own[j], c]
