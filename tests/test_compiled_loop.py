@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from skfem_mpm import (Body, Fixed, Gravity, LinearElastic, Method, Particles, Scene,
-                       SimulationError, SplineGrid, simulate)
+                       SimulationError, SplineGrid, Traction, simulate)
 from skfem_mpm.kernels import serial
 from skfem_mpm.solve import compiled_loop
 from skfem_mpm.solve.compiled import CompiledExecutor
@@ -382,6 +382,50 @@ def test_the_unaligned_2d_tls_rule_has_particle_points():
         state = prepare(scene_for(case, steps=5), Method(reconstruction="tls"))
         rule = CompiledExecutor(state).recon.rule(state.particles)
         assert (getattr(rule, "particle_points", None) is not None) == (not aligned)
+
+
+# ------------------------------------------------------------ side traction
+# A traction on a side of the body with tau(t): its loaded faces, loads and
+# grid force (the p2g kernel at the faces) in the run, tau tabulated by
+# Python at the steps' times before each call; the work of the loads.
+TRACTION_CASES = [
+    dict(scheme="musl", mass="lumped", degree=2, dim=1),
+    dict(scheme="musl", mass="consistent", degree=3, dim=1),
+    dict(scheme="usl", mass="consistent", degree=2, dim=2),
+    dict(scheme="cd", mass="lumped", degree=1, dim=2),
+    dict(scheme="rk4", mass="consistent", degree=3, dim=1),
+    dict(scheme="rk4", mass="lumped", degree=2, dim=2),
+    dict(scheme="musl", mass="lumped", degree=2, dim=2, reconstruction="tls"),
+]
+
+
+@pytest.mark.parametrize("case", TRACTION_CASES, ids=lambda c: "-".join(map(str, c.values())))
+def test_a_side_traction_gives_the_executors_bits(monkeypatch, case):
+    full = dict(case, material="linear", effect="traction", aligned=True)
+    scene = scene_for(full, steps=23)
+    method = Method(scheme=case["scheme"], mass=case["mass"],
+                    reconstruction=case.get("reconstruction", "none"))
+    looped = simulate(scene, method, save_every=5)
+    stepped = without_loop(monkeypatch, scene, method, save_every=5)
+    assert looped.path == "fast (compiled loop)"
+    assert_same(looped, stepped)
+    for a, b in zip(looped.reactions, stepped.reactions):
+        assert a.keys() == b.keys()
+        for key in a:
+            assert np.array_equal(a[key], b[key]), key
+    assert looped.counts["compiled_loop_steps"] >= 20
+    assert looped.energies["external_work"][-1] != 0.0  # the loads' work is counted
+
+
+def test_a_traction_of_x_and_t_stays_with_the_executor():
+    full = dict(scheme="musl", mass="lumped", degree=2, dim=1, material="linear",
+                effect="none", aligned=True)
+    scene = scene_for(full, steps=5)
+    loaded = Scene(scene.grid, scene.bodies, scene.t_end,
+                   effects=list(scene.effects) + [Traction("right", lambda x, t: 0.01 * t)])
+    state = prepare(loaded, Method(scheme="musl"))
+    ok, why = compiled_loop.loop_applies(state, CompiledExecutor(state))
+    assert not ok and "traction on a side of the body with tau(t)" in why
 
 
 def test_what_the_loop_leaves_to_the_executor():

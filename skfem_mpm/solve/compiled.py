@@ -41,22 +41,31 @@ and, for linear elasticity, constitutive).
 """
 import numpy as np
 
+from ..effects import SurfaceTraction
 from ..errors import InvalidState
 from ..kernels.constitutive import material_update
 from ..kernels import serial
 from ..kernels.fast_dof import limit_by_effective_mass
 from ..kernels.mpm import Kernels, fast_row_fractions
+from ..kernels.traction import loads_power, side_faces
 from ..materials import LinearElastic
 from ..materials.state import PackedState, state_layout
 from ..spline import SplineGrid
 from . import steps
-from .compiled_reconstruct import CompiledReconstruction, unsupported
+from .compiled_reconstruct import CompiledReconstruction, QuadraturePoints, unsupported
 from .compiled_runge_kutta import CompiledRungeKutta
 from .grid_system import GridSystem
 from .stencil_system import StencilSystem
 from .timestep import effective_mass_ratio, fast_dof_limit, lumping_fraction
 
-__all__ = ["compiled_executor_applies", "CompiledExecutor"]
+__all__ = ["compiled_executor_applies", "CompiledExecutor", "side_traction"]
+
+
+def side_traction(force):
+    """Whether the particle force ``force`` is a traction on a side of the
+    body with tau(t) (not tau(x, t)): the compiled paths compute its faces,
+    grid force and work with kernels (:mod:`skfem_mpm.kernels.traction`)."""
+    return isinstance(force, SurfaceTraction) and not force.effect._takes_x
 
 
 def compiled_executor_applies(state):
@@ -87,6 +96,7 @@ class CompiledGrid:
         self.stencil = stencil          # (M stencil, stiffness weights) or None
         self.work_forces = work_forces  # particle forces whose work is counted
         self.grid_force = grid_force    # grid force of side tractions
+        self.side_loads = []            # (index, loads) of the side tractions (their work)
         self.system = None              # the consistent-mass system
         self.hybrid = False             # the acceleration is solved with lumped mass
         self.lumped_small = 0           # hybrid: tiny-mass dofs of the lumped solve
@@ -197,9 +207,14 @@ class CompiledExecutor(CompiledRungeKutta):
         p = state.particles if particles is None else particles
         t = state.t if t is None else t
         fext, grid_force, work_forces = None, None, None
+        self._side_loads = []
         if self.other_forces:
             with state.timer("effects"):
                 for f in self.other_forces:
+                    if side_traction(f):
+                        g = self._side_traction_force(state, f, p, t)
+                        grid_force = g if grid_force is None else grid_force + g
+                        continue
                     term = f.forces(p, t)
                     work_forces = term if work_forces is None else work_forces + term
                     g = f.grid_forces(p, t, state.grid)
@@ -208,6 +223,27 @@ class CompiledExecutor(CompiledRungeKutta):
                     else:
                         fext = term if fext is None else fext + term
         return fext, grid_force, work_forces
+
+    def _side_traction_force(self, state, f, p, t):
+        """The grid force of the side traction ``f`` (a SurfaceTraction of
+        tau(t)) on the particles ``p`` at time t: the p2g kernel's external
+        force at its faces (:mod:`skfem_mpm.kernels.traction`); its loads
+        are kept for the work of the step. Call before the particles' p2g:
+        the kernels' grid buffers are shared."""
+        loads = np.ascontiguousarray(f.loads(p, t))
+        k, dim = loads.shape
+        faces = np.empty((k, dim))
+        bounds = np.array(state.grid.bounds, dtype=np.float64)
+        j = side_faces(p.x, p.V, p.V0, f.index, f.size, f.axis, float(f.sign), bounds, faces)
+        if j >= 0:
+            i = int(f.index[j])
+            raise InvalidState(f"the loaded face of particle {i} lies outside the grid; "
+                               f"extend the grid beyond the body", particle=i)
+        self._side_loads.append((f.index, loads))
+        zeros = np.zeros(k)
+        at_faces = QuadraturePoints(faces, np.zeros((k, dim)), zeros, zeros,
+                                    np.zeros((k, dim, dim)))
+        return self.kernels.p2g(at_faces, loads)[2].copy()
 
     def _small_dofs(self, state, mass):
         """Number of tiny-mass dofs this step (the reference merge takes over
@@ -323,7 +359,9 @@ class CompiledExecutor(CompiledRungeKutta):
         if state.method.needs_consistent_mass:
             with state.timer("mass_matrix"):
                 stencil = k.consistent_stencil(p)
-        return CompiledGrid(mass, momentum, force, stencil, work_forces, grid_force)
+        grid = CompiledGrid(mass, momentum, force, stencil, work_forces, grid_force)
+        grid.side_loads = self._side_loads
+        return grid
 
     def _reconstructed_to_grid(self, state, p, t=None):
         """Mass, momentum, force (and consistent mass) integrated with Gauss
@@ -333,9 +371,14 @@ class CompiledExecutor(CompiledRungeKutta):
         give their grid force, other surface loads N^T f_p at the particles."""
         t = state.t if t is None else t
         volume, surface, grid_force, work_forces = None, None, None, None
+        self._side_loads = []
         if self.other_forces:
             with state.timer("effects"):
                 for f in self.other_forces:
+                    if side_traction(f):
+                        g = self._side_traction_force(state, f, p, t)
+                        grid_force = g if grid_force is None else grid_force + g
+                        continue
                     term = f.forces(p, t)
                     work_forces = term if work_forces is None else work_forces + term
                     if not f.surface:
@@ -354,6 +397,7 @@ class CompiledExecutor(CompiledRungeKutta):
                 grid_force = g if grid_force is None else grid_force + g
         mass, momentum, force, stencil, projection = self.recon.to_grid(state, p, volume)
         grid = CompiledGrid(mass, momentum, force, stencil, work_forces, grid_force)
+        grid.side_loads = self._side_loads
         grid.projection = projection
         return grid
 
@@ -577,6 +621,10 @@ class CompiledExecutor(CompiledRungeKutta):
                                                                  self.gravity)
             if grid.work_forces is not None:
                 state.external_work += float(np.sum(grid.work_forces * (new.u - p.u)))
+            if grid.side_loads:
+                du = new.u - p.u
+                for index, loads in grid.side_loads:
+                    state.external_work += loads_power(index, loads, du)
         if grid.keep_acceleration:
             state.particle_acceleration = self._acc
             self._acc = None  # the state keeps this one; the next step writes a new one

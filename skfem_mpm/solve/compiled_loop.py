@@ -39,7 +39,7 @@ import numba
 import numpy as np
 
 from ..kernels import (by_symbol, cholesky, fast_dof, gauss_rule, kronecker, mpm, scatter,
-                       spline_1d, staging, tiny_mass, tls, weights)
+                       spline_1d, staging, tiny_mass, tls, traction, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
@@ -47,6 +47,7 @@ from ..kernels.records import grid_record
 from ..kernels.scatter import g2p2g_kernel, p2g_kernel
 from ..kernels.serial import for_threads
 from . import schemes
+from .compiled import side_traction
 from .stencil_system import StencilSystem, stencil_residual
 from .timestep import COVERED, effective_mass_ratio, fast_dof_limit
 
@@ -59,7 +60,7 @@ the tests check that both give the same bits)."""
 _HERE = os.path.dirname(os.path.abspath(__file__))
 _TEMPLATES = [os.path.join(_HERE, name)
               for name in ("compiled_loop_ops.py", "compiled_loop_mass.py",
-                           "compiled_loop_reconstruct.py")]
+                           "compiled_loop_reconstruct.py", "compiled_loop_traction.py")]
 
 # the grid kernels the operations call, under the names the operations use
 _GRID_KERNELS = {
@@ -78,6 +79,9 @@ _GRID_KERNELS = {
     "BODY_BOXES_2D": gauss_rule.body_boxes_2d,
     "GAUSS_RULE_CELLS": gauss_rule.gauss_rule_cells,
     "TLS_RECONSTRUCT": tls.tls_reconstruct,
+    # a side traction (compiled_loop_traction)
+    "SIDE_FACES": traction.side_faces,
+    "LOADS_POWER": traction.loads_power,
     # consistent mass (compiled_loop_mass)
     "CONSISTENT_1D": mpm.consistent_1d,
     "CONSISTENT_2D": mpm.consistent_2d,
@@ -107,8 +111,8 @@ def loop_applies(state, executor):
         (m.scheme not in ("musl", "usl", "cd", "rk4"), f"scheme {m.scheme}"),
         (not executor.fused if executor is not None else True,
          "a material other than one linear elastic body"),
-        (bool(executor.other_forces) if executor is not None else True,
-         "particle forces other than gravity"),
+        (not _side_tractions_only(executor), "particle forces other than gravity and one "
+         "traction on a side of the body with tau(t)"),
         (bool(state.force_modifiers), "grid force modifiers"),
         (bool(getattr(state, "velocity_modifiers", ())), "grid velocity modifiers"),
         (bool(state.constraints.prescribed), "prescribed velocities"),
@@ -123,6 +127,15 @@ def loop_applies(state, executor):
         if why is not None:
             return False, why
     return True, ""
+
+
+def _side_tractions_only(executor):
+    """Whether the executor's particle forces other than gravity are at most
+    one side traction with tau(t) (the loop's SideTraction)."""
+    if executor is None:
+        return False
+    forces = executor.other_forces
+    return not forces or (len(forces) == 1 and side_traction(forces[0]))
 
 
 def _mass_unsupported(state):
@@ -246,7 +259,8 @@ def loop_module(dim, parallel, window):
     # sources go into the file's name (kernels.generated.load hashes it)
     depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass,
                                                      fast_dof, staging, gauss_rule, spline_1d,
-                                                     tls, cholesky, weights, by_symbol))
+                                                     tls, cholesky, weights, traction,
+                                                     by_symbol))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -302,9 +316,14 @@ class StepLoop:
             p2g_at=0, g2p2g_at=0, g2p_at=0, rates_at=0)
         fields.update(self._stage_arrays(n if self.scheme == "rk4" else 1, dim, fields))
         recon = executor.recon
+        side = executor.other_forces[0] if executor.other_forces else None
         fields.update(rc=None if recon is None else self._reconstruction(recon, p),
                       no_acceleration=np.zeros((nd if recon is not None else 1, dim)),
-                      displacement=empty((n if recon is not None else 1, dim)))
+                      displacement=empty((n if recon is not None or side else 1, dim)),
+                      V0=np.ascontiguousarray(p.V0, dtype=np.float64),
+                      traction=None if side is None else self._side_traction(side, state, k))
+        self.side, self.traction = side, fields["traction"]
+        self._table = (0, 0)  # the steps the traction's table holds
         # consistent or hybrid mass: the run's mass system (None: lumped)
         self.cm = fields["cm"] = None if state.method.mass == "lumped" else \
             self._mass_system(state, k)
@@ -330,6 +349,49 @@ class StepLoop:
             own = fields[name]
             arrays[f"reaction_{name}"] = empty(own.shape) if self.scheme == "rk4" else own
         return arrays
+
+    def _side_traction(self, f, state, k):
+        """The run's side traction (compiled_loop_traction) of the effect
+        ``f`` (a SurfaceTraction of tau(t)); its table is filled before each
+        call of the loop (:meth:`_tabulate_traction`)."""
+        dim, nd, count = state.grid.dim, state.grid.ndofs, f.index.size
+        zeros = np.zeros
+        fields = dict(
+            index=np.ascontiguousarray(f.index, dtype=np.int64),
+            share=np.ascontiguousarray(f.share, dtype=np.float64),
+            size=np.ascontiguousarray(f.size, dtype=np.float64), axis=int(f.axis),
+            sign=float(f.sign), bounds=np.array(state.grid.bounds, dtype=np.float64),
+            tau=zeros((1, 3, dim)), first_step=0, faces=zeros((count, dim)),
+            loads=zeros((count, dim)), zero_v=zeros((count, dim)), zero_m=zeros(count),
+            zero_stress=zeros((count, dim, dim)), mass=zeros(nd), momentum=zeros((nd, dim)),
+            force=zeros((nd, dim)), mass_range=zeros((k.nthreads, 2)))
+        return self.module.new_side_traction(
+            *(fields[name] for name in self.module.TRACTION_FIELDS))
+
+    def _tabulate_traction(self, state, n):
+        """tau(t) of the side traction at the times of the next n steps (and
+        of their rk4 stages: t + dt/2, t + dt), as the executor evaluates it
+        (its step's t: State.t_next's formula), unless the table already
+        holds them (a loop that stopped early is called again on the same
+        steps); False when tau does not return one vector of the grid's
+        dimension (the executor takes the run)."""
+        first, rows = self._table
+        if first <= state.step and state.step + n <= first + rows:
+            return True
+        dim, dt = state.grid.dim, state.dt
+        table = np.zeros((n, 3, dim))
+        stages = (0.0, 0.5, 1.0) if self.scheme == "rk4" else (0.0,)
+        for j in range(n):
+            s = state.step + j
+            t = state.t if j == 0 else (s * dt if s < state.n_steps else state.scene.t_end)
+            for column, c in enumerate(stages):
+                tau = np.asarray(self.side.effect.traction(None, t + c * dt), dtype=np.float64)
+                if tau.size != dim:
+                    return False
+                table[j, column] = tau.reshape(dim)
+        self.module.set_traction_table(self.traction, table, int(state.step))
+        self._table = (int(state.step), n)
+        return True
 
     def _reconstruction(self, recon, p):
         """The reconstruction data of the run (compiled_loop_reconstruct), with
@@ -498,6 +560,9 @@ class StepLoop:
             nd, dim = self.executor.kernels.ndofs, self._arrays[0].shape[1]
             self.module.load_warm(self.cm, np.zeros((2, nd, dim)), np.zeros(2, dtype=np.bool_))
             self.module.mass_records(self.cm)
+        if self.traction is not None:
+            dim = self._arrays[0].shape[1]
+            self.module.set_traction_table(self.traction, np.zeros((1, 3, dim)), 0)
         self.module.load_state(self.run_state, *self._arrays, 0.0, 0, 0.0)
         self.module.set_work(self.run_state, 0.0)
         self.module.reset_step_records(self.run_state)
@@ -522,6 +587,9 @@ class StepLoop:
         if p.n != self._arrays[0].shape[0]:  # particles were removed
             return 0
         mod, run = self.module, self.run_state
+        if self.traction is not None and not self._tabulate_traction(state, n):
+            self.retired = True
+            return 0
         consistent = self.cm is not None
         if consistent:
             self._load_warm(state)

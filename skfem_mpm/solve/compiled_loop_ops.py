@@ -34,7 +34,9 @@ particle-knot spline reconstruction or the published TLS reconstruction
 :mod:`skfem_mpm.solve.compiled_loop_reconstruct`, a Reconstruction or a
 TLSReconstruction); a run of each kind compiles only its own operations;
 one linear elastic body (its stress update fused into g2p, its stress
-rate into the rk4 rates gather), gravity, fixed constraints. A step that
+rate into the rk4 rates gather), gravity, fixed constraints, a traction on
+a side of the body with tau(t) (``run.traction``: None, or the data of
+:mod:`skfem_mpm.solve.compiled_loop_traction`). A step that
 would need anything else stops the loop before it writes the current
 state (``run.stop``): a non-finite value, J <= 0, a volume <= 0 or a
 particle outside the grid (2), a tiny-mass merge the lumped kernel
@@ -100,6 +102,9 @@ FIELDS = (
     # grid accelerations, the particle displacements of a step (the work of
     # gravity); both placeholders of one row without reconstruction
     "rc", "no_acceleration", "displacement",
+    # a side traction: a SideTraction (None: none; compiled_loop_traction),
+    # the particles' reference volumes
+    "traction", "V0",
 )
 
 
@@ -111,6 +116,11 @@ def _consistent(run):
 def _reconstructed(run):
     """Whether the run (its numba type) reconstructs its particle data."""
     return not isinstance(run.field_dict["rc"], types.NoneType)
+
+
+def _traction(run):
+    """Whether the run (its numba type) carries a side traction."""
+    return not isinstance(run.field_dict["traction"], types.NoneType)
 
 
 def _tls(run):
@@ -220,20 +230,33 @@ def _particles(run):
 
 @overload_method(RunType, "particles_to_grid")
 def _particles_to_grid(run, state):
-    return lambda run, state: run.scatter(run.particles)
+    return lambda run, state: run.scatter(run.particles, 0)
 
 
 @overload_method(RunType, "scatter")
-def _scatter(run, particles):
+def _scatter(run, particles, column):
     consistent = _consistent(run)
     reconstructed = _reconstructed(run)
     tls = _tls(run)
+    traction = _traction(run)
 
-    def impl(run, particles):
+    def impl(run, particles, column):
         """Lumped mass, momentum, force (and the consistent mass) of
         ``particles``, or with reconstruction of the quadrature points of
-        their fitted fields; the tiny-mass dofs counted."""
+        their fitted fields, plus a side traction's grid force at the
+        traction table's ``column`` (0: t, 1: t + dt/2, 2: t + dt); the
+        tiny-mass dofs counted."""
         t0 = monotonic_ns()
+        if traction:  # its grid force first: the p2g kernel's copies are shared
+            st = run.traction
+            if not call(traction_loads, st, particles[0], particles[4], run.V0,
+                        run.step - st.first_step, column):
+                run.stop = 2  # a face outside the grid: the executor raises
+                return run
+            faces = (st.faces, st.zero_v, st.zero_v, st.zero_m, st.zero_m, st.zero_stress)
+            P2G(run.p2g_at, faces, run.grid, st.loads, True, run.copies_p2g, run.touched_p2g)
+            REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, st.mass, st.momentum, st.force,
+                          st.mass_range)
         if reconstructed:
             if tls:
                 fitted = call(tls_points, run.rc, particles[0], particles[1], run.m,
@@ -254,6 +277,10 @@ def _scatter(run, particles):
         P2G(run.p2g_at, points, run.grid, run.no_force, False, run.copies_p2g, run.touched_p2g)
         REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, run.mass, run.momentum, run.force,
                       run.mass_range)
+        if traction:
+            for k in range(run.force.shape[0]):
+                for c in range(run.force.shape[1]):
+                    run.force[k, c] = run.force[k, c] + run.traction.force[k, c]
         run.small_count = 0  # tiny-mass dofs (see Kernels.small_mass): merged solves
         if run.small_tol > 0.0:
             smallest = np.inf
@@ -488,6 +515,7 @@ def _gravity_power(run, mass, velocity):
 def _commit(run, state, grid):
     consistent = _consistent(run)
     reconstructed = _reconstructed(run)
+    traction = _traction(run)
     if isinstance(grid, types.Float):  # rk4: ``grid`` is the step's external work
         def impl(run, state, grid):
             if run.stop:
@@ -503,15 +531,18 @@ def _commit(run, state, grid):
             return
         if consistent and commit_mass(run.cm):  # the fringe correction is on
             run.handover = True
-        if run.gravity_work and reconstructed:  # the grid mass is not the particles'
-            du = run.displacement
+        du = run.displacement
+        if traction or (run.gravity_work and reconstructed):
             for i in range(du.shape[0]):
                 for c in range(du.shape[1]):
                     du[i, c] = run.u_new[i, c] - run.u[i, c]
+        if run.gravity_work and reconstructed:  # the grid mass is not the particles'
             run.work += run.gravity_power(run.m, du)
         elif run.gravity_work:  # see Kernels.gravity_work
             MASS_WEIGHTED_SUM(run.mass, run.v_grid, run.work_sum)
             run.work += WORK_INCREMENT(run.work_sum, run.dt, run.gravity)
+        if traction:  # the work of the loads over the step
+            run.work += LOADS_POWER(run.traction.index, run.traction.loads, du)
         _advance(run)
     return impl
 
@@ -524,6 +555,7 @@ def _commit(run, state, grid):
 def _stage_rates(run, state, particles, c, reactions=False):
     consistent = _consistent(run)
     reconstructed = _reconstructed(run)
+    traction = _traction(run)
 
     def impl(run, state, particles, c, reactions=False):
         """R(t + c dt, particles): particles to grid, M v = P and M a = f,
@@ -533,7 +565,7 @@ def _stage_rates(run, state, particles, c, reactions=False):
         run.next_stage += 1
         if run.stop:
             return slot
-        run.scatter(particles)
+        run.scatter(particles, 0 if c == 0.0 else (1 if c == 0.5 else 2))
         if run.stop:
             return slot
         t0 = monotonic_ns()
@@ -563,6 +595,8 @@ def _stage_rates(run, state, particles, c, reactions=False):
             power = run.gravity_power(run.m, run.rate_x[slot])
         elif run.gravity_work:  # see Kernels.gravity_work: the power m v . g
             power = run.gravity_power(run.mass, run.v_old)
+        if traction:
+            power += LOADS_POWER(run.traction.index, run.traction.loads, run.rate_x[slot])
         run.power[slot] = power
         t2 = monotonic_ns()
         run.phase_ns[1] += t1 - t0

@@ -30,6 +30,7 @@ import numpy as np
 
 from ..errors import InvalidState
 from ..kernels.staging import combine_stages
+from ..kernels.traction import loads_power
 from .runge_kutta import check_stage_volumes, finite_strain_stage, prescribed_acceleration
 
 __all__ = ["CompiledRungeKutta"]
@@ -145,6 +146,8 @@ class CompiledRungeKutta:
             power += self.kernels.gravity_work(mass, v, 1.0, self.gravity)
         if grid.work_forces is not None:
             power += float(np.sum(grid.work_forces * rk.x[slot]))
+        for index, loads in grid.side_loads:
+            power += loads_power(index, loads, rk.x[slot])
         return CompiledStageRates(slot, power)
 
     def _material_rates(self, state, particles, rk, slot):
