@@ -14,15 +14,16 @@ import itertools
 import numpy as np
 import pytest
 
-from skfem_mpm import (Body, Fixed, Gravity, LinearElastic, Method, Particles, Scene,
-                       SimulationError, SplineGrid, Traction, simulate)
+from skfem_mpm import (Body, DruckerPrager, Fixed, Gravity, LinearElastic, Method, MohrCoulomb,
+                       NeoHookean, Particles, Scene, SimulationError, SplineGrid, Traction,
+                       VonMises, simulate)
 from skfem_mpm.kernels import serial
 from skfem_mpm.solve import compiled_loop
 from skfem_mpm.solve.compiled import CompiledExecutor
 from skfem_mpm.solve.state import prepare
 from skfem_mpm.solve.stencil_system import StencilSystem, preconditioned_with
 
-from test_executors import scene_for
+from test_executors import CappedStress, CappedStressCompiled, scene_for
 
 KEYS = ("x", "v", "u", "stress")
 
@@ -384,6 +385,203 @@ def test_the_unaligned_2d_tls_rule_has_particle_points():
         assert (getattr(rule, "particle_points", None) is not None) == (not aligned)
 
 
+# ---------------------------------------------------------------- point laws
+# A body whose material has a compiled point law (not the fused linear
+# elasticity): g2p stores L, the constitutive kernel (material_update, the
+# executor's call) updates stress, V, F (finite strain) and the packed
+# material state into the run's second set of arrays, swapped at commit; a
+# J <= 0 or a non-finite state stops the loop (the executor raises). The
+# loop hands the new F and state back to the particles as the executor
+# does. A user's small-strain law, NeoHookean (finite strain; a fixed dt:
+# its default dt is adaptive, which stays with the executor) and the
+# plastic materials with per-particle state (2D); musl, usl, cd; lumped,
+# consistent and hybrid mass; once with TLS reconstruction.
+SHEAR, COHESION = 0.3, 0.4  # the block yields near its walls, tiny masses do not occur
+
+
+def plastic_material(name, c=COHESION):
+    return {"mohr-coulomb": MohrCoulomb(10.0, 0.3, 30.0, c),
+            "mohr-coulomb-large": MohrCoulomb(10.0, 0.3, 30.0, c, large_deformation=True),
+            "drucker-prager": DruckerPrager(10.0, 0.3, 30.0, c),
+            "von-mises": VonMises(10.0, 0.3, 2 * c, hardening=1.0)}[name]
+
+
+def law_scene(case, steps=23):
+    """(scene, fixed dt) of a point-law case: scene_for's, or for a plastic
+    material a 2D block sheared against the bottom and left walls, which
+    yields within a few steps."""
+    method = Method(scheme=case["scheme"], mass=case["mass"])
+    if case["material"] in ("custom-compiled", "neo-hookean"):
+        scene = scene_for(dict(case, effect="gravity"), steps=steps)
+        grid, body, effects = scene.grid, scene.bodies[0], scene.effects
+    else:
+        grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (6, 5), case["degree"])
+        region = ((0.0, 4 / 6), (0.0, 0.6)) if case.get("aligned") else \
+            ((0.0, 0.7), (0.0, 0.62))
+        shear = case.get("shear", SHEAR)
+        particles = Particles.seed(grid, case.get("ppc", 2), 1.0, region=region,
+                                   velocity=lambda X: np.column_stack((shear * X[:, 1],
+                                                                       -0.3 * X[:, 0])))
+        body = Body(particles, plastic_material(case["material"],
+                                                case.get("cohesion", COHESION)))
+        effects = [Fixed("bottom"), Fixed("left", 0), Gravity((0.0, -2.0))]
+    dt = prepare(Scene(grid, body, 1.0, effects=effects), method).dt
+    return Scene(grid, body, steps * dt, effects=effects), dt
+
+
+LAW_CASES = [  # every scheme x mass pair, each material in both dimensions it models
+    dict(material="custom-compiled", dim=1, scheme="musl", mass="lumped", degree=2),
+    dict(material="custom-compiled", dim=2, scheme="cd", mass="consistent", degree=2,
+         aligned=True),
+    dict(material="neo-hookean", dim=1, scheme="usl", mass="lumped", degree=3),
+    dict(material="neo-hookean", dim=1, scheme="cd", mass="consistent", degree=2),
+    dict(material="neo-hookean", dim=2, scheme="musl", mass="lumped", degree=2),
+    dict(material="mohr-coulomb", dim=2, scheme="musl", mass="hybrid", degree=2, aligned=True),
+    dict(material="mohr-coulomb-large", dim=2, scheme="cd", mass="lumped", degree=2),
+    dict(material="drucker-prager", dim=2, scheme="usl", mass="consistent", degree=2,
+         aligned=True),
+    dict(material="von-mises", dim=2, scheme="musl", mass="consistent", degree=1, aligned=True),
+    dict(material="mohr-coulomb", dim=2, scheme="usl", mass="lumped", degree=2,
+         reconstruction="tls", ppc=3),
+]
+
+
+def check_law_case(monkeypatch, case, steps=23):
+    scene, dt = law_scene(case, steps)
+    recon = case.get("reconstruction", "none")
+    method = Method(scheme=case["scheme"], mass=case["mass"], dt=dt, reconstruction=recon)
+    with monkeypatch.context() as m:
+        m.setattr(StencilSystem, "FRINGE_LAYERS", 0)  # 2D consistent: the loop keeps going
+        looped = simulate(scene, method, save_every=5)
+        stepped = without_loop(monkeypatch, scene, method, save_every=5)
+    assert looped.path == "fast (compiled loop)"
+    assert stepped.path == ("fast" if recon == "none" else f"fast (reconstruction {recon})")
+    assert_same(looped, stepped)
+    assert np.array_equal(looped.history["V"], stepped.history["V"])
+    names = tuple(scene.bodies[0].material.state_fields(case["dim"]))
+    for name in names:  # the material state at every save and at the end
+        assert np.array_equal(looped.history[name], stepped.history[name]), name
+        assert np.array_equal(looped.particles.state[name], stepped.particles.state[name]), name
+    assert looped.particles.state.keys() == stepped.particles.state.keys()
+    F = looped.particles.F
+    assert (F is None) == (stepped.particles.F is None) == (not scene.finite_strain)
+    if F is not None:
+        assert np.array_equal(F, stepped.particles.F)
+        assert not np.array_equal(F, scene.bodies[0].particles.F)  # it moved
+    assert len(looped.reactions) == len(stepped.reactions) > 0
+    for a, b in zip(looped.reactions, stepped.reactions):
+        assert a.keys() == b.keys()
+        for key in a:
+            assert np.array_equal(a[key], b[key]), key
+    assert looped.phase_table()["constitutive"] > 0.0
+    if "plastic_strain" in names:  # the law yielded: the state matters
+        assert looped.particles.state["plastic_strain"].max() > 0.01
+    return looped, stepped
+
+
+@pytest.mark.parametrize("case", LAW_CASES, ids=lambda c: "-".join(map(str, c.values())))
+def test_point_laws_give_the_executors_bits(monkeypatch, case):
+    looped, _ = check_law_case(monkeypatch, case)
+    assert looped.counts["compiled_loop_steps"] >= 20, looped.counts
+
+
+def test_the_point_law_cases_cover_every_pair():
+    pairs = {(c["scheme"], c["mass"]) for c in LAW_CASES}
+    assert pairs == {(s, m) for s in ("musl", "usl", "cd") for m in ("lumped", "consistent")
+                     } | {("musl", "hybrid")}
+    for material in ("custom-compiled", "neo-hookean"):
+        assert {c["dim"] for c in LAW_CASES if c["material"] == material} == {1, 2}
+
+
+def test_point_laws_with_parallel_kernels(monkeypatch):
+    """Above SERIAL_BELOW the loop calls the parallel constitutive kernel
+    (each thread's block flags its own J <= 0): the executor's bits."""
+    case = dict(material="mohr-coulomb", dim=2, scheme="musl", mass="lumped", degree=2)
+    with monkeypatch.context() as m:
+        m.setattr(serial, "SERIAL_BELOW", 0)
+        m.setattr(compiled_loop.StepLoop, "CALL_SECONDS", 1e-9)  # one step per call
+        looped, _ = check_law_case(monkeypatch, case)
+    assert looped.counts["compiled_loop_steps"] == 23
+
+
+def test_point_laws_with_the_executor_between_loop_calls(monkeypatch):
+    """A 2D body with hybrid mass that collapses gets tiny-mass dofs after
+    a dozen steps: those steps stop the loop and the executor takes them, from
+    the F and state the loop handed back; the loop then goes on from the
+    executor's. The same bits as the executor alone."""
+    case = dict(material="mohr-coulomb-large", dim=2, scheme="musl", mass="hybrid", degree=2,
+                aligned=True, shear=0.5, cohesion=0.02)
+    looped, _ = check_law_case(monkeypatch, case)
+    assert 0 < looped.counts["compiled_loop_steps"] < looped.counts["steps"]
+
+
+def test_point_law_handed_back_arrays_are_the_loops_own(monkeypatch):
+    """The particles the loop starts from (the scene's, the executor's) are
+    never written; what the loop hands back (x, stress, V, F, the state's
+    views) are new arrays of its own, and the executor's next step writes
+    new arrays, not the loop's."""
+    case = dict(material="mohr-coulomb-large", dim=2, scheme="musl", mass="lumped", degree=2)
+    scene, dt = law_scene(case, steps=12)
+    given = scene.bodies[0].particles
+    before = given.copy()
+    state = prepare(scene, Method(scheme="musl", dt=dt))
+    ops = CompiledExecutor(state)
+    loop = compiled_loop.StepLoop(state, ops)
+    loop.compile()
+    start = state.particles
+    assert loop.run(state, 4) == 4
+    first = state.particles
+    kept = first.copy()
+    arrays = [first.x, first.stress, first.V, first.F, *first.state.values()]
+    for a in arrays:
+        assert not any(np.shares_memory(a, b) for b in
+                       [start.x, start.stress, start.V, start.F, *start.state.values()])
+    schemes_step = compiled_loop.schemes.step_musl
+    schemes_step(ops, state)  # the executor takes a step from the loop's particles
+    second = state.particles
+    for a, b in zip(arrays, [second.x, second.stress, second.V, second.F,
+                             *second.state.values()]):
+        assert not np.shares_memory(a, b)
+    for name in ("x", "stress", "V", "F"):  # the executor did not write the loop's arrays
+        assert np.array_equal(getattr(first, name), getattr(kept, name)), name
+    for name in first.state:
+        assert np.array_equal(first.state[name], kept.state[name]), name
+    snapshot = second.copy()
+    assert loop.run(state, 4) == 4  # from the executor's particles, which stay as they were
+    for name in ("x", "stress", "V", "F"):
+        assert np.array_equal(getattr(second, name), getattr(snapshot, name)), name
+    for name in second.state:
+        assert np.array_equal(second.state[name], snapshot.state[name]), name
+    assert state.step == 9
+    for name in ("x", "v", "stress", "V", "F", "V0"):  # the scene's particles
+        assert np.array_equal(getattr(given, name), getattr(before, name)), name
+    for name in before.state:
+        assert np.array_equal(given.state[name], before.state[name]), name
+
+
+def test_a_point_law_failing_step_raises_as_without_the_loop(monkeypatch):
+    """J <= 0 in the constitutive kernel (a NeoHookean bar compressed
+    through itself): the loop stops before writing the state, the executor
+    takes that step and raises."""
+    grid = SplineGrid.line(0.0, 1.0, 8, 2)
+    particles = Particles.seed(grid, 2, 1.0, region=((0.0, 0.75),),
+                               velocity=lambda X: -40.0 * X)
+    scene = Scene(grid, Body(particles, NeoHookean(10.0)), 1.0, effects=[Fixed("left")])
+    dt = prepare(scene, Method(scheme="usl")).dt
+    scene = Scene(grid, Body(particles, NeoHookean(10.0)), 40 * dt, effects=[Fixed("left")])
+    method = Method(scheme="usl", dt=dt)
+    with pytest.raises(SimulationError) as looped:
+        simulate(scene, method, save_every=5)
+    with pytest.raises(SimulationError) as stepped:
+        without_loop(monkeypatch, scene, method, save_every=5)
+    assert str(looped.value) == str(stepped.value)
+    assert "J = det" in str(looped.value)
+    assert looped.value.step == stepped.value.step > 1
+    assert looped.value.result.counts["compiled_loop_steps"] > 0
+    assert_same(looped.value.result, stepped.value.result)
+    assert np.array_equal(looped.value.result.particles.F, stepped.value.result.particles.F)
+
+
 # ------------------------------------------------------------ side traction
 # A traction on a side of the body with tau(t): its loaded faces, loads and
 # grid force (the p2g kernel at the faces) in the run, tau tabulated by
@@ -444,3 +642,23 @@ def test_what_the_loop_leaves_to_the_executor():
         (False, f"reconstruction mls in {dim}D")
     state = prepare(scene, Method(scheme="musl", reconstruction="tls"))
     assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == (True, "")
+    grid, effects = scene.grid, scene.effects
+    particles = scene.bodies[0].particles
+    for material, scheme, why in [
+            (CappedStress(10.0, 0.3, 0.05), "musl",
+             "a material without a compiled point law (point_update None)"),
+            (NeoHookean(10.0, 0.3), "rk4",
+             "rk4 with a material other than linear elasticity (its NumPy rate laws)"),
+            (CappedStressCompiled(10.0, 0.3, 0.05), "cd", "")]:
+        state = prepare(Scene(grid, Body(particles, material), scene.t_end, effects=effects),
+                        Method(scheme=scheme))
+        assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == (not why, why)
+    two = Scene(grid, [Body(particles, CappedStressCompiled(10.0, 0.3, 0.05)),
+                       Body(particles, NeoHookean(10.0))], scene.t_end, effects=effects)
+    state = prepare(two, Method(scheme="musl", dt=1e-3))
+    assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
+        (False, "more than one body")
+    neo = Scene(grid, Body(particles, NeoHookean(10.0)), scene.t_end, effects=effects)
+    state = prepare(neo, Method(scheme="musl"))  # finite strain: dt adaptive by default
+    assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
+        (False, "an adaptive time step")

@@ -38,13 +38,14 @@ import time
 import numba
 import numpy as np
 
-from ..kernels import (by_symbol, cholesky, fast_dof, gauss_rule, kronecker, mpm, scatter,
-                       spline_1d, staging, tiny_mass, tls, traction, weights)
+from ..kernels import (by_symbol, cholesky, constitutive, fast_dof, gauss_rule, kronecker, mpm,
+                       scatter, spline_1d, staging, tiny_mass, tls, traction, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
 from ..kernels.records import grid_record
 from ..kernels.scatter import g2p2g_kernel, p2g_kernel
+from ..materials.state import state_layout
 from ..kernels.serial import for_threads
 from . import schemes
 from .compiled import side_traction
@@ -72,6 +73,8 @@ _GRID_KERNELS = {
     "SMALL_MASS_1D": mpm.small_mass_1d,
     "SMALL_MASS_2D": mpm.small_mass_2d,
     "COMBINE_STAGES": staging.combine_stages,
+    # a material's compiled point law (not fused linear elasticity)
+    "MATERIAL_UPDATE": constitutive.material_update,
     # reconstruction (compiled_loop_reconstruct)
     "GAUSS_RULE_1D": gauss_rule.gauss_rule_1d,
     "NOT_A_KNOT_SPLINE": spline_1d.not_a_knot_spline,
@@ -102,6 +105,7 @@ def loop_applies(state, executor):
     else (False, the first reason it cannot)."""
     m = state.method
     recon = getattr(executor, "recon", None)
+    fused = bool(getattr(executor, "fused", False))  # one linear elastic body
     reasons = (
         (not ENABLED, "the compiled loop is switched off (compiled_loop.ENABLED)"),
         (executor is None or not executor.path.startswith("fast"), "not the compiled executor"),
@@ -109,8 +113,13 @@ def loop_applies(state, executor):
                                                                ("tls", 2)),
          f"reconstruction {m.reconstruction} in {state.grid.dim}D"),
         (m.scheme not in ("musl", "usl", "cd", "rk4"), f"scheme {m.scheme}"),
-        (not executor.fused if executor is not None else True,
-         "a material other than one linear elastic body"),
+        (len(state.bodies) != 1, "more than one body"),
+        (not fused and not getattr(executor, "point_laws", False),
+         "a material without a compiled point law (point_update None)"),
+        (not fused and m.scheme == "rk4",
+         "rk4 with a material other than linear elasticity (its NumPy rate laws)"),
+        (not fused and len(state.bodies) == 1 and not isinstance(state.bodies[0][1], slice),
+         "a body of some of the particles"),
         (not _side_tractions_only(executor), "particle forces other than gravity and one "
          "traction on a side of the body with tau(t)"),
         (bool(state.force_modifiers), "grid force modifiers"),
@@ -259,7 +268,7 @@ def loop_module(dim, parallel, window):
     # sources go into the file's name (kernels.generated.load hashes it)
     depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass,
                                                      fast_dof, staging, gauss_rule, spline_1d,
-                                                     tls, cholesky, weights, traction,
+                                                     tls, cholesky, weights, traction, constitutive,
                                                      by_symbol))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
@@ -284,7 +293,9 @@ class StepLoop:
         self.scheme = state.method.scheme
         self.executor = executor
         material = state.bodies[0][0]
-        lam, mu = (material.E, 0.0) if dim == 1 else (material.lam, material.mu)
+        self.fused = executor.fused
+        lam, mu = (0.0, 0.0) if not self.fused else \
+            (material.E, 0.0) if dim == 1 else (material.lam, material.mu)
         copies_p2g, touched_p2g = k.transfers.copies(1 + 2 * dim)
         copies_g2p2g, touched_g2p2g = k.transfers.copies(dim)
         gravity_work = bool(executor.gravity_work)
@@ -297,7 +308,8 @@ class StepLoop:
             x=x, v=v, u=u, m=np.array(p.m, dtype=np.float64), V=V, stress=stress,
             x_new=vec(), v_new=vec(), u_new=vec(), V_new=empty(n),
             stress_new=empty((n, dim, dim)),
-            acc=vec() if cd else np.zeros((1, dim)), L=np.empty((1, 1, 1)),
+            acc=vec() if cd else np.zeros((1, dim)),
+            L=np.empty((1, 1, 1)) if self.fused else empty((n, dim, dim)),
             grid=grid_record(grid), mass=empty(nd), momentum=grid_vec(), force=grid_vec(),
             mass_range=np.zeros((k.nthreads, 2)), copies_p2g=copies_p2g,
             touched_p2g=touched_p2g, copies_g2p2g=copies_g2p2g, touched_g2p2g=touched_g2p2g,
@@ -312,16 +324,18 @@ class StepLoop:
             n_steps=int(state.n_steps), t_end=float(state.scene.t_end), vfactor=1.0,
             store_acc=cd, velocities_done=False, gravity_work=gravity_work, work=0.0,
             work_sum=np.zeros(dim), stop=0, handover=False,
-            phase_ns=np.zeros(5, dtype=np.int64), nthreads=int(k.nthreads),
+            phase_ns=np.zeros(len(self.PHASES), dtype=np.int64), nthreads=int(k.nthreads),
             p2g_at=0, g2p2g_at=0, g2p_at=0, rates_at=0)
         fields.update(self._stage_arrays(n if self.scheme == "rk4" else 1, dim, fields))
+        fields.update(self._law_arrays(material, executor, n, dim, k.nthreads))
         recon = executor.recon
         side = executor.other_forces[0] if executor.other_forces else None
         fields.update(rc=None if recon is None else self._reconstruction(recon, p),
                       no_acceleration=np.zeros((nd if recon is not None else 1, dim)),
                       displacement=empty((n if recon is not None or side else 1, dim)),
-                      V0=np.ascontiguousarray(p.V0, dtype=np.float64),
                       traction=None if side is None else self._side_traction(side, state, k))
+        if side is not None and fields["V0"].shape[0] != n:  # (a point law loads its own)
+            fields["V0"] = np.ascontiguousarray(p.V0, dtype=np.float64)
         self.side, self.traction = side, fields["traction"]
         self._table = (0, 0)  # the steps the traction's table holds
         # consistent or hybrid mass: the run's mass system (None: lumped)
@@ -333,6 +347,55 @@ class StepLoop:
         self._point_at_transfers(dim, grid.degree, window)
         self._loaded = None  # the particles whose arrays the run holds
         self._steps_per_call = 1  # parallel: grows to CALL_SECONDS of steps
+
+    def _law_arrays(self, material, executor, n, dim, nthreads):
+        """The point law's data of the run (compiled_loop_ops.FIELDS; fused
+        linear elasticity: ``law_at`` None and placeholders of one row)."""
+        empty = np.empty
+        self.layout = None  # the packed material state's layout (None: no state)
+        self.finite = False
+        arrays = dict(law_at=None, law_params=np.zeros(0), finite=False,
+                      F=empty((1, 1, 1)), F_new=empty((1, 1, 1)), V0=empty(1),
+                      mstate=empty((1, 0)), mstate_new=empty((1, 0)),
+                      law_flags=np.full(nthreads, -1, dtype=np.int64),
+                      no_index=np.zeros(0, dtype=np.int64))
+        if self.fused:
+            return arrays
+        self.finite = bool(executor.finite)
+        layout = state_layout(material, dim)
+        self.layout = layout if layout else None
+        width = layout.size if layout else 0
+        F = (lambda: empty((n, dim, dim))) if self.finite else (lambda: empty((1, 1, 1)))
+        arrays.update(
+            law_at=int(material.point_update.address()),
+            law_params=np.ascontiguousarray(material.point_parameters(dim), dtype=np.float64),
+            finite=self.finite, F=F(), F_new=F(), V0=empty(n), mstate=empty((n, width)),
+            mstate_new=empty((n, width)))
+        return arrays
+
+    def _load_law_state(self, p):
+        """Copy the particles' F (finite strain), V0 and packed state into the run."""
+        F = np.ascontiguousarray(p.F) if self.finite else np.empty((1, 1, 1))
+        n = p.n
+        packed = self.layout.pack(p.state) if self.layout is not None else np.empty((n, 0))
+        self.module.load_law_state(self.run_state, F, np.ascontiguousarray(p.V0), packed)
+
+    def _law_results(self, p):
+        """The arrays of the new F and state (``Particles.replaced``
+        keywords) as the executor hands them on: the run's current F, and
+        the state dict with views of its current packed state (the
+        executor's PackedState.written)."""
+        if self.fused:
+            return {}
+        F, packed = self.module.law_state(self.run_state)
+        out = {}
+        if self.finite:
+            out["F"] = F
+        if self.layout is not None:
+            state = dict(p.state)
+            state.update(self.layout.views(packed))
+            out["state"] = state
+        return out
 
     def _stage_arrays(self, n, dim, fields):
         """The rk4 arrays of n particles (see compiled_loop_ops.FIELDS; other
@@ -516,6 +579,8 @@ class StepLoop:
         return self.module.new_mass_system(*(fields[n] for n in self.module.MASS_FIELDS))
 
     WARM_KINDS = ("acceleration", "velocity")
+    # the phases of run.phase_ns (compiled_loop_ops)
+    PHASES = ("p2g", "solve", "g2p", "mass_matrix", "reconstruct", "constitutive")
 
     def _load_warm(self, state):
         """The run starts its CG runs from the state's warm starts."""
@@ -564,6 +629,10 @@ class StepLoop:
             dim = self._arrays[0].shape[1]
             self.module.set_traction_table(self.traction, np.zeros((1, 3, dim)), 0)
         self.module.load_state(self.run_state, *self._arrays, 0.0, 0, 0.0)
+        if not self.fused:
+            F, packed = self.module.law_state(self.run_state)
+            self.module.load_law_state(self.run_state, F.copy(), np.ones(self._arrays[3].shape),
+                                       packed.copy())
         self.module.set_work(self.run_state, 0.0)
         self.module.reset_step_records(self.run_state)
         self._loop(self.run_state, 0)
@@ -597,6 +666,8 @@ class StepLoop:
             c = np.ascontiguousarray  # (load_state copies flat: no copy when already so)
             mod.load_state(run, c(p.x), c(p.v), c(p.u), c(p.V), c(p.stress), float(state.t),
                            int(state.step), float(state.external_work))
+            if not self.fused:
+                self._load_law_state(p)
         else:
             mod.set_work(run, float(state.external_work))
         mod.reset_step_records(run)
@@ -609,7 +680,7 @@ class StepLoop:
             self._loaded = p
             return 0
         x, v, u, V, stress, t, step, work, acc = mod.current(run)
-        state.particles = p.replaced(x=x, v=v, u=u, V=V, stress=stress)
+        state.particles = p.replaced(x=x, v=v, u=u, V=V, stress=stress, **self._law_results(p))
         self._loaded = state.particles
         state.t, state.step = t, step
         state.external_work = work
@@ -622,8 +693,7 @@ class StepLoop:
             mass, a, force = mod.grid_arrays(run)
             gravity = self.executor.gravity if self.executor.gravity_work else None
             state.defer_reactions(state.constraints, mass, a, force, gravity)
-        for phase, ns in zip(("p2g", "solve", "g2p", "mass_matrix", "reconstruct"),
-                             phase_ns.tolist()):
+        for phase, ns in zip(self.PHASES, phase_ns.tolist()):
             if ns:
                 state.timer.add(phase, ns * 1e-9)
         state.small_dofs_max = max(state.small_dofs_max, int(small_max))

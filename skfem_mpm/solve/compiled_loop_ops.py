@@ -47,7 +47,7 @@ step was taken, and the next ones need the executor (the fringe
 correction turned on).
 
 Phase times (nanoseconds of the monotonic clock) add up in ``run.phase_ns``:
-0 p2g, 1 solve, 2 g2p, 3 mass_matrix, 4 reconstruct.
+0 p2g, 1 solve, 2 g2p, 3 mass_matrix, 4 reconstruct, 5 constitutive.
 """
 import numpy as np
 from numba import njit, types
@@ -102,9 +102,18 @@ FIELDS = (
     # grid accelerations, the particle displacements of a step (the work of
     # gravity); both placeholders of one row without reconstruction
     "rc", "no_acceleration", "displacement",
-    # a side traction: a SideTraction (None: none; compiled_loop_traction),
-    # the particles' reference volumes
-    "traction", "V0",
+    # a material's compiled point law (kernels.constitutive.material_update;
+    # ``law_at`` None: linear elasticity fused into g2p, and the rest are
+    # placeholders of one row): the address of its C callback, its
+    # parameters, finite strain or not, the deformation gradient (current
+    # and new; small strain: placeholders, the kernel is given L), the
+    # reference volumes, the packed material state (current and new, (n,
+    # n_state)), the kernel's flags (first J <= 0 of each thread's block),
+    # an empty index (the body holds every particle)
+    "law_at", "law_params", "finite", "F", "F_new", "V0", "mstate", "mstate_new",
+    "law_flags", "no_index",
+    # a side traction: a SideTraction (None: none; compiled_loop_traction)
+    "traction",
 )
 
 
@@ -121,6 +130,12 @@ def _reconstructed(run):
 def _traction(run):
     """Whether the run (its numba type) carries a side traction."""
     return not isinstance(run.field_dict["traction"], types.NoneType)
+
+
+def _point_law(run):
+    """Whether the run (its numba type) updates the stress by a material's
+    compiled point law (else linear elasticity is fused into g2p)."""
+    return not isinstance(run.field_dict["law_at"], types.NoneType)
 
 
 def _tls(run):
@@ -181,6 +196,22 @@ def load_state(run, x, v, u, V, stress, t, step, work):
     run.t = t
     run.step = step
     run.work = work
+
+
+@njit(cache=True)
+def load_law_state(run, F, V0, mstate):
+    """Copy the point law's particle data into the run: the deformation
+    gradient (finite strain), the reference volumes and the packed state."""
+    if run.finite:
+        copy_into(run.F, F)
+    copy_into(run.V0, V0)
+    copy_into(run.mstate, mstate)
+
+
+@njit(cache=True)
+def law_state(run):
+    """The run's current deformation gradient and packed material state."""
+    return run.F, run.mstate
 
 
 @njit(cache=True)
@@ -466,7 +497,7 @@ def _project_velocity(run, state, grid):
 
 @overload_method(RunType, "move_particles")
 def _move_particles(run, state, grid):
-    def impl(run, state, grid):
+    def fused(run, state, grid):
         if run.stop:
             return
         t0 = monotonic_ns()
@@ -480,13 +511,58 @@ def _move_particles(run, state, grid):
                 if run.flags[t, j] >= 0:
                     run.stop = 2
         run.phase_ns[2] += monotonic_ns() - t0
-    return impl
+
+    def stored_L(run, state, grid):  # a point law: g2p stores L (n, dim, dim)
+        if run.stop:
+            return
+        t0 = monotonic_ns()
+        particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
+        new = (run.x_new, run.v_new, run.u_new, run.m, run.V_new, run.stress_new)
+        update = (run.dt, run.vfactor, not run.velocities_done, False, run.lam, run.mu,
+                  run.store_acc)  # kernels.records.Update
+        G2P(run.g2p_at, particles, run.grid, run.a, run.v_grid, update, new, run.L, run.acc, run.flags)
+        for t in range(run.flags.shape[0]):  # non-finite, outside, J <= 0
+            for j in range(3):
+                if run.flags[t, j] >= 0:
+                    run.stop = 2
+        run.phase_ns[2] += monotonic_ns() - t0
+    return stored_L if _point_law(run) else fused
 
 
 @overload_method(RunType, "update_stress")
 def _update_stress(run, state, grid, velocity=None):
+    if not _point_law(run):
+        def impl(run, state, grid, velocity=None):
+            pass  # linear elasticity: fused into the g2p kernel
+        return impl
+
     def impl(run, state, grid, velocity=None):
-        pass  # linear elasticity: fused into the g2p kernel
+        """The material's point law over every particle (the executor's
+        material_update call): stress, V (and F) from L into the new
+        arrays, the packed state into the new state; a J <= 0 or a
+        non-finite state stops the loop (the executor raises)."""
+        if run.stop:
+            return
+        t0 = monotonic_ns()
+        if run.finite:
+            F = run.F
+            F_out = run.F_new
+        else:  # not read: the executor passes L
+            F = run.L
+            F_out = run.L
+        MATERIAL_UPDATE(run.law_at, run.law_params, run.no_index, True, run.L, run.dt,
+                        run.finite, run.stress, F, run.V, run.V0, run.mstate, run.stress_new,
+                        F_out, run.V_new, run.mstate_new, run.law_flags)
+        for t in range(run.law_flags.shape[0]):  # J <= 0
+            if run.law_flags[t] >= 0:
+                run.stop = 2
+        out = run.mstate_new
+        if not run.stop:
+            for i in range(out.shape[0]):  # a non-finite material state
+                for c in range(out.shape[1]):
+                    if not np.isfinite(out[i, c]):
+                        run.stop = 2
+        run.phase_ns[5] += monotonic_ns() - t0
     return impl
 
 
@@ -498,6 +574,8 @@ def _advance(run):
     run.u, run.u_new = run.u_new, run.u
     run.V, run.V_new = run.V_new, run.V
     run.stress, run.stress_new = run.stress_new, run.stress
+    run.F, run.F_new = run.F_new, run.F
+    run.mstate, run.mstate_new = run.mstate_new, run.mstate
     run.step += 1
     run.t = run.step * run.dt if run.step < run.n_steps else run.t_end
 
