@@ -16,6 +16,13 @@ non-finite value, J <= 0, a particle outside the grid, tiny-mass dofs)
 stops it before the current state is written; the executor then takes that
 step and raises, removes or merges as its docstrings say.
 
+Materials: one body, linear elastic (fused into the transfer kernels) or,
+with MUSL, USL and CD, a material with a compiled point law, updated by the
+executor's constitutive kernel inside the loop; the loop hands the new F
+(finite strain) and the material state (views of its packed buffer) back
+to ``state.particles`` as the executor does, and loads them again after
+the executor has taken a step.
+
 Threads: the loop calls the kernels the executor calls: below
 :data:`skfem_mpm.kernels.serial.SERIAL_BELOW` particles their serial copies
 (the same source compiled without ``parallel``; the same blocks, so the

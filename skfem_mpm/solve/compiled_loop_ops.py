@@ -4,7 +4,8 @@ modules (not imported as a module).
 :mod:`skfem_mpm.solve.compiled_loop` writes this text, after a prelude that
 binds the kernel names used below (``P2G``, ``G2P2G``, ``G2P``,
 ``REDUCE_FIELDS``, ``REDUCE_COPIES``, ``LUMPED_SOLVE``, ``MERGED_SOLVE``, ``USL_GRID``,
-``MASS_WEIGHTED_SUM``, ``WORK_INCREMENT``, ``SMALL_MASS``, ``monotonic_ns``; the
+``MASS_WEIGHTED_SUM``, ``WORK_INCREMENT``, ``SMALL_MASS``, ``MATERIAL_UPDATE``,
+``monotonic_ns``; the
 reconstruction's ``GAUSS_RULE_1D``, ``LOCATE_CELLS``, ``TLS_RECONSTRUCT``...; ``DIM``, the
 grid dimension) to the compiled
 kernels of one grid dimension and threading (serial copies for small
@@ -33,12 +34,18 @@ particle-knot spline reconstruction or the published TLS reconstruction
 (default options) in 1D and 2D (``run.rc``: None, or the data of
 :mod:`skfem_mpm.solve.compiled_loop_reconstruct`, a Reconstruction or a
 TLSReconstruction); a run of each kind compiles only its own operations;
-one linear elastic body (its stress update fused into g2p, its stress
-rate into the rk4 rates gather), gravity, fixed constraints, a traction on
-a side of the body with tau(t) (``run.traction``: None, or the data of
-:mod:`skfem_mpm.solve.compiled_loop_traction`). A step that
-would need anything else stops the loop before it writes the current
-state (``run.stop``): a non-finite value, J <= 0, a volume <= 0 or a
+one body: linear elastic (its stress update fused into g2p, its stress
+rate into the rk4 rates gather; ``run.law_at`` None), or with MUSL, USL
+and CD a material with a compiled point law (``run.law_at``: the address
+of its C callback): g2p stores L and the executor's constitutive kernel
+(``MATERIAL_UPDATE``, :mod:`skfem_mpm.kernels.constitutive`) writes the
+new stress, V, F (finite strain) and packed material state into the
+second set of arrays, swapped at commit like x and v; gravity, fixed
+constraints, a traction on a side of the body with tau(t)
+(``run.traction``: None, or the data of
+:mod:`skfem_mpm.solve.compiled_loop_traction`). A step that would need anything else stops the loop before
+it writes the current state (``run.stop``): a non-finite value or
+material state, J <= 0, a volume <= 0 or a
 particle outside the grid (2), a tiny-mass merge the lumped kernel
 cannot do (1), tiny-mass dofs with consistent mass (4), a CG run above
 its tolerance (3), a fitted density 0 at a Gauss point (5). The Python
