@@ -504,36 +504,24 @@ def _project_velocity(run, state, grid):
 
 @overload_method(RunType, "move_particles")
 def _move_particles(run, state, grid):
-    def fused(run, state, grid):
-        if run.stop:
-            return
-        t0 = monotonic_ns()
-        particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
-        new = (run.x_new, run.v_new, run.u_new, run.m, run.V_new, run.stress_new)
-        update = (run.dt, run.vfactor, not run.velocities_done, True, run.lam, run.mu,
-                  run.store_acc)  # kernels.records.Update
-        G2P(run.g2p_at, particles, run.grid, run.a, run.v_grid, update, new, run.L, run.acc, run.flags)
-        for t in range(run.flags.shape[0]):  # non-finite, outside, J <= 0
-            for j in range(3):
-                if run.flags[t, j] >= 0:
-                    run.stop = 2
-        run.phase_ns[2] += monotonic_ns() - t0
+    fused = not _point_law(run)  # else g2p stores L (n, dim, dim) for the point law
 
-    def stored_L(run, state, grid):  # a point law: g2p stores L (n, dim, dim)
+    def impl(run, state, grid):
         if run.stop:
             return
         t0 = monotonic_ns()
         particles = (run.x, run.v, run.u, run.m, run.V, run.stress)
         new = (run.x_new, run.v_new, run.u_new, run.m, run.V_new, run.stress_new)
-        update = (run.dt, run.vfactor, not run.velocities_done, False, run.lam, run.mu,
+        update = (run.dt, run.vfactor, not run.velocities_done, fused, run.lam, run.mu,
                   run.store_acc)  # kernels.records.Update
-        G2P(run.g2p_at, particles, run.grid, run.a, run.v_grid, update, new, run.L, run.acc, run.flags)
+        G2P(run.g2p_at, particles, run.grid, run.a, run.v_grid, update, new, run.L, run.acc,
+            run.flags)
         for t in range(run.flags.shape[0]):  # non-finite, outside, J <= 0
             for j in range(3):
                 if run.flags[t, j] >= 0:
                     run.stop = 2
         run.phase_ns[2] += monotonic_ns() - t0
-    return stored_L if _point_law(run) else fused
+    return impl
 
 
 @overload_method(RunType, "update_stress")
