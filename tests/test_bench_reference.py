@@ -86,8 +86,6 @@ def test_compiler_from_cc_must_exist():
         find_compiler({"PATH": ""})
 
 
-@pytest.mark.slow(reason="a whole bench run (its parallel loops compile, 30 s on 2 cores); the "
-                  "default tier checks the same-run ratios in the other bench tests")
 def test_bench_without_a_compiler_prints_no_ratio(monkeypatch, capsys):
     """With CC pointing nowhere the bench says why the C reference is
     unavailable and prints no ratio (text and JSON)."""

@@ -250,9 +250,6 @@ def test_consistent_mass_gives_the_executors_bits_everywhere(monkeypatch, case):
     check_mass_case(monkeypatch, case, fringe=case["degree"] != 3)
 
 
-@pytest.mark.slow(reason="the consistent-mass machinery's parallel kernels compile only here "
-                  "(28 s on 2 cores); the default tier runs the lumped and point-law loops "
-                  "with parallel kernels")
 def test_consistent_mass_with_parallel_kernels(monkeypatch):
     case = MASS_CASES[0]
     with monkeypatch.context() as m:
