@@ -41,6 +41,22 @@ def assert_same(a, b):
     assert np.array_equal(a.energies["external_work"], b.energies["external_work"])
 
 
+def looped_and_stepped(monkeypatch, scene, method):
+    """The run with the compiled loop and without it (the executor stepping
+    in Python), saved every 5 steps: the loop ran it, and both give the same
+    bits (every recorded quantity, the reactions)."""
+    looped = simulate(scene, method, save_every=5)
+    stepped = without_loop(monkeypatch, scene, method, save_every=5)
+    assert looped.path == "fast (compiled loop)"
+    assert_same(looped, stepped)
+    assert len(looped.reactions) == len(stepped.reactions)
+    for a, b in zip(looped.reactions, stepped.reactions):
+        assert a.keys() == b.keys()
+        for key in a:
+            assert np.array_equal(a[key], b[key]), key
+    return looped, stepped
+
+
 LOOP_FACTORS = {"scheme": ("musl", "usl", "cd"), "degree": (1, 2, 3), "dim": (1, 2),
                 "effect": ("none", "gravity")}
 # Each (scheme, degree, dim) compiles a loop function of its own (30-280 s
@@ -309,15 +325,8 @@ def test_spline_reconstruction_gives_the_executors_bits(monkeypatch, case):
     full = dict(case, dim=1, material="linear", reconstruction="spline", aligned=True)
     scene = scene_for(full, steps=23)
     method = Method(scheme=case["scheme"], mass=case["mass"], reconstruction="spline")
-    looped = simulate(scene, method, save_every=5)
-    stepped = without_loop(monkeypatch, scene, method, save_every=5)
-    assert looped.path == "fast (compiled loop)"
+    looped, stepped = looped_and_stepped(monkeypatch, scene, method)
     assert stepped.path == "fast (reconstruction spline)"
-    assert_same(looped, stepped)
-    for a, b in zip(looped.reactions, stepped.reactions):
-        assert a.keys() == b.keys()
-        for key in a:
-            assert np.array_equal(a[key], b[key]), key
     assert looped.counts["compiled_loop_steps"] >= 18
     assert looped.phase_table()["reconstruct"] > 0.0
 
@@ -361,16 +370,9 @@ def test_tls_reconstruction_gives_the_executors_bits(monkeypatch, case):
     full = dict(case, material="linear", reconstruction="tls", ppc=3)
     scene = scene_for(full, steps=23)
     method = Method(scheme=case["scheme"], mass=case["mass"], reconstruction="tls")
-    looped = simulate(scene, method, save_every=5)
-    stepped = without_loop(monkeypatch, scene, method, save_every=5)
-    assert looped.path == "fast (compiled loop)"
+    looped, stepped = looped_and_stepped(monkeypatch, scene, method)
     assert stepped.path == "fast (reconstruction tls)"
-    assert_same(looped, stepped)
-    assert len(looped.reactions) == len(stepped.reactions) > 0
-    for a, b in zip(looped.reactions, stepped.reactions):
-        assert a.keys() == b.keys()
-        for key in a:
-            assert np.array_equal(a[key], b[key]), key
+    assert len(looped.reactions) > 0
     assert looped.counts["compiled_loop_steps"] >= 18
     assert looped.phase_table()["reconstruct"] > 0.0
 
@@ -603,14 +605,7 @@ def test_a_side_traction_gives_the_executors_bits(monkeypatch, case):
     scene = scene_for(full, steps=23)
     method = Method(scheme=case["scheme"], mass=case["mass"],
                     reconstruction=case.get("reconstruction", "none"))
-    looped = simulate(scene, method, save_every=5)
-    stepped = without_loop(monkeypatch, scene, method, save_every=5)
-    assert looped.path == "fast (compiled loop)"
-    assert_same(looped, stepped)
-    for a, b in zip(looped.reactions, stepped.reactions):
-        assert a.keys() == b.keys()
-        for key in a:
-            assert np.array_equal(a[key], b[key]), key
+    looped, _ = looped_and_stepped(monkeypatch, scene, method)
     assert looped.counts["compiled_loop_steps"] >= 20
     assert looped.energies["external_work"][-1] != 0.0  # the loads' work is counted
 
