@@ -89,10 +89,11 @@ def new_reconstruction(*fields):
 
 
 @njit(cache=True)
-def reconstruct_points(rc, x, v, m, V, stress):
-    """The step's rule and the quadrature points of the fitted fields (see
-    the module); False when the fitted density is 0 at a point."""
-    n, dim = x.shape
+def _per_volume_fields(rc, v, m, V, stress):
+    """rc.values = the fitted per-volume fields [rho, rho v, sigma] of the
+    particles (n, 1 + dim + dim^2) and rc.rho = rho = m / V; returns
+    rc.values (a Reconstruction or a TLSReconstruction)."""
+    n, dim = v.shape
     values = rc.values
     for i in range(n):
         rho = m[i] / V[i]
@@ -103,6 +104,45 @@ def reconstruct_points(rc, x, v, m, V, stress):
         for a in range(dim):
             for b in range(dim):
                 values[i, 1 + dim + a * dim + b] = stress[i, a, b]
+    return values
+
+
+@njit(cache=True)
+def _quadrature_points(rc, fit):
+    """The rule's points (rc.xq, weights rc.Vq) as quadrature particles of
+    the fitted fields ``fit`` (ng, 1 + dim + dim^2): mass w_g rho_h,
+    velocity (rho v)_h / rho_h, stress sigma_h (rc.mq, rc.vq, rc.sq), and
+    the projection's work arrays sized for them; False when rho_h is 0 at
+    a point (nothing is divided then)."""
+    ng = fit.shape[0]
+    dim = rc.xq.shape[1]
+    w = rc.Vq
+    rc.vq = np.empty((ng, dim))
+    rc.mq = np.empty(ng)
+    rc.sq = np.empty((ng, dim, dim))
+    rc.momentum_fit = np.empty((ng, dim))
+    rc.no_stress = np.zeros((ng, dim, dim))
+    rc.point_velocities = np.empty((ng, dim))
+    for g in range(ng):
+        if fit[g, 0] == 0.0:
+            return False
+    for g in range(ng):
+        rho = fit[g, 0]
+        rc.mq[g] = w[g] * rho
+        for c in range(dim):
+            rc.vq[g, c] = fit[g, 1 + c] / rho
+        for a in range(dim):
+            for b in range(dim):
+                rc.sq[g, a, b] = fit[g, 1 + dim + a * dim + b]
+    return True
+
+
+@njit(cache=True)
+def reconstruct_points(rc, x, v, m, V, stress):
+    """The step's rule and the quadrature points of the fitted fields (see
+    the module); False when the fitted density is 0 at a point."""
+    n, dim = x.shape
+    values = _per_volume_fields(rc, v, m, V, stress)
     positions = x.reshape(n)  # 1D: x is (n, 1)
     order, pieces, points, xg, wg, _ = GAUSS_RULE_1D(positions, V, rc.gap, rc.breaks, rc.ref,
                                                      rc.wref)
@@ -116,24 +156,7 @@ def reconstruct_points(rc, x, v, m, V, stress):
     rc.fit = fit
     rc.xq = xg.reshape((ng, 1))
     rc.Vq = wg
-    rc.vq = np.empty((ng, dim))
-    rc.mq = np.empty(ng)
-    rc.sq = np.empty((ng, dim, dim))
-    rc.momentum_fit = np.empty((ng, dim))
-    rc.no_stress = np.zeros((ng, dim, dim))
-    rc.point_velocities = np.empty((ng, dim))
-    for g in range(ng):
-        if fit[g, 0] == 0.0:
-            return False
-    for g in range(ng):
-        rho = fit[g, 0]
-        rc.mq[g] = wg[g] * rho
-        for c in range(dim):
-            rc.vq[g, c] = fit[g, 1 + c] / rho
-        for a in range(dim):
-            for b in range(dim):
-                rc.sq[g, a, b] = fit[g, 1 + dim + a * dim + b]
-    return True
+    return _quadrature_points(rc, fit)
 
 
 @njit(cache=True)
@@ -260,18 +283,9 @@ def tls_points(rc, x, v, m, V, stress):
     points (kernels.tls.tls_reconstruct), the particles' own values at its
     particle points, and the points as quadrature particles (see
     reconstruct_points); False when the density is 0 at a point."""
-    n, dim = x.shape
-    values = rc.values
+    dim = x.shape[1]
+    values = _per_volume_fields(rc, v, m, V, stress)
     k = values.shape[1]
-    for i in range(n):
-        rho = m[i] / V[i]
-        rc.rho[i] = rho
-        values[i, 0] = rho
-        for c in range(dim):
-            values[i, 1 + c] = rho * v[i, c]
-        for a in range(dim):
-            for b in range(dim):
-                values[i, 1 + dim + a * dim + b] = stress[i, a, b]
     _TLS_RULE(rc, x, V)
     xg, wg, own = rc.xg, rc.wg, rc.own
     ngauss = wg.shape[0]
@@ -301,25 +315,7 @@ def tls_points(rc, x, v, m, V, stress):
         rc.xq = xq
         rc.Vq = Vq
         fit = points
-    rc.vq = np.empty((ng, dim))
-    rc.mq = np.empty(ng)
-    rc.sq = np.empty((ng, dim, dim))
-    rc.momentum_fit = np.empty((ng, dim))
-    rc.no_stress = np.zeros((ng, dim, dim))
-    rc.point_velocities = np.empty((ng, dim))
-    for g in range(ng):
-        if fit[g, 0] == 0.0:
-            return False
-    Vq = rc.Vq
-    for g in range(ng):
-        rho = fit[g, 0]
-        rc.mq[g] = Vq[g] * rho
-        for c in range(dim):
-            rc.vq[g, c] = fit[g, 1 + c] / rho
-        for a in range(dim):
-            for b in range(dim):
-                rc.sq[g, a, b] = fit[g, 1 + dim + a * dim + b]
-    return True
+    return _quadrature_points(rc, fit)
 
 
 @njit(cache=True)
