@@ -33,7 +33,8 @@ from numba import njit
 
 from .weights import locate_axis_point
 
-__all__ = ["body_boxes_2d", "gauss_rule_1d", "gauss_rule_cells", "locate_cells"]
+__all__ = ["body_boxes_2d", "cut_cell_particles", "gauss_rule_1d", "gauss_rule_cells",
+           "locate_cells"]
 
 
 @njit(cache=True, error_model="numpy")
@@ -198,6 +199,37 @@ def body_boxes_2d(x, V, pcell, breaks0, breaks1):
                                upper[a] - width)
             hi[c, a] = upper[a] if closed_hi[a] else lo[c, a] + width
     return lo, hi
+
+
+@njit(cache=True, error_model="numpy")
+def cut_cell_particles(pcell, lo, hi, breaks0, breaks1):
+    """(own, kept): the particles (ascending) whose cell's body box lo..hi
+    (:func:`body_boxes_2d`) is not the whole cell, a cell a free surface
+    cuts, whose particles are points of the rule themselves; and the cells
+    of the other particles, in particle order (those :func:`gauss_rule_cells`
+    integrates)."""
+    n = pcell.shape[0]
+    nx = breaks0.shape[0] - 1
+    cut = np.empty(n, dtype=np.bool_)
+    nown = 0
+    for i in range(n):
+        c = pcell[i]
+        ix = c % nx
+        iy = c // nx
+        cut[i] = not (lo[c, 0] == breaks0[ix] and hi[c, 0] == breaks0[ix + 1]
+                      and lo[c, 1] == breaks1[iy] and hi[c, 1] == breaks1[iy + 1])
+        if cut[i]:
+            nown += 1
+    own = np.empty(nown, dtype=np.int64)
+    kept = np.empty(n - nown, dtype=np.int64)
+    j = 0
+    for i in range(n):
+        if cut[i]:
+            own[j] = i
+            j += 1
+        else:
+            kept[i - j] = pcell[i]
+    return own, kept
 
 
 @njit(cache=True, error_model="numpy")

@@ -88,6 +88,7 @@ _GRID_KERNELS = {
     "LOCATE_CELLS": gauss_rule.locate_cells,
     "BODY_BOXES_2D": gauss_rule.body_boxes_2d,
     "GAUSS_RULE_CELLS": gauss_rule.gauss_rule_cells,
+    "CUT_CELL_PARTICLES": gauss_rule.cut_cell_particles,
     "TLS_RECONSTRUCT": tls.tls_reconstruct,
     # a side traction (compiled_loop_traction)
     "SIDE_FACES": traction.side_faces,

@@ -241,31 +241,11 @@ def _tls_rule_2d(rc, x, V):
     (kernels.gauss_rule.body_boxes_2d, gauss_rule_cells), except the cells
     a free surface cuts (their box is not the whole cell), whose particles
     are points of the rule themselves (``own``)."""
-    n = x.shape[0]
     breaks0 = rc.breaks
     breaks1 = rc.breaks1
     pcell = LOCATE_CELLS(x, breaks0, breaks1, rc.uniform0, rc.uniform1)
     lo, hi = BODY_BOXES_2D(x, V, pcell, breaks0, breaks1)
-    nx = breaks0.shape[0] - 1
-    cut = np.empty(n, dtype=np.bool_)
-    nown = 0
-    for i in range(n):
-        c = pcell[i]
-        ix = c % nx
-        iy = c // nx
-        cut[i] = not (lo[c, 0] == breaks0[ix] and hi[c, 0] == breaks0[ix + 1]
-                      and lo[c, 1] == breaks1[iy] and hi[c, 1] == breaks1[iy + 1])
-        if cut[i]:
-            nown += 1
-    own = np.empty(nown, dtype=np.int64)
-    kept = np.empty(n - nown, dtype=np.int64)
-    j = 0
-    for i in range(n):
-        if cut[i]:
-            own[j] = i
-            j += 1
-        else:
-            kept[i - j] = pcell[i]
+    own, kept = CUT_CELL_PARTICLES(pcell, lo, hi, breaks0, breaks1)
     xg, wg, gcell = GAUSS_RULE_CELLS(kept, lo, hi, rc.ref, rc.wref)
     rc.pcell = pcell
     rc.xg = xg

@@ -31,7 +31,8 @@ import numpy as np
 from numba import get_num_threads
 
 from ..errors import InvalidState
-from ..kernels.gauss_rule import body_boxes_2d, gauss_rule_1d, gauss_rule_cells, locate_cells
+from ..kernels.gauss_rule import (body_boxes_2d, cut_cell_particles, gauss_rule_1d,
+                                  gauss_rule_cells, locate_cells)
 from ..kernels.kronecker import KroneckerData, axis_mass_bands
 from ..kernels.mls import mls_reconstruct
 from ..kernels.mpm import ell_pcg
@@ -261,26 +262,15 @@ class CompiledReconstruction:
                                                         self.ref, self.wref)
             return Rule(xg[:, None], wg, cell, pcell, order, pp, pg)
         lo, hi = body_boxes_2d(p.x, p.V, pcell, self.breaks, self.breaks1)
-        cut = self._cut(lo, hi)
-        if not cut[pcell].any():
-            xg, wg, cell = gauss_rule_cells(pcell, lo, hi, self.ref, self.wref)
+        own, kept = cut_cell_particles(pcell, lo, hi, self.breaks, self.breaks1)
+        xg, wg, cell = gauss_rule_cells(kept, lo, hi, self.ref, self.wref)
+        if own.size == 0:
             return Rule(xg, wg, cell, pcell)
         # the particles are the rule of the cells a free surface cuts (as the reference)
-        own = np.flatnonzero(cut[pcell])
-        xg, wg, cell = gauss_rule_cells(pcell[~cut[pcell]], lo, hi, self.ref, self.wref)
         rule = Rule(np.concatenate((xg, p.x[own])), np.concatenate((wg, p.V[own])),
                     np.concatenate((cell, pcell[own])), pcell)
         rule.particle_points, rule.ngauss = own, wg.size
         return rule
-
-    def _cut(self, lo, hi):
-        """Per cell: its body box lo..hi (:func:`body_boxes_2d`) is not the
-        whole cell (a free surface cuts it; cells without particles too)."""
-        nx = self.breaks.size - 1
-        c = np.arange(lo.shape[0])
-        ix, iy = c % nx, c // nx
-        return ~((lo[:, 0] == self.breaks[ix]) & (hi[:, 0] == self.breaks[ix + 1])
-                 & (lo[:, 1] == self.breaks1[iy]) & (hi[:, 1] == self.breaks1[iy + 1]))
 
     def reconstruct(self, p, values, rule):
         """The reconstructed ``values`` (n, k) at the rule's points (ng, k):
