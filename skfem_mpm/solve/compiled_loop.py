@@ -442,7 +442,7 @@ class StepLoop:
     def _tabulate_traction(self, state, n):
         """tau(t) of the side traction at the times of the next n steps (and
         of their rk4 stages: t + dt/2, t + dt), as the executor evaluates it
-        (its step's t: State.t_next's formula), unless the table already
+        (its step's t: State.time_at), unless the table already
         holds them (a loop that stopped early is called again on the same
         steps); False when tau does not return one vector of the grid's
         dimension (the executor takes the run)."""
@@ -453,8 +453,7 @@ class StepLoop:
         table = np.zeros((n, 3, dim))
         stages = (0.0, 0.5, 1.0) if self.scheme == "rk4" else (0.0,)
         for j in range(n):
-            s = state.step + j
-            t = state.t if j == 0 else (s * dt if s < state.n_steps else state.scene.t_end)
+            t = state.t if j == 0 else state.time_at(state.step + j)
             for column, c in enumerate(stages):
                 tau = np.asarray(self.side.effect.traction(None, t + c * dt), dtype=np.float64)
                 if tau.size != dim:

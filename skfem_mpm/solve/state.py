@@ -215,7 +215,13 @@ class State:
     def t_next(self):
         if self.adaptive:
             return self.scene.t_end if self.finished_after_step() else self.t + self.dt
-        return self.step * self.dt if self.step < self.n_steps else self.scene.t_end
+        return self.time_at(self.step)
+
+    def time_at(self, step):
+        """The time after ``step`` steps of a fixed dt: step dt, the end
+        time exactly after the last (the compiled loop's ``_advance``
+        computes the same)."""
+        return step * self.dt if step < self.n_steps else self.scene.t_end
 
     def finished_after_step(self):
         return self.t + self.dt >= self.scene.t_end * (1 - 1e-14)
