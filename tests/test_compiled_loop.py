@@ -657,3 +657,42 @@ def test_what_the_loop_leaves_to_the_executor():
     state = prepare(neo, Method(scheme="musl"))  # finite strain: dt adaptive by default
     assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
         (False, "an adaptive time step")
+
+
+def box_scene(scheme, degree, effect, steps=13):
+    """A 3D block (4 x 3 x 3 cells of a 5 x 4 x 4 grid, not aligned with the
+    knots) with a shear velocity, fixed at zmin, with or without gravity."""
+    grid = SplineGrid.box((0.0, 1.0), (0.0, 1.0), (0.0, 1.0), (5, 4, 4), degree)
+    velocity = lambda X: np.column_stack((0.05 * X[:, 2], -0.03 * X[:, 0],  # noqa: E731
+                                          0.02 * X[:, 1]))
+    particles = Particles.seed(grid, 2, 1.0, region=((0.0, 0.75), (0.0, 0.7), (0.0, 0.72)),
+                               velocity=velocity)
+    effects = [Fixed("zmin")] + ([Gravity((0.0, 0.0, -2.0))] if effect == "gravity" else [])
+    body = Body(particles, LinearElastic(10.0, 0.3))
+    dt = prepare(Scene(grid, body, 1.0, effects=effects), Method(scheme=scheme)).dt
+    return Scene(grid, body, steps * dt, effects=effects)
+
+
+SLOW_3D = pytest.mark.slow(reason="one more compiled 3D loop variant; the default tier runs "
+                           "one per scheme")
+
+
+@pytest.mark.parametrize("scheme,degree,effect", [
+    ("musl", 2, "gravity"), ("usl", 1, "none"), ("cd", 3, "gravity"),
+    pytest.param("musl", 1, "none", marks=SLOW_3D), pytest.param("usl", 2, "gravity",
+                                                                  marks=SLOW_3D),
+    pytest.param("usl", 3, "none", marks=SLOW_3D), pytest.param("cd", 2, "none", marks=SLOW_3D)])
+def test_a_3d_run_in_the_loop_gives_the_executors_bits(monkeypatch, scheme, degree, effect):
+    """The loop's operations are the same source in 3D (lumped mass, one
+    linear elastic body): the run is the executor's, bit for bit, reactions
+    included."""
+    looped, _ = looped_and_stepped(monkeypatch, box_scene(scheme, degree, effect),
+                                   Method(scheme=scheme))
+    assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] == 13
+    assert np.abs(looped.history["v"][-1]).max() > 0
+
+
+def test_consistent_mass_in_3d_stays_with_the_executor():
+    state = prepare(box_scene("musl", 2, "none"), Method(scheme="musl", mass="consistent"))
+    assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
+        (False, "consistent mass in 3D")

@@ -79,6 +79,7 @@ _GRID_KERNELS = {
     "MASS_WEIGHTED_SUM": mpm.mass_weighted_sum,
     "SMALL_MASS_1D": mpm.small_mass_1d,
     "SMALL_MASS_2D": mpm.small_mass_2d,
+    "SMALL_MASS_AXES": mpm.small_mass_axes,
     "COMBINE_STAGES": staging.combine_stages,
     # a material's compiled point law (not fused linear elasticity)
     "MATERIAL_UPDATE": constitutive.material_update,
@@ -134,7 +135,8 @@ def loop_applies(state, executor):
         (bool(getattr(state, "velocity_modifiers", ())), "grid velocity modifiers"),
         (bool(state.constraints.prescribed), "prescribed velocities"),
         (state.adaptive, "an adaptive time step"),
-        (state.grid.dim not in (1, 2), f"{state.grid.dim}D"),
+        (state.grid.dim not in (1, 2, 3), f"{state.grid.dim}D"),
+        (state.grid.dim == 3 and m.mass != "lumped", f"{m.mass} mass in 3D"),
     )
     for failed, why in reasons:
         if failed:
@@ -234,14 +236,16 @@ def _prelude(dim, parallel, window, variant):
     kernels += [(label, for_threads(kernel, parallel)) for label, kernel in _GRID_KERNELS.items()]
     for label, kernel in kernels:
         lines += _by_symbol(label, kernel.py_func)
-    small = "SMALL_MASS_1D(mass, p, tol, small)" if dim == 1 else \
-        "SMALL_MASS_2D(mass, nbx, nby, p, tol, small)"
-    assemble = ("(bx, ux, ihx, Cx), = axes\n"
-                "    CONSISTENT_1D(x, m, bx, ux, ihx, Cx, p, copies, stiff, touched)"
-                if dim == 1 else
-                "(bx, ux, ihx, Cx), (by, uy, ihy, Cy) = axes\n"
-                "    CONSISTENT_2D(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, copies, "
-                "stiff, touched)")
+    small = {1: "SMALL_MASS_1D(mass, p, tol, small)",
+             2: "SMALL_MASS_2D(mass, nbx, nby, p, tol, small)",
+             3: "SMALL_MASS_AXES(mass, nbx, nby, mass.shape[0] // (nbx * nby), p, tol, small)"}[dim]
+    assemble = {1: "(bx, ux, ihx, Cx), = axes\n"
+                   "    CONSISTENT_1D(x, m, bx, ux, ihx, Cx, p, copies, stiff, touched)",
+                2: "(bx, ux, ihx, Cx), (by, uy, ihy, Cy) = axes\n"
+                   "    CONSISTENT_2D(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, copies, "
+                   "stiff, touched)",
+                # loop_applies keeps consistent mass in 3D on the executor
+                3: "raise NotImplementedError('consistent mass in the 3D loop')"}[dim]
     body = f'''
 DIM = {dim}
 

@@ -27,9 +27,10 @@ by :func:`run_musl` and its siblings, without Python between the steps.
 
 What a compiled run covers
 (:func:`skfem_mpm.solve.compiled_loop.loop_applies` says which runs):
-the schemes MUSL, USL, CD and rk4; lumped, consistent and hybrid mass
-(``run.cm``: None, or the consistent-mass system of
-:mod:`skfem_mpm.solve.compiled_loop_mass`); particle quadrature, the 1D
+the schemes MUSL, USL, CD and rk4 in 1D, 2D and 3D (the operations and
+kernels are the same source in every dimension); lumped mass, and in 1D
+and 2D consistent and hybrid mass (``run.cm``: None, or the
+consistent-mass system of :mod:`skfem_mpm.solve.compiled_loop_mass`); particle quadrature, the 1D
 particle-knot spline reconstruction or the published TLS reconstruction
 (default options) in 1D and 2D (``run.rc``: None, or the data of
 :mod:`skfem_mpm.solve.compiled_loop_reconstruct`, a Reconstruction or a
@@ -351,7 +352,8 @@ def _lumped_solve(run, rhs, gravity, out):
         dofs the compiled merge (a merge it cannot do stops the loop)."""
         if run.small_count == 0:
             LUMPED_SOLVE(run.mass, rhs, gravity, run.mask, rhs, False, out)
-        elif MERGED_SOLVE(run.mass, rhs, gravity, run.mask, rhs, False, run.nbx, run.nby, 1,
+        elif MERGED_SOLVE(run.mass, rhs, gravity, run.mask, rhs, False, run.nbx, run.nby,
+                          run.mass.shape[0] // (run.nbx * run.nby),
                           run.degree, run.small_tol, out) < 0:
             run.stop = 1
     return impl
