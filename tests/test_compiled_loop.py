@@ -678,7 +678,7 @@ SLOW_3D = pytest.mark.slow(reason="one more compiled 3D loop variant; the defaul
 
 
 @pytest.mark.parametrize("scheme,degree,effect", [
-    ("musl", 2, "gravity"), ("usl", 1, "none"), ("cd", 3, "gravity"),
+    ("musl", 2, "gravity"), ("usl", 1, "none"), ("cd", 3, "gravity"), ("rk4", 2, "gravity"),
     pytest.param("musl", 1, "none", marks=SLOW_3D), pytest.param("usl", 2, "gravity",
                                                                   marks=SLOW_3D),
     pytest.param("usl", 3, "none", marks=SLOW_3D), pytest.param("cd", 2, "none", marks=SLOW_3D)])

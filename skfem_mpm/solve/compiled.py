@@ -77,8 +77,6 @@ def compiled_executor_applies(state):
         return False, "not a SplineGrid"
     if state.grid.dim == 3 and m.reconstruction != "none":
         return False, "3D reconstruction (compiled reconstructions are 1D and 2D only)"
-    if state.grid.dim == 3 and m.scheme == "rk4":
-        return False, "3D rk4 (its compiled stage rates are not yet tested in 3D)"
     if m.reconstruction != "none":
         why = unsupported(m, state.grid.dim)
         if why is not None:
