@@ -49,6 +49,12 @@ class Transfers:
         self._no_acc = np.zeros((1, dim))
         self.flags = np.full((self.nthreads, 3), -1, dtype=np.int64)
 
+    def grid_arrays(self):
+        """The grid arrays the transfers write (mass, momentum, force, the
+        re-projected momentum), for a caller that steps in their place (the
+        compiled loop: the two never step at once)."""
+        return self.mass, self._momentum, self._force, self._projected
+
     def copies(self, nfields):
         """Per-thread grid copies with ``nfields`` fields (zero outside their
         touched ranges) and those ranges."""

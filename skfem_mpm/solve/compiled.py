@@ -157,6 +157,15 @@ class CompiledExecutor(CompiledRungeKutta):
             self.recon = CompiledReconstruction(state, self.kernels)
             self.path = f"fast (reconstruction {self.recon.name})"
 
+    def grid_arrays(self):
+        """The grid arrays of a step, {name: array}: the transfers' (mass,
+        momentum, force, momentum_new) and the solves' (a, v_grid, v_old).
+        The compiled loop steps in these (it and the executor never step
+        at once), so a run holds one set."""
+        mass, momentum, force, projected = self.kernels.transfers.grid_arrays()
+        return dict(mass=mass, momentum=momentum, force=force, momentum_new=projected,
+                    a=self._a, v_grid=self._v_new, v_old=self._v_old)
+
     # ---------------------------------------------------------------- buffers
     WRITTEN = ("x", "v", "u", "stress", "V")
 

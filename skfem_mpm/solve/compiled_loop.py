@@ -315,17 +315,16 @@ class StepLoop:
         empty = np.empty
         self._arrays = [empty((n, dim)) for _ in range(3)] + [empty(n)] + [empty((n, dim, dim))]
         x, v, u, V, stress = self._arrays
-        vec, grid_vec = (lambda: empty((n, dim))), (lambda: empty((nd, dim)))
+        vec = (lambda: empty((n, dim)))
         fields = dict(
             x=x, v=v, u=u, m=np.array(p.m, dtype=np.float64), V=V, stress=stress,
             x_new=vec(), v_new=vec(), u_new=vec(), V_new=empty(n),
             stress_new=empty((n, dim, dim)),
             acc=vec() if cd else np.zeros((1, dim)),
             L=np.empty((1, 1, 1)) if self.fused else empty((n, dim, dim)),
-            grid=grid_record(grid), mass=empty(nd), momentum=grid_vec(), force=grid_vec(),
-            mass_range=np.zeros((k.nthreads, 2)), copies_p2g=copies_p2g,
-            touched_p2g=touched_p2g, copies_g2p2g=copies_g2p2g, touched_g2p2g=touched_g2p2g,
-            momentum_new=grid_vec(), a=grid_vec(), v_grid=grid_vec(), v_old=grid_vec(),
+            grid=grid_record(grid), mass_range=np.zeros((k.nthreads, 2)),
+            copies_p2g=copies_p2g, touched_p2g=touched_p2g, copies_g2p2g=copies_g2p2g,
+            touched_g2p2g=touched_g2p2g,
             mask=np.ascontiguousarray(state.constraints.mask),
             gravity=np.array(executor.gravity, dtype=np.float64), no_gravity=np.zeros(dim),
             no_force=np.zeros((1, dim)), small=np.zeros(nd, dtype=np.bool_),
@@ -338,6 +337,7 @@ class StepLoop:
             work_sum=np.zeros(dim), stop=0, handover=False,
             phase_ns=np.zeros(len(self.PHASES), dtype=np.int64), nthreads=int(k.nthreads),
             p2g_at=0, g2p2g_at=0, g2p_at=0, rates_at=0)
+        fields.update(executor.grid_arrays())  # mass, momentum, force, ..., v_old
         fields.update(self._stage_arrays(n if self.scheme == "rk4" else 1, dim, fields))
         fields.update(self._law_arrays(material, executor, n, dim, k.nthreads))
         recon = executor.recon
