@@ -652,7 +652,7 @@ def test_what_the_loop_leaves_to_the_executor():
                        Body(particles, NeoHookean(10.0))], scene.t_end, effects=effects)
     state = prepare(two, Method(scheme="musl", dt=1e-3))
     assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
-        (False, "more than one body")
+        (False, "several bodies of different materials")
     neo = Scene(grid, Body(particles, NeoHookean(10.0)), scene.t_end, effects=effects)
     state = prepare(neo, Method(scheme="musl"))  # finite strain: dt adaptive by default
     assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
@@ -696,3 +696,41 @@ def test_consistent_mass_in_3d_stays_with_the_executor():
     state = prepare(box_scene("musl", 2, "none"), Method(scheme="musl", mass="consistent"))
     assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
         (False, "consistent mass in 3D")
+
+
+def two_blocks(E_right=10.0, steps=23):
+    """Two blocks moving towards each other on a 2D grid (quadratic), each
+    its own Body, fixed at the bottom, under gravity."""
+    grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (8, 6), 2)
+    left = Particles.seed(grid, 2, 1.0, region=((0.1, 0.45), (0.0, 0.5)),
+                          velocity=lambda X: np.column_stack((0.2 + 0 * X[:, 0], 0 * X[:, 1])))
+    right = Particles.seed(grid, 2, 1.0, region=((0.55, 0.9), (0.0, 0.4)),
+                           velocity=lambda X: np.column_stack((-0.2 + 0 * X[:, 0], 0 * X[:, 1])))
+    bodies = [Body(left, LinearElastic(10.0, 0.3)), Body(right, LinearElastic(E_right, 0.3))]
+    effects = [Fixed("bottom"), Gravity((0.0, -2.0))]
+    dt = prepare(Scene(grid, bodies, 1.0, effects=effects), Method()).dt
+    return Scene(grid, bodies, steps * dt, effects=effects)
+
+
+@pytest.mark.parametrize("scheme", ["musl", "usl"])
+def test_bodies_of_one_linear_elastic_material_run_in_the_loop(monkeypatch, scheme):
+    """Several bodies of one linear elastic material (equal E and nu) are one
+    material to the compiled paths: its stress update fused for every
+    particle, in the loop and in the executor (bit for bit), and the
+    reference (per body) agrees to round-off."""
+    scene = two_blocks()
+    looped, _ = looped_and_stepped(monkeypatch, scene, Method(scheme=scheme))
+    assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] == 23
+    reference = simulate(scene, Method(scheme=scheme, backend="numpy"), save_every=5)
+    for key in KEYS:
+        a, b = reference.history[key], looped.history[key]
+        assert np.abs(a - b).max() <= 1e-12 * np.abs(a).max(), key
+    assert np.abs(looped.history["stress"][-1]).max() > 0
+
+
+def test_bodies_of_different_materials_stay_with_the_executor():
+    state = prepare(two_blocks(E_right=20.0), Method())
+    executor = CompiledExecutor(state)
+    assert not executor.fused
+    assert compiled_loop.loop_applies(state, executor) == \
+        (False, "several bodies of different materials")

@@ -86,6 +86,16 @@ def compiled_executor_applies(state):
     return True, ""
 
 
+def one_linear_elastic(bodies):
+    """Whether the bodies are one linear elastic material: each body's
+    material a LinearElastic with the same E and nu (a scene of several
+    bodies of one material, e.g. colliding disks), so that its stress update
+    can be fused into the transfer kernels for every particle at once."""
+    first = bodies[0][0]
+    return all(type(m) is LinearElastic and (m.E, m.nu) == (first.E, first.nu)
+               for m, _ in bodies)
+
+
 class CompiledGrid:
     """What one compiled step keeps on the grid (and the new particle state)."""
 
@@ -131,7 +141,7 @@ class CompiledExecutor(CompiledRungeKutta):
                 self.gravity_work = True
             else:
                 self.other_forces.append(f)
-        self.fused = len(state.bodies) == 1 and type(state.bodies[0][0]) is LinearElastic
+        self.fused = one_linear_elastic(state.bodies)
         # every material has a compiled point law: the constitutive kernel runs them
         self.point_laws = not self.fused and all(
             material.point_update is not None for material, _ in state.bodies)

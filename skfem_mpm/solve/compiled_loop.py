@@ -122,7 +122,7 @@ def loop_applies(state, executor):
                                                                ("tls", 2)),
          f"reconstruction {m.reconstruction} in {state.grid.dim}D"),
         (m.scheme not in ("musl", "usl", "cd", "rk4"), f"scheme {m.scheme}"),
-        (len(state.bodies) != 1, "more than one body"),
+        (len(state.bodies) != 1 and not fused, "several bodies of different materials"),
         (not fused and not getattr(executor, "point_laws", False),
          "a material without a compiled point law (point_update None)"),
         (not fused and m.scheme == "rk4",

@@ -35,7 +35,7 @@ particle-knot spline reconstruction or the published TLS reconstruction
 (default options) in 1D and 2D (``run.rc``: None, or the data of
 :mod:`skfem_mpm.solve.compiled_loop_reconstruct`, a Reconstruction or a
 TLSReconstruction); a run of each kind compiles only its own operations;
-one body: linear elastic (its stress update fused into g2p, its stress
+one body, or several of one linear elastic material: linear elastic (its stress update fused into g2p, its stress
 rate into the rk4 rates gather; ``run.law_at`` None), or with MUSL, USL
 and CD a material with a compiled point law (``run.law_at``: the address
 of its C callback): g2p stores L and the executor's constitutive kernel
