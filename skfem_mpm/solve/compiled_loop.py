@@ -138,8 +138,6 @@ def loop_applies(state, executor):
          "a body force with reconstruction"),
         (bool(state.force_modifiers), "grid force modifiers"),
         (bool(getattr(state, "velocity_modifiers", ())), "grid velocity modifiers"),
-        (bool(state.constraints.prescribed) and m.mass != "lumped",
-         f"prescribed velocities with {m.mass} mass"),
         (state.adaptive, "an adaptive time step"),
         (state.grid.dim not in (1, 2, 3), f"{state.grid.dim}D"),
         (state.grid.dim == 3 and m.mass != "lumped", f"{m.mass} mass in 3D"),
@@ -576,7 +574,7 @@ class StepLoop:
             index=zeros((G, nd), dtype=np.int64), A=zeros((G, nd, ns)),
             cols=zeros((G, nd, ns), dtype=np.int32),
             # the fixed-column part is read only for nonzero constraint
-            # values, which the loop never has: never written (np.zeros
+            # values (prescribed velocities): else never written (np.zeros
             # leaves its pages unmapped)
             F=zeros((G, nd, ns)), fcols=zeros((G, nd, ns), dtype=np.int32),
             inv_diag=zeros((G, nd)),

@@ -47,7 +47,7 @@ constraints, a traction on a side of the body with tau(t)
 :mod:`skfem_mpm.solve.compiled_loop_traction`), particle forces of the
 reference configuration such as a BodyForce (``run.body_force``: None, or
 the data of :mod:`skfem_mpm.solve.compiled_loop_body_force`), prescribed
-grid velocities with lumped mass (``run.prescribed``: None, or the data of
+grid velocities (``run.prescribed``: None, or the data of
 :mod:`skfem_mpm.solve.compiled_loop_prescribed`). A step that would need anything else stops the loop before
 it writes the current state (``run.stop``): a non-finite value or
 material state, J <= 0, a volume <= 0 or a
@@ -376,8 +376,14 @@ def _lumped_solve(run, rhs, gravity, out, kind):
 @overload_method(RunType, "mass_solve")
 def _mass_solve(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
     def impl(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
-        """Consistent M x = rhs for 1 or 2 problems (see compiled_loop_mass)."""
-        if not call(mass_solve, run.cm, run.nthreads, count, rhs0, kind0, out0, rhs1, kind1, out1):
+        """Consistent M x = rhs for 1 or 2 problems (see compiled_loop_mass);
+        ``kind`` 0 acceleration, 1 velocity, 2 velocity at t + dt: the
+        constraint values (run.constraint_values) and the warm start
+        (0 acceleration, else velocity)."""
+        values0, has0 = run.constraint_values(rhs0, kind0)
+        values1, has1 = run.constraint_values(rhs1, kind1)
+        if not call(mass_solve, run.cm, run.nthreads, count, rhs0, min(kind0, 1), values0, has0,
+                    out0, rhs1, min(kind1, 1), values1, has1, out1):
             run.stop = 3
     return impl
 
@@ -386,6 +392,7 @@ def _mass_solve(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
 def _prepare_grid(run):
     if not _consistent(run):
         return lambda run: None
+    prescribed = _prescribed(run)  # the system's fixed columns are needed
 
     def impl(run):
         """Consistent mass: gravity as the force m g, then the step's system."""
@@ -394,7 +401,7 @@ def _prepare_grid(run):
                 for c in range(run.force.shape[1]):
                     run.force[k, c] = run.force[k, c] + run.mass[k] * run.gravity[c]
         call(prepare_mass, run.cm, run.mass, run.mask, run.degree, run.nbx, run.nby,
-             run.x.shape[1])
+             run.x.shape[1], prescribed)
     return impl
 
 
@@ -483,7 +490,7 @@ def _solve_projected_velocity(run):
 
     def impl(run):  # see steps.project_velocity: the warm start moves by dt a
         shift_warm(run.cm, 1, run.dt, run.a)
-        run.mass_solve(1, run.momentum_new, 1, run.v_grid, run.momentum_new, 1, run.v_grid)
+        run.mass_solve(1, run.momentum_new, 2, run.v_grid, run.momentum_new, 2, run.v_grid)
     return impl
 
 

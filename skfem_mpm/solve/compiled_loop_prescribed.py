@@ -3,7 +3,8 @@ the source of the generated loop modules (not imported as a module; see
 :mod:`skfem_mpm.solve.compiled_loop_ops`).
 
 The compiled executor's constraint values, on the same kernels (the lumped
-solve, the USL grid pass and the tiny-mass merge take them as ``values``):
+solve, the USL grid pass, the tiny-mass merge and the consistent-mass CG of
+:mod:`skfem_mpm.solve.compiled_loop_mass` take them as ``values``):
 the constrained dofs of a prescribed item (component c, dofs, velocity(t))
 get v(t) in the velocity solve, a = (v(t + dt) - v(t)) / dt in the
 acceleration solve and v(t + dt) in MUSL's re-projection
