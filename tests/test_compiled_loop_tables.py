@@ -11,15 +11,15 @@ restart from a checkpoint.
 import numpy as np
 import pytest
 
-from skfem_mpm import (BodyForce, Method, Prescribed, Scene, Traction, simulate)
+from skfem_mpm import BodyForce, Fixed, Method, Prescribed, Scene, Traction, simulate
 from skfem_mpm.solve import compiled_loop
 from skfem_mpm.solve.compiled import CompiledExecutor
 from skfem_mpm.solve.compiled_loop_tables import ForceTable
 from skfem_mpm.solve.state import prepare
 from skfem_mpm.solve.stencil_system import StencilSystem
 
-from test_compiled_loop import (assert_same, check_law_case, falling_block, law_scene,
-                                looped_and_stepped, without_loop)
+from test_compiled_loop import (assert_same, box_scene, check_law_case, falling_block,
+                                law_scene, looped_and_stepped, without_loop)
 from test_executors import scene_for
 
 
@@ -95,6 +95,22 @@ def test_a_body_force_prescribed_velocities_and_a_traction_together(monkeypatch,
                          BodyForce(lambda X, t: 0.2 * X * (1 + t)))
     looped, _ = looped_and_stepped(monkeypatch, scene, Method(scheme=scheme))
     assert looped.counts["compiled_loop_steps"] == 23
+
+
+@pytest.mark.parametrize("scheme,degree", [("musl", 2), ("rk4", 1)])
+def test_a_body_force_and_prescribed_velocities_in_3d(monkeypatch, scheme, degree):
+    """The same templates in 3D (lumped mass): a body force and a
+    prescribed component of a side beside its fixed others."""
+    scene = box_scene(scheme, degree, "none")
+    grid, body = scene.grid, scene.bodies[0]
+    effects = [Fixed("zmin", 0), Fixed("zmin", 1), Prescribed("zmin", 2, lambda t: 0.03 * t),
+               BodyForce(lambda X, t: np.column_stack((np.cos(X[:, 2] + t), 0 * X[:, 0],
+                                                       -X[:, 0] * (1 + t))))]
+    scene = Scene(grid, body, scene.t_end, effects=effects)
+    looped, _ = looped_and_stepped(monkeypatch, scene, Method(scheme=scheme))
+    assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] == 13
+    assert looped.energies["external_work"][-1] != 0.0
+    assert looped.reactions[-1]["Prescribed('zmin', component=2)"][2] != 0.0
 
 
 def test_a_point_law_under_a_body_force(monkeypatch):
