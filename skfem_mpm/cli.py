@@ -164,7 +164,7 @@ def _run_options(p):
 
 def build_parser():
     from .solve.method import MASSES, RECONSTRUCTIONS, SCHEMES
-    from .study import COMPARE_WITH, QUICK_METHODS
+    from .study import COMPARE_WITH, DEFAULTS, QUICK, QUICK_METHODS, STUDY_CELLS
 
     parser = _Parser(prog="skfem-mpm", description="B-spline MPM and FEM benchmarks "
                      "(scikit-fem plugin): errors and what they cost in time.")
@@ -179,7 +179,7 @@ def build_parser():
                    help="override a benchmark parameter (repeatable; default: none)")
     s.add_argument("--quick", action="store_true",
                    help=f"a small study: methods {' '.join(QUICK_METHODS)}; cells "
-                   f"{' '.join(map(str, QUICK['cells']))} in 1D, "
+                   f"{' '.join(map(str, STUDY_CELLS[1][0]))} in 1D, "
                    f"{' '.join(map(str, STUDY_CELLS[2][0]))} in 2D, "
                    f"{' '.join(map(str, STUDY_CELLS[3][0]))} in 3D; {QUICK['repeat']} timed "
                    f"repeats, 2 once two have taken {QUICK['repeat_budget']:g} s (default: off, "
@@ -194,17 +194,20 @@ def build_parser():
                    f"{' '.join(map(str, STUDY_CELLS[1][1]))} in 1D, "
                    f"{' '.join(map(str, STUDY_CELLS[2][1]))} in 2D, "
                    f"{' '.join(map(str, STUDY_CELLS[3][1]))} in 3D; --quick: see there)")
-    s.add_argument("--ppc", type=int, default=None,
-                   help=f"particles per cell and axis (default: {QUICK['ppc']} in 1D, 2 in 2D "
-                   "and 3D)")
-    s.add_argument("--scheme", default=None, choices=SCHEMES,
-                   help=f"scheme of methods that name none (default: {QUICK['scheme']})")
-    s.add_argument("--cfl", type=float, default=None,
-                   help="time step as a fraction of the critical one (default: "
-                   f"{QUICK['cfl']})")
+    # the defaults are the API's (skfem_mpm.study.DEFAULTS, convergence()'s)
+    s.add_argument("--ppc", type=int, default=DEFAULTS["ppc"],
+                   help="particles per cell and axis (default: %(default)s, as "
+                   "study.convergence())")
+    s.add_argument("--scheme", default=DEFAULTS["scheme"], choices=SCHEMES,
+                   help="scheme of methods that name none (default: %(default)s, as "
+                   "study.convergence() and Method())")
+    s.add_argument("--cfl", type=float, default=DEFAULTS["cfl"],
+                   help="time step as a fraction of the critical one (default: %(default)s, "
+                   "as study.convergence() and Method())")
     s.add_argument("--repeat", type=int, default=None,
                    help="timed runs per job, the median is reported (default: "
-                   f"{QUICK['repeat']} with --quick, else 1)")
+                   f"{QUICK['repeat']} with --quick, else {DEFAULTS['repeat']} as "
+                   "study.convergence())")
     s.add_argument("--compare-with", default="auto", choices=COMPARE_WITH, dest="compare_with",
                    help="what errors are measured against: auto, the benchmark's exact "
                    "solution, or for a variant beyond its exact solution's model (soil-column "
@@ -338,21 +341,17 @@ def _write_run_pictures(result, bench, out, field="stress"):
 RUN_FIELDS = ("stress", "velocity", "displacement", "error")
 # default cells per axis of `run` and `fem`; 3D runs on the reference executor
 RUN_CELLS = {1: 16, 2: 16, 3: 4}
-# repeat_budget: a quick study's job stops repeating after two timed runs
-# that took that many seconds (the long consistent-mass jobs)
-QUICK = {"cells": [8, 16, 32, 64], "ppc": 4, "cfl": 0.1, "scheme": "cd", "repeat": 3,
-         "repeat_budget": 2.0}
-# a study's default cells per axis by dimension: (quick, full)
-STUDY_CELLS = {1: (QUICK["cells"], [8, 16, 32, 64, 128]), 2: ([4, 8, 16], [4, 8, 16, 32]),
-               3: ([2, 4], [2, 4, 8])}
 
 
 def _cmd_study(args):
     from .benchmarks import get_benchmark
     from .model_reference import model_reference
     from .study import (
+        DEFAULTS,
         FULL_METHODS,
+        QUICK,
         QUICK_METHODS,
+        STUDY_CELLS,
         convergence,
         markdown_table,
         parse_method,
@@ -369,23 +368,21 @@ def _cmd_study(args):
     cells = args.cells or STUDY_CELLS[bench.dim][0 if args.quick else 1]
     if any(c < 1 for c in cells):
         raise _UsageError(f"--cells must be positive integers, got {cells}")
-    if args.ppc is not None and args.ppc < 1:
+    if args.ppc < 1:
         raise _UsageError(f"--ppc must be a positive integer, got {args.ppc}")
-    if args.cfl is not None and not args.cfl > 0:
+    if not args.cfl > 0:
         raise _UsageError(f"--cfl must be a positive number, got {args.cfl}")
-    if args.cfl is not None and args.cfl > 1:  # every job would fail on it
+    if args.cfl > 1:  # every job would fail on it
         raise _UsageError(f"--cfl must be at most 1 (above it the time step exceeds the "
                           f"critical one), got {args.cfl}")
     if args.repeat is not None and args.repeat < 1:
         raise _UsageError(f"--repeat must be a positive integer, got {args.repeat}")
     for name in methods:  # before the same-model reference is computed
         parse_method(name)
-    repeat = args.repeat or (QUICK["repeat"] if args.quick else 1)
+    repeat = args.repeat or (QUICK["repeat"] if args.quick else DEFAULTS["repeat"])
     budget = QUICK["repeat_budget"] if args.quick and args.repeat is None else None
     _check_out(args.out)
-    ppc = args.ppc if args.ppc is not None else (QUICK["ppc"] if bench.dim == 1 else 2)
-    scheme = args.scheme or QUICK["scheme"]
-    cfl = args.cfl if args.cfl is not None else QUICK["cfl"]
+    ppc, scheme, cfl = args.ppc, args.scheme, args.cfl
     executor = None
     where = (f"a local process pool with {os.cpu_count()} workers, one thread each, so runs "
              f"never share a core")

@@ -35,6 +35,7 @@ compilation leaked into the figures.
 """
 import contextlib
 import csv
+import inspect
 import math
 import multiprocessing
 import os
@@ -50,9 +51,12 @@ from .solve.timing import PHASES
 from .testing import observed_orders
 
 __all__ = [
+    "DEFAULTS",
     "FULL_METHODS",
+    "QUICK",
     "QUICK_METHODS",
     "REACH_TARGETS",
+    "STUDY_CELLS",
     "WARM_UP_STEPS",
     "convergence",
     "markdown_table",
@@ -74,8 +78,27 @@ COMPARE_WITH = ("auto", "exact")
 # steps of the untimed run that compiles a job's kernels before it is timed
 WARM_UP_STEPS = 3
 
-QUICK_METHODS = ("mpm-p1-lumped", "mpm-p2-lumped", "mpm-p2-consistent", "mpm-p3-consistent",
-                 "mpm-p2-consistent-spline", "mpm-p3-consistent-spline", "fem-p2-consistent")
+# A study's defaults, the one source of them: convergence() and parse_method()
+# take them as keyword defaults and the command line (`skfem-mpm study`) reads
+# them. scheme and cfl are Method()'s; ppc is particles per cell and axis;
+# repeat, the timed runs per job.
+_METHOD = inspect.signature(Method).parameters
+DEFAULTS = {"ppc": 2, "scheme": _METHOD["scheme"].default, "cfl": _METHOD["cfl"].default,
+            "repeat": 1}
+# cells per axis by dimension: (quick, full)
+STUDY_CELLS = {1: ([8, 16, 32, 64], [8, 16, 32, 64, 128]), 2: ([4, 8, 16], [4, 8, 16, 32]),
+               3: ([2, 4], [2, 4, 8])}
+# a quick study's timed runs per job; repeat_budget: a job stops repeating
+# after two timed runs that took that many seconds (the long ones)
+QUICK = {"repeat": 3, "repeat_budget": 2.0}
+# the quick study's methods: low order at the default scheme (linear and
+# quadratic lumped MPM, the cheapest per run), high order (consistent mass,
+# the spline reconstruction and rk4, whose time error does not cap the
+# order at 2 as a second-order scheme's does at a cfl of 0.5: quadratic and
+# cubic) and quadratic FEM (default scheme; fem has no rk4). The two rk4
+# methods share their compiled loop, so the high-order family compiles once.
+QUICK_METHODS = ("mpm-p1-lumped", "mpm-p2-lumped", "mpm-p2-consistent-spline-rk4",
+                 "mpm-p3-consistent-spline-rk4", "fem-p2-consistent")
 FEM_MASSES = tuple(m for m in MASSES if m != "hybrid")  # fem has no re-projection
 # hybrid mass is MUSL only: its names carry the scheme, whatever the study's default
 _SUFFIX = {"hybrid": "-musl"}
@@ -93,10 +116,10 @@ FIELDS = ("benchmark", "variant", "method", "kind", "degree", "mass", "reconstru
     + tuple(f"phase_{p}_s" for p in PHASES) + ("status",)
 
 
-def parse_method(name, scheme="musl", cfl=0.5):
+def parse_method(name, scheme=DEFAULTS["scheme"], cfl=DEFAULTS["cfl"]):
     """``"mpm-p2-consistent-spline-cd"`` -> dict(kind, degree, mass,
     reconstruction, scheme, cfl). Omitted parts: reconstruction ``none``,
-    the given default scheme."""
+    the given default scheme (:data:`DEFAULTS`)."""
     parts = str(name).split("-")
     if len(parts) < 3 or parts[0] not in ("mpm", "fem") or not parts[1].startswith("p"):
         raise ValueError(f"method must look like mpm-p2-consistent[-spline][-cd], got {name!r}")
@@ -281,10 +304,12 @@ def _executor(executor):
     return executor, False
 
 
-def convergence(benchmark, methods, cells, ppc=2, variant=None, params=None, executor=None,
-                progress=False, scheme="musl", cfl=0.5, t_end=None, repeat=1,
-                compile_notice=None, compare_with="auto", repeat_budget=None):
-    """Run every method at every resolution; returns a list of records with
+def convergence(benchmark, methods, cells, ppc=DEFAULTS["ppc"], variant=None, params=None,
+                executor=None, progress=False, scheme=DEFAULTS["scheme"], cfl=DEFAULTS["cfl"],
+                t_end=None, repeat=DEFAULTS["repeat"], compile_notice=None, compare_with="auto",
+                repeat_budget=None):
+    """Run every method at every resolution (defaults: :data:`DEFAULTS`, the
+    command line's too); returns a list of records with
     errors, observed orders (between successive resolutions of a method),
     wall time (the median of ``repeat`` timed runs, compilation excluded,
     see :func:`run_one`; ``repeat_budget``: fewer repeats, at least two, for

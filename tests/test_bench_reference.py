@@ -86,17 +86,36 @@ def test_compiler_from_cc_must_exist():
         find_compiler({"PATH": ""})
 
 
+def small_problems(monkeypatch):
+    """What the bench tests check is the report, not the speed: the bench's
+    problems at sizes below SERIAL_BELOW particles (1,024 in 2D, 4,000 in 1D,
+    512 in 3D), whose runs call the serial kernels that other tests compile
+    (the quick problems, 64^2 and 25,000 cells, took 204 s here; above
+    SERIAL_BELOW they compile parallel kernels and loops of their own; the
+    slow tier runs the quick bench as it is)."""
+    from skfem_mpm import bench
+
+    scene_2d, scene_1d, scene_3d = bench.scene_2d, bench.scene_1d, bench.scene_3d
+    monkeypatch.setattr(bench, "scene_2d", lambda cells, steps: scene_2d(cells=16, steps=steps))
+    monkeypatch.setattr(bench, "scene_1d", lambda cells, steps: scene_1d(cells=1000, steps=steps))
+    monkeypatch.setattr(bench, "scene_3d", lambda cells, steps: scene_3d(cells=8, steps=steps))
+
+
+def test_the_small_problems_run_serial_kernels(monkeypatch):
+    from skfem_mpm import bench
+    from skfem_mpm.kernels.serial import SERIAL_BELOW
+
+    small_problems(monkeypatch)
+    for scene in (bench.scene_2d(64, 2), bench.scene_1d(25_000, 2), bench.scene_3d(16, 2)):
+        n = scene[0].bodies[0].particles.n
+        assert 100 < n < SERIAL_BELOW, n
+
+
 def test_bench_without_a_compiler_prints_no_ratio(monkeypatch, capsys):
     """With CC pointing nowhere the bench says why the C reference is
     unavailable and prints no ratio (text and JSON)."""
-    from skfem_mpm import bench
-
     monkeypatch.setenv("CC", "/nonexistent")
-    # what is checked is the report, not the speed: small problems (the
-    # quick ones, 64^2 and 25,000 cells, took 204 s here, most of the file)
-    scene_2d, scene_1d = bench.scene_2d, bench.scene_1d
-    monkeypatch.setattr(bench, "scene_2d", lambda cells, steps: scene_2d(cells=16, steps=steps))
-    monkeypatch.setattr(bench, "scene_1d", lambda cells, steps: scene_1d(cells=2000, steps=steps))
+    small_problems(monkeypatch)
     assert main(["bench", "--quick"]) == 0
     out = capsys.readouterr().out
     assert "C reference unavailable: the compiler CC='/nonexistent' was not found" in out
@@ -122,12 +141,17 @@ def test_a_c_run_that_computed_something_else_gets_no_ratio(capsys):
     assert "no ratio" in out and "x C" not in out
 
 
-def test_the_numpy_path_ratio_is_computed_from_this_runs_figures(monkeypatch, capsys):
+@pytest.mark.parametrize("size", ["small", pytest.param("quick", marks=pytest.mark.slow(
+    reason="the quick bench's own sizes compile parallel kernels and loops that only it "
+           "calls"))])
+def test_the_numpy_path_ratio_is_computed_from_this_runs_figures(monkeypatch, capsys, size):
     """--reference: the compiled/NumPy ratio divides the two throughputs of
     the same report, and the machine line names CPU, cores and threads."""
     from skfem_mpm.bench import _print_report
 
     monkeypatch.setenv("CC", "/nonexistent")
+    if size == "small":
+        small_problems(monkeypatch)
     assert main(["bench", "--quick", "--reference", "--json"]) == 0
     measured = json.loads(capsys.readouterr().out)
     ours, numpy_path = measured["2d_usl"], measured["2d_usl_reference"]

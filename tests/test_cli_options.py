@@ -208,10 +208,34 @@ def _synthetic_study(benchmark, methods, cells, **kwargs):
     return records
 
 
+def test_study_defaults_are_the_apis():
+    """study's --ppc, --scheme and --cfl default to convergence()'s values,
+    which are study.DEFAULTS, and scheme and cfl are Method()'s (the API's
+    stand); their help names the value."""
+    import inspect
+
+    from skfem_mpm import Method
+    from skfem_mpm.study import DEFAULTS, convergence, parse_method
+
+    api = {name: p.default for name, p in inspect.signature(convergence).parameters.items()}
+    method = {name: p.default for name, p in inspect.signature(Method).parameters.items()}
+    parsed = {name: p.default for name, p in inspect.signature(parse_method).parameters.items()}
+    parser = _subcommands()["study"]
+    options = {a.dest: a for a in parser._actions if a.option_strings}
+    text = " ".join(parser.format_help().split())
+    for name in ("ppc", "scheme", "cfl"):
+        assert options[name].default == api[name] == DEFAULTS[name], name
+        assert f"default: {api[name]}, as study.convergence()" in text, name
+    for name in ("scheme", "cfl"):
+        assert api[name] == method[name] == parsed[name], name
+    assert api["repeat"] == DEFAULTS["repeat"]
+
+
 def test_the_quick_study_prints_its_settings_table_and_verdict(tmp_path, capsys, monkeypatch):
     """study --quick hands convergence the quick settings (3 repeats with
-    the 2 s budget, cd, cfl 0.1, 4 particles per cell in 1D) and prints, as
-    study.md writes, the time-to-reach table and the verdict per e."""
+    the 2 s budget; ppc, scheme and cfl the API's, convergence()'s defaults)
+    and prints, as study.md writes, the time-to-reach table and the verdict
+    per e."""
     import skfem_mpm.study
 
     monkeypatch.setattr(skfem_mpm.study, "convergence", _synthetic_study)
@@ -220,7 +244,7 @@ def test_the_quick_study_prints_its_settings_table_and_verdict(tmp_path, capsys,
                  "mpm-p2-consistent", "--out", str(out)]) == 0
     kwargs = _synthetic_study.kwargs
     assert (kwargs["repeat"], kwargs["repeat_budget"], kwargs["scheme"], kwargs["cfl"],
-            kwargs["ppc"]) == (3, 2.0, "cd", 0.1, 4)
+            kwargs["ppc"]) == (3, 2.0, "musl", 0.5, 2)
     printed = capsys.readouterr().out
     report = (out / "study.md").read_text()
     for text in (printed, report):

@@ -120,12 +120,20 @@ def test_consistent_mass_kernel_equals_transfer_matrices():
         assert np.abs(K - sum(G.multiply(G).T @ p.m for G in tr.grad_N)).max() < 1e-12
 
 
-@pytest.mark.parametrize("grid", [SplineGrid.line(0, 1, 40, 2), SplineGrid.line(0, 1, 30, 3),
-                                  SplineGrid.rectangle((0, 1), (0, 2), (12, 10), 2),
-                                  SplineGrid((np.array([0, .2, .5, .6, 1.0]),
-                                              np.array([0, .3, 1.0])), 3)],
-                         ids=["1d-p2", "1d-p3", "2d-p2", "2d-p3-nonuniform"])
-def test_scatter_kernels_in_any_particle_order(grid):
+_P3_NONUNIFORM = SplineGrid((np.array([0, .2, .5, .6, 1.0]), np.array([0, .3, 1.0])), 3)
+
+
+# 2D cubic: the serial copies (the same thread blocks in a loop, the same
+# bits), whose parallel kernels only the slow tier compiles (see
+# test_kernels_generic.PARALLEL_DEFAULT)
+@pytest.mark.parametrize("grid, parallel", [
+    (SplineGrid.line(0, 1, 40, 2), True), (SplineGrid.line(0, 1, 30, 3), True),
+    (SplineGrid.rectangle((0, 1), (0, 2), (12, 10), 2), True), (_P3_NONUNIFORM, False),
+    pytest.param(_P3_NONUNIFORM, True, marks=pytest.mark.slow(
+        reason="the 2D cubic parallel transfers compile only here; the default tier runs "
+               "their serial copies"))],
+    ids=["1d-p2", "1d-p3", "2d-p2", "2d-p3-nonuniform-serial", "2d-p3-nonuniform"])
+def test_scatter_kernels_in_any_particle_order(grid, parallel):
     """p2g, the MUSL re-scatter and the consistent mass equal the
     transfer-matrix products for sorted, shuffled, fewer particles and
     particles in one half of the grid then the other, called in turn on the
@@ -141,7 +149,7 @@ def test_scatter_kernels_in_any_particle_order(grid):
     seeded.v = rng.standard_normal((seeded.n, dim))
     S = rng.standard_normal((seeded.n, dim, dim))
     seeded.stress = S + S.transpose(0, 2, 1)  # the kernels read a symmetric stress
-    k = Kernels(grid)
+    k = Kernels(grid, parallel=parallel)
     grid_a = rng.standard_normal((grid.ndofs, dim))
     order = rng.permutation(seeded.n)
     left = seeded.x[:, 0] < 0.5

@@ -146,9 +146,41 @@ def breakpoints(kind, dim, cells, rng):
 # p = 3 in 1D and 2D.
 SLOW_3D_CUBIC = pytest.mark.slow(reason="3D p = 3 compiles for minutes; the template is "
                                  "checked at 3D p <= 2 and at p = 3 in 1D/2D")
-GRIDS = [pytest.param(dim, p, kind, marks=SLOW_3D_CUBIC) if (dim, p) == (3, 3) else
-         (dim, p, kind) for dim in (1, 2, 3) for p in (1, 2, 3)
-         for kind in ("uniform", "nonuniform")]
+# A parallel kernel (prange over the thread blocks) compiles 3-5x slower than
+# its serial copy (the same blocks in a loop, the same bits). The default
+# tier checks each (dim, p, grid kind) once: the parallel template at the
+# variants the other tests' runs call (1D p = 1, 2, 3, 2D and 3D p = 2: every
+# dimension and every degree parallel), the serial copies at the rest and at
+# 1D p = 2 on the non-uniform grid (every dimension and degree serial too);
+# the slow tier runs the other kind of each.
+PARALLEL_DEFAULT = {(1, 1), (1, 2), (1, 3), (2, 2), (3, 2)}
+SERIAL_DEFAULT = {(1, 2, "nonuniform")}
+
+
+def _parallel_in_default(dim, p, kind):
+    return (dim, p) in PARALLEL_DEFAULT and (dim, p, kind) not in SERIAL_DEFAULT
+
+
+SLOW_OTHER_THREADS = pytest.mark.slow(reason="the default tier checks this (dim, p) with the "
+                                      "other kind of kernel (parallel or its serial copy) "
+                                      "and each kind at every dimension and degree")
+
+
+def _grid_cases():
+    cases = []
+    for dim in (1, 2, 3):
+        for p in (1, 2, 3):
+            for kind in ("uniform", "nonuniform"):
+                for parallel in (True, False):
+                    default = (dim, p) != (3, 3) and parallel == _parallel_in_default(dim, p,
+                                                                                     kind)
+                    marks = () if default else \
+                        SLOW_3D_CUBIC if (dim, p) == (3, 3) else SLOW_OTHER_THREADS
+                    cases.append(pytest.param(dim, p, kind, parallel, marks=marks))
+    return cases
+
+
+GRIDS = _grid_cases()
 
 
 def make(dim, p, kind, seed=0):
@@ -157,13 +189,31 @@ def make(dim, p, kind, seed=0):
     return tensor_grid(breakpoints(kind, dim, cells, rng), p), rng
 
 
-@pytest.mark.parametrize("dim,p,kind", GRIDS)
-def test_transfers_match_the_transfer_matrices(dim, p, kind):
+def test_the_default_transfer_cases_cover_every_pair():
+    """Every (dim, p) but 3D cubic, both kinds of grid with each, and the
+    parallel kernels and their serial copies at every dimension and every
+    degree occur in the default tier; the slow tier holds the rest of the
+    product."""
+    default = [c.values for c in GRIDS if not c.marks]
+    assert {(d, p) for d, p, _, _ in default} == {(d, p) for d in (1, 2, 3) for p in (1, 2, 3)
+                                                  } - {(3, 3)}
+    assert {(d, p, k) for d, p, k, _ in default} == {(d, p, k) for d, p, _, _ in default
+                                                     for k in ("uniform", "nonuniform")}
+    for parallel in (True, False):
+        assert {d for d, _, _, par in default if par == parallel} == {1, 2, 3}
+        assert {p for _, p, _, par in default if par == parallel} == {1, 2, 3}
+        assert {k for _, _, k, par in default if par == parallel} == {"uniform", "nonuniform"}
+    assert len(GRIDS) == 36 and len({c.values for c in GRIDS}) == 36
+
+
+@pytest.mark.parametrize("dim,p,kind,parallel", GRIDS)
+def test_transfers_match_the_transfer_matrices(dim, p, kind, parallel):
     """p2g, g2p2g and g2p against N and grad N of the tensor products of
     the 1D B-splines, in any order of the particles, on three thread blocks
-    (overlapping node ranges), twice (the copies are cleared in between)."""
+    (overlapping node ranges), twice (the copies are cleared in between);
+    the parallel kernels or their serial copies."""
     grid, rng = make(dim, p, kind)
-    t = Transfers(grid, nthreads=3)
+    t = Transfers(grid, nthreads=3, parallel=parallel)
     n = (400, 600, 800)[dim - 1]
     for order in ("cells", "random"):
         p_ = particles(grid, n, rng, order)
@@ -272,15 +322,17 @@ def test_executor_kernels_run_the_generated_transfers(dim):
 
 
 # ------------------------------------------------ Runge-Kutta stage rates
-@pytest.mark.parametrize("dim,p,kind", [(1, 1, "uniform"), (1, 2, "nonuniform"),
-                                        (1, 3, "uniform"), (2, 2, "uniform"),
-                                        (2, 3, "nonuniform"), (3, 2, "nonuniform")])
-def test_stage_rates_match_the_transfer_matrices(dim, p, kind):
+@pytest.mark.parametrize("dim,p,kind,parallel", [
+    (1, 1, "uniform", True), (1, 2, "nonuniform", True), (1, 3, "uniform", True),
+    (2, 2, "uniform", True), (2, 3, "nonuniform", False), (3, 2, "nonuniform", True),
+    pytest.param(2, 3, "nonuniform", True, marks=SLOW_OTHER_THREADS)])
+def test_stage_rates_match_the_transfer_matrices(dim, p, kind, parallel):
     """The rates gather (one Runge-Kutta right-hand side) against N and
     grad N: N v, N a, V tr L, and the linear elastic stress rate
-    lambda tr(D) I + 2 mu D (D = sym L; 1D: E L) or L, on three blocks."""
+    lambda tr(D) I + 2 mu D (D = sym L; 1D: E L) or L, on three blocks
+    (the parallel kernel or its serial copy: PARALLEL_DEFAULT)."""
     grid, rng = make(dim, p, kind, seed=7)
-    t = Transfers(grid, nthreads=3)
+    t = Transfers(grid, nthreads=3, parallel=parallel)
     n = (300, 500, 700)[dim - 1]
     p_ = particles(grid, n, rng, "random")
     ga = rng.standard_normal((grid.ndofs, dim))

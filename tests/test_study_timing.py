@@ -17,10 +17,13 @@ from skfem_mpm.study import (
 
 def test_no_kernel_compiles_or_loads_during_the_timed_runs():
     """In fresh worker processes (numba's disk cache may be warm: a cache
-    load counts too), every quick method plus tls, hybrid and rk4 compiles
-    all its kernels in the untimed warm-up run."""
-    methods = list(QUICK_METHODS) + ["mpm-p2-consistent-tls", "mpm-p2-hybrid-spline-musl",
-                                     "mpm-p3-consistent-spline-rk4"]
+    load counts too), every quick method plus consistent mass with and
+    without a reconstruction (spline, tls), hybrid and rk4 compiles all its
+    kernels in the untimed warm-up run."""
+    methods = list(dict.fromkeys(list(QUICK_METHODS) + [
+        "mpm-p2-consistent", "mpm-p3-consistent", "mpm-p2-consistent-spline",
+        "mpm-p3-consistent-spline", "mpm-p2-consistent-tls", "mpm-p2-hybrid-spline-musl",
+        "mpm-p3-consistent-spline-rk4"]))
     records = convergence("vibrating-string", methods, [8], ppc=2, params={"L": 1.0},
                           scheme="cd", cfl=0.1, repeat=2)
     assert [r["status"] for r in records] == ["ok"] * len(methods)
