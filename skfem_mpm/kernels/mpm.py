@@ -718,16 +718,6 @@ class Kernels:
             return self.p, self.ndofs, 1, 1
         return (self.p, *self.grid.basis_per_axis[:2], self.dim)
 
-    def axis_mass(self):
-        """([bands per axis], [row sums per axis]) of the unit-density Gauss
-        mass of each axis (the Kronecker preconditioner's factors)."""
-        if getattr(self, "_axis_mass", None) is None:
-            from .kronecker import axis_mass_bands
-
-            pairs = [axis_mass_bands(self.grid, axis) for axis in range(self.dim)]
-            self._axis_mass = ([b for b, _ in pairs], [s for _, s in pairs])
-        return self._axis_mass
-
     def scratch(self, name, shape, dtype=np.float64):
         """A work array kept between steps (allocating it anew each step
         costs page faults); valid until the next request of the same name."""
