@@ -99,38 +99,60 @@ def banded_cholesky(bands, lo, hi):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def _axis_marginals(A, cols, rows, nbx, nby, a0, b0, c0, bands, sums):
+def _axis_marginals(A, coords, p, bands, sums):
     """bands[d] = the lower bands of the marginal of A on axis d (box-local
     numbering), sums[d] its row sums; returns the row sums of A (one per
-    row)."""
+    row). A's slot (s_c w + s_b) w + s_a holds the dof at index offsets
+    (s_a, s_b, s_c) - p from its row's (w = 2 p + 1; compact_system's ELL
+    rows), so a slot's axes are known without decoding its column; each
+    row is first summed per offset (short dependency chains)."""
     nr, ns = A.shape
-    nxy = nbx * nby
+    width = 2 * p + 1
+    nsb = width if ns > width else 1  # slots per axis: 1 on an axis the grid lacks
+    nsc = width if ns > width * width else 1
+    along = np.empty((3, width))  # one row's sums per index offset of each axis
     row_sums = np.empty(nr)
     for r in range(nr):
-        k = rows[r]
-        own = (k % nbx - a0, (k // nbx) % nby - b0, k // nxy - c0)
+        a = coords[r, 0]
+        b = coords[r, 1]
+        c = coords[r, 2]
+        along[:] = 0.0
+        for sc in range(nsc):
+            for sb in range(nsb):
+                first = (sc * nsb + sb) * width
+                line = 0.0
+                for sa in range(width):
+                    v = A[r, first + sa]
+                    along[0, sa] += v
+                    line += v
+                along[1, sb] += line
+                along[2, sc] += line
         total = 0.0
-        for s in range(ns):
-            v = A[r, s]
-            if v == 0.0:
-                continue
-            total += v
-            kq = rows[cols[r, s]]
-            other = (kq % nbx - a0, (kq // nbx) % nby - b0, kq // nxy - c0)
-            for d in range(3):
-                if other[d] <= own[d]:
-                    bands[d, own[d], own[d] - other[d]] += v
+        for sa in range(width):
+            total += along[0, sa]
+        for o in range(p + 1):  # slot p - o: the offset -o
+            bands[0, a, o] += along[0, p - o]
+            if nsb > 1:
+                bands[1, b, o] += along[1, p - o]
+            if nsc > 1:
+                bands[2, c, o] += along[2, p - o]
+        if nsb == 1:
+            bands[1, b, 0] += total
+        if nsc == 1:
+            bands[2, c, 0] += total
         row_sums[r] = total
-        for d in range(3):
-            sums[d, own[d]] += total
+        sums[0, a] += total
+        sums[1, b] += total
+        sums[2, c] += total
     return row_sums
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def fit_kronecker(A, cols, rows, nbx, nby, a0, b0, c0, Lx, Ly, Lz, inv_scale, bands, sums):
-    """The Kronecker preconditioner of the free-dof matrix A (ELL rows of
-    the dofs ``rows`` (dof k = (c nby + b) nbx + a), columns ``cols`` in
-    row numbering) from its own axis marginals (the module docstring): the
+def fit_kronecker(A, coords, Lx, Ly, Lz, inv_scale, bands, sums):
+    """The Kronecker preconditioner of the free-dof matrix A (ELL rows in
+    the slot order of :func:`skfem_mpm.kernels.mpm.compact_system`, of the
+    dofs at box-local indices ``coords`` (rows, 3): a, b, c) from its own
+    axis marginals (the module docstring): the
     factors Lx, Ly, Lz of the box (nx, ny, nz = their lengths; an axis of
     length 1 is not applied and has no factor) with 1 / L_ii in column 0,
     and inv_scale = 1 / sqrt(s_k / l_k). ``bands`` (3, n, p + 1) and
@@ -139,7 +161,7 @@ def fit_kronecker(A, cols, rows, nbx, nby, a0, b0, c0, Lx, Ly, Lz, inv_scale, ba
     (it couples to nothing)."""
     bands[:] = 0.0
     sums[:] = 0.0
-    row_sums = _axis_marginals(A, cols, rows, nbx, nby, a0, b0, c0, bands, sums)
+    row_sums = _axis_marginals(A, coords, Lx.shape[1] - 1, bands, sums)
     for d, L in enumerate((Lx, Ly, Lz)):
         n = L.shape[0]
         if n == 1:
@@ -150,14 +172,12 @@ def fit_kronecker(A, cols, rows, nbx, nby, a0, b0, c0, Lx, Ly, Lz, inv_scale, ba
         banded_cholesky_into(bands[d], 0, n, L)
         for i in range(n):
             L[i, 0] = 1.0 / L[i, 0]
-    nxy = nbx * nby
-    for r in range(rows.shape[0]):
-        k = rows[r]
-        lk = sums[0, k % nbx - a0]
+    for r in range(A.shape[0]):
+        lk = sums[0, coords[r, 0]]
         if Ly.shape[0] > 1:
-            lk *= sums[1, (k // nbx) % nby - b0]
+            lk *= sums[1, coords[r, 1]]
         if Lz.shape[0] > 1:
-            lk *= sums[2, k // nxy - c0]
+            lk *= sums[2, coords[r, 2]]
         inv_scale[r] = 1.0 / np.sqrt(row_sums[r] / lk)
 
 
@@ -187,9 +207,9 @@ class KroneckerData:
         self.inv_scale = 1.0 / np.sqrt(lumped[rows] / self.gauss)
 
     @classmethod
-    def of_system(cls, A, cols, rows, geometry, previous=None):
+    def of_system(cls, A, rows, geometry, previous=None):
         """The preconditioner of the free-dof matrix A itself (ELL rows of
-        ``rows``, columns in row numbering) by :func:`fit_kronecker`; the box
+        ``rows`` as compact_system writes them) by :func:`fit_kronecker`; the box
         numbering of ``previous`` is reused for the same free dofs."""
         self = cls.__new__(cls)
         if not self._reuse_box(geometry, rows, previous):
@@ -200,8 +220,7 @@ class KroneckerData:
         self.Lz = np.ones((shape[0], p + 1))
         self.inv_scale = np.empty(rows.size)
         longest = max(shape)
-        fit_kronecker(A, cols, rows, geometry[1], geometry[2] if geometry[3] >= 2 else 1,
-                      self.a0, self.b0, self.c0, self.Lx, self.Ly, self.Lz, self.inv_scale,
+        fit_kronecker(A, self.coords, self.Lx, self.Ly, self.Lz, self.inv_scale,
                       np.empty((3, longest, p + 1)), np.empty((3, longest)))
         if len(self.shape) < 3:
             self.Lz = None
@@ -214,12 +233,13 @@ class KroneckerData:
             return False
         self.a0, self.b0, self.c0 = previous.a0, previous.b0, previous.c0
         self.shape, self.box_index = previous.shape, previous.box_index
-        self.local = self.box_index
+        self.coords, self.local = previous.coords, self.box_index
         return True
 
     def _box(self, geometry, rows):
         """The free dofs' index box: its first index per axis, its shape
-        ((nz,) ny, nx; 1D: ny = 1) and each row's position in it."""
+        ((nz,) ny, nx; 1D: ny = 1), each row's indices in it (``coords``,
+        (rows, 3): a, b, c) and its position in it."""
         p, nbx, nby, dim = geometry
         nby = nby if dim >= 2 else 1
         a, b, c = rows % nbx, (rows // nbx) % nby, rows // (nbx * nby)
@@ -228,6 +248,7 @@ class KroneckerData:
         self.shape = (b1 - self.b0, a1 - self.a0)
         if dim == 3:
             self.shape = (c1 - self.c0,) + self.shape
+        self.coords = np.stack((a - self.a0, b - self.b0, c - self.c0), axis=1).astype(np.int64)
         self.box_index = (((c - self.c0) * (b1 - self.b0) + (b - self.b0)) * (a1 - self.a0)
                           + (a - self.a0)).astype(np.int64)
         self.local = self.box_index
@@ -274,11 +295,12 @@ def apply_kronecker(Lx, Ly, local, inv_scale, box, nt, r, z):
         for i in range(nx):
             for c in range(nc):
                 box[j, i, c] = 0.0
+    flat = box.reshape((ny * nx, nc))  # entry li of the box (no division by nx)
     for q in prange(nr):
         li = local[q]
         if li >= 0:
             for c in range(nc):
-                box[li // nx, li % nx, c] = r[q, c] * inv_scale[q]
+                flat[li, c] = r[q, c] * inv_scale[q]
     # x direction: each box row is one banded system. Each thread takes a
     # block of rows and advances all of them together, one column i (and
     # one band d) at a time: the recurrence along a row is a latency chain,
@@ -336,7 +358,7 @@ def apply_kronecker(Lx, Ly, local, inv_scale, box, nt, r, z):
         li = local[q]
         for c in range(nc):
             if li >= 0:
-                z[q, c] = box[li // nx, li % nx, c] * inv_scale[q]
+                z[q, c] = flat[li, c] * inv_scale[q]
             else:  # a lumped row: its own diagonal
                 z[q, c] = r[q, c] * inv_scale[q]
 
@@ -411,6 +433,7 @@ def apply_kronecker_axes(Lx, Ly, Lz, local, inv_scale, box, nt, r, z):
     nr = r.shape[0]
     rows = box.reshape((nz * ny, nx, nc))
     columns = box.reshape((nz, ny * nx, nc))
+    flat = box.reshape((nz * ny * nx, nc))  # entry li of the box
     for j in prange(nz * ny):
         for i in range(nx):
             for c in range(nc):
@@ -419,7 +442,7 @@ def apply_kronecker_axes(Lx, Ly, Lz, local, inv_scale, box, nt, r, z):
         li = local[q]
         if li >= 0:
             for c in range(nc):
-                rows[li // nx, li % nx, c] = r[q, c] * inv_scale[q]
+                flat[li, c] = r[q, c] * inv_scale[q]
     for t in prange(nt):
         _along_rows(Lx, rows, t * (nz * ny) // nt, (t + 1) * (nz * ny) // nt)
     if ny > 1:
@@ -434,6 +457,6 @@ def apply_kronecker_axes(Lx, Ly, Lz, local, inv_scale, box, nt, r, z):
         li = local[q]
         for c in range(nc):
             if li >= 0:
-                z[q, c] = rows[li // nx, li % nx, c] * inv_scale[q]
+                z[q, c] = flat[li, c] * inv_scale[q]
             else:  # a lumped row: its own diagonal
                 z[q, c] = r[q, c] * inv_scale[q]

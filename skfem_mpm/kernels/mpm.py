@@ -1127,6 +1127,21 @@ def _narrow(a, n):
     return a.reshape(a.size)[:size].reshape(shape)
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _all_converged(sums, limit, active):
+    """Whether every active column meets its limit, |r|^2 = sum_t
+    sums[t, 1, j] <= limit[j] (summed as the convergence test of
+    :func:`ell_pcg` sums it, so both decide alike)."""
+    for j in range(limit.shape[0]):
+        if active[j]:
+            rr_j = 0.0
+            for t in range(sums.shape[0]):
+                rr_j += sums[t, 1, j]
+            if rr_j > limit[j]:
+                return False
+    return True
+
+
 @njit(cache=True, error_model="numpy", fastmath=FAST)
 def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, work):
     """Preconditioned conjugate gradients for A x = b (all columns at once,
@@ -1254,6 +1269,12 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
                 active[j] = False
             alpha[j] = rz[j] / dq if active[j] else 0.0
         _cg_update(xc, r, z, d, q, inv_diag, kron is None, alpha, active, sums)
+        if kron is not None and _all_converged(sums, limit, active):
+            for j in range(width):  # the next z = P^-1 r is not needed
+                if active[j]:
+                    active[j] = False
+                    converged[columns[j]] = True
+            continue
         if kron is not None:  # z = P^-1 r and its r.z
             _precondition(A, cols, r, z, spare, inv_diag, kron_now, fringe_now)
             _dots(r, z, partial)

@@ -60,10 +60,10 @@ MASS_FIELDS = (
     "group_comps", "group_size", "rows", "n_rows", "index", "A", "cols", "F", "fcols",
     "inv_diag",
     # Kronecker preconditioner per group: factors (1 / L_ii in column 0),
-    # the rows the box was built for, box (a0, b0, ny, nx), box index,
-    # scaling; fit_kronecker's work space and the factor of an axis not
-    # applied (a (1, p + 1) array)
-    "Lx", "Ly", "boxed_rows", "n_boxed", "box_shape", "box_index", "inv_scale",
+    # the rows the box was built for, box (a0, b0, ny, nx), box index and
+    # box-local (a, b, c) per row, scaling; fit_kronecker's work space and
+    # the factor of an axis not applied (a (1, p + 1) array)
+    "Lx", "Ly", "boxed_rows", "n_boxed", "box_shape", "box_index", "box_coords", "inv_scale",
     "fit_bands", "fit_sums", "no_axis",
     # conjugate gradients: right-hand sides, solutions, work space (flat)
     "b", "x", "work", "box", "rtol", "max_iterations", "fringe_from", "fringe_min_rows",
@@ -182,7 +182,12 @@ def _kronecker_box(cm, g, rows, nbx, dim):
         b0 = min(b0, b)
         b1 = max(b1, b + 1)
     for r in range(n):
-        cm.box_index[g, r] = (rows[r] // nbx - b0) * (a1 - a0) + (rows[r] % nbx - a0)
+        a = rows[r] % nbx - a0
+        b = rows[r] // nbx - b0
+        cm.box_index[g, r] = b * (a1 - a0) + a
+        cm.box_coords[g, r, 0] = a
+        cm.box_coords[g, r, 1] = b
+        cm.box_coords[g, r, 2] = 0
         cm.boxed_rows[g, r] = rows[r]
     cm.n_boxed[g] = n
     cm.box_shape[g, 0] = a0
@@ -232,9 +237,8 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim):
         _kronecker_box(cm, g, rows, nbx, dim)
         ny = cm.box_shape[g, 2]
         nx = cm.box_shape[g, 3]
-        FIT_KRONECKER(cm.A[g, :n], cm.cols[g, :n], rows, nbx, nby, cm.box_shape[g, 0],
-                      cm.box_shape[g, 1], 0, cm.Lx[g, :nx], cm.Ly[g, :ny], cm.no_axis,
-                      cm.inv_scale[g, :n], cm.fit_bands, cm.fit_sums)
+        FIT_KRONECKER(cm.A[g, :n], cm.box_coords[g, :n], cm.Lx[g, :nx], cm.Ly[g, :ny],
+                      cm.no_axis, cm.inv_scale[g, :n], cm.fit_bands, cm.fit_sums)
 
 
 @njit(cache=True)

@@ -117,7 +117,7 @@ class StencilSystem:
         inv_diag = 1.0 / self.lumped[rows]
         kron = fringe = None
         if self.preconditioner == "kronecker" and rows.size:
-            kron = KroneckerData.of_system(A, cols, rows, self.geometry,
+            kron = KroneckerData.of_system(A, rows, self.geometry,
                                            previous=self.memo.get(f"kronecker{g}"))
             self.memo[f"kronecker{g}"] = kron
             if self.fringe_layers > 0 and (self.FRINGE_FROM <= 0
