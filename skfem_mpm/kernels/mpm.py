@@ -118,9 +118,12 @@ def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies, touched):
     for d = 0..p (column d), and sum m_p (dN_k/dx)^2 per dof (the fast-dof
     guard's stiffness weights), into per-thread copies over the node range
     each thread touches (``touched``, as the scatter kernels).
-    :func:`reduce_stencil` sums them and mirrors the rest."""
+    :func:`reduce_stencil` sums them and mirrors the rest. Quadratic
+    interior particles of a uniform axis keep their weights in registers
+    (:func:`_quadratic_interior`; the same sums in the same order)."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
+    quadratic = p == 2 and ux
     for t in prange(nt):
         M = mass_copies[t]
         K = stiff_copies[t]
@@ -133,10 +136,27 @@ def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies, touched):
         lo = t * n // nt
         hi = (t + 1) * n // nt
         for i in range(lo, hi):
+            mi = m[i]
+            if quadratic:
+                e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
+                if e >= 0:
+                    first = min(first, e)
+                    last = max(last, e + 3)
+                    K[e] += mi * d0 * d0
+                    m0 = mi * w0
+                    M[e, 0] += m0 * w0
+                    M[e, 1] += m0 * w1
+                    M[e, 2] += m0 * w2
+                    K[e + 1] += mi * d1 * d1
+                    m1 = mi * w1
+                    M[e + 1, 0] += m1 * w1
+                    M[e + 1, 1] += m1 * w2
+                    K[e + 2] += mi * d2 * d2
+                    M[e + 2, 0] += mi * w2 * w2
+                    continue
             e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
             first = min(first, e)
             last = max(last, e + p + 1)
-            mi = m[i]
             for a in range(p + 1):
                 K[e + a] += mi * dw[a] * dw[a]
                 wa = mi * w[a]
