@@ -1,32 +1,51 @@
 """A Kronecker-product preconditioner for the consistent particle mass.
 
-Where a body fills its cells with particles of one density, its consistent
-mass matrix is close to rho times the Gauss-quadrature mass matrix of the
-spline space, which on a tensor grid is the Kronecker product of 1D banded
-matrices, M_G = M_y (x) M_x. The preconditioner (for the free dofs F of one
+On a tensor grid a mass matrix whose quadrature points form a tensor
+layout with product weights is a Kronecker product of 1D banded matrices:
+the Gauss mass M_G = M_y (x) M_x, and also the particle mass
+M = sum_p m_p N(x_p) N(x_p)^T of particles seeded per axis with masses
+m_p = mu_x(x_p) mu_y(y_p). The preconditioner (for the free dofs F of one
 constraint pattern, inside their index box B) is
 
-    P^-1 = S^-1 R (M_y,B (x) M_x,B)^-1 R^T S^-1,
-    S = diag(sqrt(m_k / l_k)),  m_k the particle lumped mass,
-                                l_k = l_x,a l_y,b the row sum of M_G,
+    P^-1 = S^-1 R (K_y,B (x) K_x,B)^-1 R^T S^-1,
+    S = diag(sqrt(s_k / l_k)),  l_k = l_x,a l_y,b the row sums of K,
 
 with R the zero extension from F into the box. It is symmetric positive
-definite for any particle layout (so conjugate gradients converge), exact
-for a uniformly filled box, and each application costs two banded
-triangular solves per axis. In 3D, M_G = M_z (x) M_y (x) M_x and
-l_k = l_x,a l_y,b l_z,c; :func:`apply_kronecker_axes` applies the three
-factors one axis after the other (the same passes as
-:func:`apply_kronecker`, which it equals on one z layer). Measured on the 2D block of the performance
-benchmark (4356 free dofs, cold start to 1e-13): 142 CG iterations with the
-lumped (Jacobi) preconditioner, 17 with this one; on a disk 747 vs 228.
+definite for any particle layout (so conjugate gradients converge), and
+each application costs two banded triangular solves per axis. In 3D,
+K = K_z (x) K_y (x) K_x and l_k = l_x,a l_y,b l_z,c;
+:func:`apply_kronecker_axes` applies the three factors one axis after the
+other (the same passes as :func:`apply_kronecker`, which it equals on one
+z layer). Two choices of the factors:
+
+* the system's own axis marginals (:func:`fit_kronecker`, the consistent
+  mass solves): K_x[a, a'] = sum of A_kj over the free pairs with
+  a_k = a, a_j = a' (any b), likewise K_y, where A is the free-dof matrix
+  the solve sees (fast rows lumped), and s_k = sum_j A_kj. The marginal
+  of a Kronecker product is its factor times a number (the partition of
+  unity: sum_b N_b = 1), so P = A wherever A is a Kronecker product: in
+  1D always (P is A's banded factorisation), in 2D for particles on a
+  tensor layout with product masses away from lumped rows. Van Loan and
+  Pitsianis (1993) call this the first step of the nearest Kronecker
+  product's power iteration from the all-ones factor.
+* the unit-density Gauss mass (:func:`axis_mass_bands`) with s_k the
+  particle lumped mass, for a matrix close to rho M_G (the spline
+  reconstruction's fit, :mod:`skfem_mpm.solve.compiled_reconstruct`).
+
+Measured, CG iterations per run to 1e-13 (MUSL, warm started), Gauss
+factors -> marginals: vibrating string 32 quadratic cells, 4 particles
+per cell, 3.0 -> 1.0; vibrating plate 16 x 16, 2 x 2 particles per cell,
+12.6 -> 8.6; the same with 3 x 3, 5.3 -> 1.5; the expanding block of
+``bench --consistent`` at 64 x 64 (USL), 21.0 -> 21.8, and with the 3-layer
+fringe correction (:mod:`skfem_mpm.kernels.fringe`) from the first solve 4.7 -> 4.7.
 """
 import numpy as np
 from numba import njit, prange
 
 from .weights import FAST
 
-__all__ = ["axis_mass_bands", "banded_cholesky", "KroneckerData", "apply_kronecker",
-           "apply_kronecker_axes"]
+__all__ = ["axis_mass_bands", "banded_cholesky", "fit_kronecker", "KroneckerData",
+           "apply_kronecker", "apply_kronecker_axes"]
 
 
 def axis_mass_bands(grid, axis):
@@ -51,12 +70,12 @@ def axis_mass_bands(grid, axis):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def banded_cholesky(bands, lo, hi):
-    """Lower Cholesky factor L of the principal block [lo, hi) of a banded
-    SPD matrix, L[i, d] = L_(i, i - d) (rows relative to lo)."""
+def banded_cholesky_into(bands, lo, hi, L):
+    """L[:hi - lo] = the lower Cholesky factor of the principal block
+    [lo, hi) of a banded SPD matrix, L[i, d] = L_(i, i - d) (rows relative
+    to lo; Golub & Van Loan, Matrix Computations, 4th ed., Alg. 4.3.5)."""
     n = hi - lo
     p = bands.shape[1] - 1
-    L = np.zeros((n, p + 1))
     for i in range(n):
         for d in range(min(p, i), 0, -1):
             j = i - d
@@ -68,7 +87,98 @@ def banded_cholesky(bands, lo, hi):
         for d in range(1, min(p, i) + 1):
             s -= L[i, d] * L[i, d]
         L[i, 0] = np.sqrt(s)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def banded_cholesky(bands, lo, hi):
+    """Lower Cholesky factor L of the principal block [lo, hi) of a banded
+    SPD matrix, L[i, d] = L_(i, i - d) (rows relative to lo)."""
+    L = np.zeros((hi - lo, bands.shape[1]))
+    banded_cholesky_into(bands, lo, hi, L)
     return L
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def _axis_marginals(A, coords, p, bands, sums):
+    """bands[d] = the lower bands of the marginal of A on axis d (box-local
+    numbering), sums[d] its row sums; returns the row sums of A (one per
+    row). A's slot (s_c w + s_b) w + s_a holds the dof at index offsets
+    (s_a, s_b, s_c) - p from its row's (w = 2 p + 1; compact_system's ELL
+    rows), so a slot's axes are known without decoding its column; each
+    row is first summed per offset (short dependency chains)."""
+    nr, ns = A.shape
+    width = 2 * p + 1
+    nsb = width if ns > width else 1  # slots per axis: 1 on an axis the grid lacks
+    nsc = width if ns > width * width else 1
+    along = np.empty((3, width))  # one row's sums per index offset of each axis
+    row_sums = np.empty(nr)
+    for r in range(nr):
+        a = coords[r, 0]
+        b = coords[r, 1]
+        c = coords[r, 2]
+        along[:] = 0.0
+        for sc in range(nsc):
+            for sb in range(nsb):
+                first = (sc * nsb + sb) * width
+                line = 0.0
+                for sa in range(width):
+                    v = A[r, first + sa]
+                    along[0, sa] += v
+                    line += v
+                along[1, sb] += line
+                along[2, sc] += line
+        total = 0.0
+        for sa in range(width):
+            total += along[0, sa]
+        for o in range(p + 1):  # slot p - o: the offset -o
+            bands[0, a, o] += along[0, p - o]
+            if nsb > 1:
+                bands[1, b, o] += along[1, p - o]
+            if nsc > 1:
+                bands[2, c, o] += along[2, p - o]
+        if nsb == 1:
+            bands[1, b, 0] += total
+        if nsc == 1:
+            bands[2, c, 0] += total
+        row_sums[r] = total
+        sums[0, a] += total
+        sums[1, b] += total
+        sums[2, c] += total
+    return row_sums
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def fit_kronecker(A, coords, Lx, Ly, Lz, inv_scale, bands, sums):
+    """The Kronecker preconditioner of the free-dof matrix A (ELL rows in
+    the slot order of :func:`skfem_mpm.kernels.mpm.compact_system`, of the
+    dofs at box-local indices ``coords`` (rows, 3): a, b, c) from its own
+    axis marginals (the module docstring): the
+    factors Lx, Ly, Lz of the box (nx, ny, nz = their lengths; an axis of
+    length 1 is not applied and has no factor) with 1 / L_ii in column 0,
+    and inv_scale = 1 / sqrt(s_k / l_k). ``bands`` (3, n, p + 1) and
+    ``sums`` (3, n) are work space, n >= the box's longest side. A box line
+    without a free dof has a zero marginal row: it gets a unit diagonal
+    (it couples to nothing)."""
+    bands[:] = 0.0
+    sums[:] = 0.0
+    row_sums = _axis_marginals(A, coords, Lx.shape[1] - 1, bands, sums)
+    for d, L in enumerate((Lx, Ly, Lz)):
+        n = L.shape[0]
+        if n == 1:
+            continue
+        for i in range(n):
+            if bands[d, i, 0] <= 0.0:
+                bands[d, i, 0] = 1.0
+        banded_cholesky_into(bands[d], 0, n, L)
+        for i in range(n):
+            L[i, 0] = 1.0 / L[i, 0]
+    for r in range(A.shape[0]):
+        lk = sums[0, coords[r, 0]]
+        if Ly.shape[0] > 1:
+            lk *= sums[1, coords[r, 1]]
+        if Lz.shape[0] > 1:
+            lk *= sums[2, coords[r, 2]]
+        inv_scale[r] = 1.0 / np.sqrt(row_sums[r] / lk)
 
 
 def _inverse_diagonal(L):
@@ -78,63 +188,90 @@ def _inverse_diagonal(L):
 
 
 class KroneckerData:
-    """The factors and scaling of the preconditioner for one free-dof set
-    (``rows`` in the grid's dof numbering, row-major: k = b nbx + a)."""
+    """The factors, box and scaling of the preconditioner for one free-dof
+    set (``rows`` in the grid's dof numbering, k = (c nby + b) nbx + a):
+    from the Gauss axis masses (this constructor: ``bands``, ``row_sums``
+    per axis as :func:`axis_mass_bands` gives them, ``lumped`` the
+    particle lumped mass) or from a system's own marginals
+    (:meth:`of_system`)."""
 
-    def __init__(self, bands, row_sums, geometry, rows, lumped, lumped_rows=None,
-                 diagonal=None, previous=None):
+    def __init__(self, bands, row_sums, geometry, rows, lumped, previous=None):
         """``previous``: the data of an earlier step; its factors and box
         numbering are reused when it was built for the same free dofs."""
-        key = rows.tobytes()
-        if previous is not None and previous.key == key and previous.geometry == geometry:
-            self.Lx, self.Ly, self.gauss, self.box_index = (previous.Lx, previous.Ly,
-                                                            previous.gauss, previous.box_index)
-            self.Lz = previous.Lz
-            self.a0, self.b0, self.shape = previous.a0, previous.b0, previous.shape
+        if not self._reuse_box(geometry, rows, previous):
+            self._box(geometry, rows)
+            self._gauss_factors(bands, row_sums, rows)
         else:
-            self._factor(bands, row_sums, geometry, rows)
-        self.key, self.geometry = key, geometry
-        self.local = self.box_index
+            self.Lx, self.Ly, self.Lz, self.gauss = (previous.Lx, previous.Ly, previous.Lz,
+                                                     previous.gauss)
         self.inv_scale = 1.0 / np.sqrt(lumped[rows] / self.gauss)
-        if lumped_rows is not None and lumped_rows.any():
-            self.local = self.box_index.copy()
-            self.local[lumped_rows] = -1
-            self.inv_scale[lumped_rows] = 1.0 / diagonal[lumped_rows]
 
-    def _factor(self, bands, row_sums, geometry, rows):
+    @classmethod
+    def of_system(cls, A, rows, geometry, previous=None):
+        """The preconditioner of the free-dof matrix A itself (ELL rows of
+        ``rows`` as compact_system writes them) by :func:`fit_kronecker`; the box
+        numbering of ``previous`` is reused for the same free dofs."""
+        self = cls.__new__(cls)
+        if not self._reuse_box(geometry, rows, previous):
+            self._box(geometry, rows)
+        p = geometry[0]
+        shape = self.shape if len(self.shape) == 3 else (1,) + self.shape
+        self.Lx, self.Ly = np.empty((shape[2], p + 1)), np.ones((shape[1], p + 1))
+        self.Lz = np.ones((shape[0], p + 1))
+        self.inv_scale = np.empty(rows.size)
+        longest = max(shape)
+        fit_kronecker(A, self.coords, self.Lx, self.Ly, self.Lz, self.inv_scale,
+                      np.empty((3, longest, p + 1)), np.empty((3, longest)))
+        if len(self.shape) < 3:
+            self.Lz = None
+        return self
+
+    def _reuse_box(self, geometry, rows, previous):
+        """Take the box of ``previous`` when it was built for these rows."""
+        self.key, self.geometry = rows.tobytes(), geometry
+        if previous is None or previous.key != self.key or previous.geometry != geometry:
+            return False
+        self.a0, self.b0, self.c0 = previous.a0, previous.b0, previous.c0
+        self.shape, self.box_index = previous.shape, previous.box_index
+        self.coords, self.local = previous.coords, self.box_index
+        return True
+
+    def _box(self, geometry, rows):
+        """The free dofs' index box: its first index per axis, its shape
+        ((nz,) ny, nx; 1D: ny = 1), each row's indices in it (``coords``,
+        (rows, 3): a, b, c) and its position in it."""
         p, nbx, nby, dim = geometry
-        if dim == 3:
-            return self._factor_3d(bands, row_sums, geometry, rows)
-        self.Lz = None
-        a, b = rows % nbx, rows // nbx
-        self.a0, self.b0 = int(a.min()), int(b.min())
-        a1, b1 = int(a.max()) + 1, int(b.max()) + 1
-        # the kernel multiplies by the inverse diagonal (a division costs
-        # several multiplications): column 0 of the factors holds 1 / L_ii
-        self.Lx = _inverse_diagonal(banded_cholesky(bands[0], self.a0, a1))
-        if dim == 2:
-            self.Ly = _inverse_diagonal(banded_cholesky(bands[1], self.b0, b1))
-            self.gauss = row_sums[0][a] * row_sums[1][b]
-        else:
-            self.Ly = np.ones((1, p + 1))
-            self.gauss = row_sums[0][a]
-        self.box_index = ((b - self.b0) * (a1 - self.a0) + (a - self.a0)).astype(np.int64)
-        self.shape = (b1 - self.b0, a1 - self.a0)
-
-    def _factor_3d(self, bands, row_sums, geometry, rows):
-        """The three factors, scaling and box numbering of a 3D free-dof set
-        (dof k = (c nby + b) nbx + a)."""
-        p, nbx, nby, _ = geometry
+        nby = nby if dim >= 2 else 1
         a, b, c = rows % nbx, (rows // nbx) % nby, rows // (nbx * nby)
         self.a0, self.b0, self.c0 = int(a.min()), int(b.min()), int(c.min())
         a1, b1, c1 = int(a.max()) + 1, int(b.max()) + 1, int(c.max()) + 1
-        self.Lx = _inverse_diagonal(banded_cholesky(bands[0], self.a0, a1))
-        self.Ly = _inverse_diagonal(banded_cholesky(bands[1], self.b0, b1))
-        self.Lz = _inverse_diagonal(banded_cholesky(bands[2], self.c0, c1))
-        self.gauss = row_sums[0][a] * row_sums[1][b] * row_sums[2][c]
-        self.shape = (c1 - self.c0, b1 - self.b0, a1 - self.a0)
-        self.box_index = (((c - self.c0) * self.shape[1] + (b - self.b0)) * self.shape[2]
+        self.shape = (b1 - self.b0, a1 - self.a0)
+        if dim == 3:
+            self.shape = (c1 - self.c0,) + self.shape
+        self.coords = np.stack((a - self.a0, b - self.b0, c - self.c0), axis=1).astype(np.int64)
+        self.box_index = (((c - self.c0) * (b1 - self.b0) + (b - self.b0)) * (a1 - self.a0)
                           + (a - self.a0)).astype(np.int64)
+        self.local = self.box_index
+
+    def _gauss_factors(self, bands, row_sums, rows):
+        """The banded Cholesky factors of the Gauss axis masses on the box
+        (1 / L_ii in column 0: the kernel multiplies by it) and the Gauss
+        row sums l_k of the rows."""
+        p, nbx, nby, dim = self.geometry
+        a = rows % nbx
+        self.Lx = _inverse_diagonal(banded_cholesky(bands[0], self.a0, self.a0 + self.shape[-1]))
+        self.gauss = row_sums[0][a]
+        self.Ly, self.Lz = np.ones((1, p + 1)), None
+        if dim >= 2:
+            b = (rows // nbx) % nby
+            self.Ly = _inverse_diagonal(banded_cholesky(bands[1], self.b0,
+                                                        self.b0 + self.shape[-2]))
+            self.gauss = self.gauss * row_sums[1][b]
+        if dim == 3:
+            c = rows // (nbx * nby)
+            self.Lz = _inverse_diagonal(banded_cholesky(bands[2], self.c0,
+                                                        self.c0 + self.shape[0]))
+            self.gauss = self.gauss * row_sums[2][c]
 
     def args(self, nc, nt):
         """The arguments of :func:`apply_kronecker` before r and z (3D: of
@@ -158,11 +295,12 @@ def apply_kronecker(Lx, Ly, local, inv_scale, box, nt, r, z):
         for i in range(nx):
             for c in range(nc):
                 box[j, i, c] = 0.0
+    flat = box.reshape((ny * nx, nc))  # entry li of the box (no division by nx)
     for q in prange(nr):
         li = local[q]
         if li >= 0:
             for c in range(nc):
-                box[li // nx, li % nx, c] = r[q, c] * inv_scale[q]
+                flat[li, c] = r[q, c] * inv_scale[q]
     # x direction: each box row is one banded system. Each thread takes a
     # block of rows and advances all of them together, one column i (and
     # one band d) at a time: the recurrence along a row is a latency chain,
@@ -220,7 +358,7 @@ def apply_kronecker(Lx, Ly, local, inv_scale, box, nt, r, z):
         li = local[q]
         for c in range(nc):
             if li >= 0:
-                z[q, c] = box[li // nx, li % nx, c] * inv_scale[q]
+                z[q, c] = flat[li, c] * inv_scale[q]
             else:  # a lumped row: its own diagonal
                 z[q, c] = r[q, c] * inv_scale[q]
 
@@ -295,6 +433,7 @@ def apply_kronecker_axes(Lx, Ly, Lz, local, inv_scale, box, nt, r, z):
     nr = r.shape[0]
     rows = box.reshape((nz * ny, nx, nc))
     columns = box.reshape((nz, ny * nx, nc))
+    flat = box.reshape((nz * ny * nx, nc))  # entry li of the box
     for j in prange(nz * ny):
         for i in range(nx):
             for c in range(nc):
@@ -303,7 +442,7 @@ def apply_kronecker_axes(Lx, Ly, Lz, local, inv_scale, box, nt, r, z):
         li = local[q]
         if li >= 0:
             for c in range(nc):
-                rows[li // nx, li % nx, c] = r[q, c] * inv_scale[q]
+                flat[li, c] = r[q, c] * inv_scale[q]
     for t in prange(nt):
         _along_rows(Lx, rows, t * (nz * ny) // nt, (t + 1) * (nz * ny) // nt)
     if ny > 1:
@@ -318,6 +457,6 @@ def apply_kronecker_axes(Lx, Ly, Lz, local, inv_scale, box, nt, r, z):
         li = local[q]
         for c in range(nc):
             if li >= 0:
-                z[q, c] = rows[li // nx, li % nx, c] * inv_scale[q]
+                z[q, c] = flat[li, c] * inv_scale[q]
             else:  # a lumped row: its own diagonal
                 z[q, c] = r[q, c] * inv_scale[q]

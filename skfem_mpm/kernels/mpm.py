@@ -118,9 +118,12 @@ def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies, touched):
     for d = 0..p (column d), and sum m_p (dN_k/dx)^2 per dof (the fast-dof
     guard's stiffness weights), into per-thread copies over the node range
     each thread touches (``touched``, as the scatter kernels).
-    :func:`reduce_stencil` sums them and mirrors the rest."""
+    :func:`reduce_stencil` sums them and mirrors the rest. Quadratic
+    interior particles of a uniform axis keep their weights in registers
+    (:func:`_quadratic_interior`; the same sums in the same order)."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
+    quadratic = p == 2 and ux
     for t in prange(nt):
         M = mass_copies[t]
         K = stiff_copies[t]
@@ -133,10 +136,27 @@ def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies, touched):
         lo = t * n // nt
         hi = (t + 1) * n // nt
         for i in range(lo, hi):
+            mi = m[i]
+            if quadratic:
+                e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
+                if e >= 0:
+                    first = min(first, e)
+                    last = max(last, e + 3)
+                    K[e] += mi * d0 * d0
+                    m0 = mi * w0
+                    M[e, 0] += m0 * w0
+                    M[e, 1] += m0 * w1
+                    M[e, 2] += m0 * w2
+                    K[e + 1] += mi * d1 * d1
+                    m1 = mi * w1
+                    M[e + 1, 0] += m1 * w1
+                    M[e + 1, 1] += m1 * w2
+                    K[e + 2] += mi * d2 * d2
+                    M[e + 2, 0] += mi * w2 * w2
+                    continue
             e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
             first = min(first, e)
             last = max(last, e + p + 1)
-            mi = m[i]
             for a in range(p + 1):
                 K[e + a] += mi * dw[a] * dw[a]
                 wa = mi * w[a]
@@ -718,16 +738,6 @@ class Kernels:
             return self.p, self.ndofs, 1, 1
         return (self.p, *self.grid.basis_per_axis[:2], self.dim)
 
-    def axis_mass(self):
-        """([bands per axis], [row sums per axis]) of the unit-density Gauss
-        mass of each axis (the Kronecker preconditioner's factors)."""
-        if getattr(self, "_axis_mass", None) is None:
-            from .kronecker import axis_mass_bands
-
-            pairs = [axis_mass_bands(self.grid, axis) for axis in range(self.dim)]
-            self._axis_mass = ([b for b, _ in pairs], [s for _, s in pairs])
-        return self._axis_mass
-
     def scratch(self, name, shape, dtype=np.float64):
         """A work array kept between steps (allocating it anew each step
         costs page faults); valid until the next request of the same name."""
@@ -1137,6 +1147,21 @@ def _narrow(a, n):
     return a.reshape(a.size)[:size].reshape(shape)
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _all_converged(sums, limit, active):
+    """Whether every active column meets its limit, |r|^2 = sum_t
+    sums[t, 1, j] <= limit[j] (summed as the convergence test of
+    :func:`ell_pcg` sums it, so both decide alike)."""
+    for j in range(limit.shape[0]):
+        if active[j]:
+            rr_j = 0.0
+            for t in range(sums.shape[0]):
+                rr_j += sums[t, 1, j]
+            if rr_j > limit[j]:
+                return False
+    return True
+
+
 @njit(cache=True, error_model="numpy", fastmath=FAST)
 def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, work):
     """Preconditioned conjugate gradients for A x = b (all columns at once,
@@ -1264,6 +1289,12 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
                 active[j] = False
             alpha[j] = rz[j] / dq if active[j] else 0.0
         _cg_update(xc, r, z, d, q, inv_diag, kron is None, alpha, active, sums)
+        if kron is not None and _all_converged(sums, limit, active):
+            for j in range(width):  # the next z = P^-1 r is not needed
+                if active[j]:
+                    active[j] = False
+                    converged[columns[j]] = True
+            continue
         if kron is not None:  # z = P^-1 r and its r.z
             _precondition(A, cols, r, z, spare, inv_diag, kron_now, fringe_now)
             _dots(r, z, partial)

@@ -106,7 +106,7 @@ _GRID_KERNELS = {
     "COMPACT_PROBLEM": mpm.compact_problem,
     "EXPAND_PROBLEM": mpm.expand_problem,
     "ELL_PCG": mpm.ell_pcg,
-    "BANDED_CHOLESKY": kronecker.banded_cholesky,
+    "FIT_KRONECKER": kronecker.fit_kronecker,
 }
 
 
@@ -555,7 +555,6 @@ class StepLoop:
         group_comps = np.zeros((G, dim), dtype=np.int64)
         for g, comps in enumerate(groups.values()):
             group_comps[g, :len(comps)] = comps
-        bands, sums = k.axis_mass()
         nc = 2 * dim  # the most columns of a CG run: two problems
         zeros, empty = np.zeros, np.empty
         fields = dict(
@@ -578,16 +577,13 @@ class StepLoop:
             # leaves its pages unmapped)
             F=zeros((G, nd, ns)), fcols=zeros((G, nd, ns), dtype=np.int32),
             inv_diag=zeros((G, nd)),
-            bands_x=np.ascontiguousarray(bands[0]),
-            bands_y=np.ascontiguousarray(bands[1]) if dim == 2 else zeros((1, p + 1)),
-            sums_x=np.ascontiguousarray(sums[0]),
-            sums_y=np.ascontiguousarray(sums[1]) if dim == 2 else zeros(1),
             Lx=zeros((G, nbx, p + 1)), Ly=np.ones((G, nby, p + 1)),
-            factored_rows=zeros((G, nd), dtype=np.int64),
-            n_factored=np.full(G, -1, dtype=np.int64), box_shape=zeros((G, 4), dtype=np.int64),
-            gauss=zeros((G, nd)), box_index=zeros((G, nd), dtype=np.int64),
-            local=zeros((G, nd), dtype=np.int64), inv_scale=zeros((G, nd)),
-            lumped_row=float(cls.LUMPED_ROW),
+            boxed_rows=zeros((G, nd), dtype=np.int64),
+            n_boxed=np.full(G, -1, dtype=np.int64), box_shape=zeros((G, 4), dtype=np.int64),
+            box_index=zeros((G, nd), dtype=np.int64),
+            box_coords=zeros((G, nd, 3), dtype=np.int64), inv_scale=zeros((G, nd)),
+            fit_bands=zeros((3, max(nbx, nby), p + 1)), fit_sums=zeros((3, max(nbx, nby))),
+            no_axis=np.ones((1, p + 1)),
             b=empty(nd * nc), x=empty(nd * nc), work=empty(6 * nd * nc),
             box=empty(nbx * nby * nc), rtol=1e-13, max_iterations=int(cls.max_iterations or 0),
             fringe_from=int(cls.FRINGE_FROM), fringe_min_rows=int(cls.FRINGE_MIN_ROWS),

@@ -17,10 +17,11 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
                     (hybrid mass: no guard, theta = 0); for each constraint
                     pattern ("group") its free dofs (not constrained, with
                     mass), their rows in ELL form (compact_system), and the
-                    factors of the Kronecker preconditioner
-                    (:class:`skfem_mpm.kernels.kronecker.KroneckerData`: banded
-                    Cholesky factors of the axis masses on the free dofs'
-                    index box, kept while the free-dof set stays)
+                    Kronecker preconditioner fitted to those rows
+                    (:func:`skfem_mpm.kernels.kronecker.fit_kronecker`, as
+                    KroneckerData.of_system: banded Cholesky factors of the
+                    rows' axis marginals on the free dofs' index box, whose
+                    numbering is kept while the free-dof set stays)
     mass_solve      M x = rhs on the free dofs (constrained dofs their
                     prescribed values, or 0; massless dofs 0: the fixed
                     columns' known values moved to the right-hand side
@@ -60,11 +61,12 @@ MASS_FIELDS = (
     # groups: their components, the free rows and dof -> row, the ELL rows
     "group_comps", "group_size", "rows", "n_rows", "index", "A", "cols", "F", "fcols",
     "inv_diag",
-    # Kronecker preconditioner per group: axis mass bands and row sums,
-    # factors (1 / L_ii in column 0), the rows they were built for,
-    # box (a0, b0, ny, nx), Gauss row sums, box index, scaling
-    "bands_x", "bands_y", "sums_x", "sums_y", "Lx", "Ly", "factored_rows", "n_factored",
-    "box_shape", "gauss", "box_index", "local", "inv_scale", "lumped_row",
+    # Kronecker preconditioner per group: factors (1 / L_ii in column 0),
+    # the rows the box was built for, box (a0, b0, ny, nx), box index and
+    # box-local (a, b, c) per row, scaling; fit_kronecker's work space and
+    # the factor of an axis not applied (a (1, p + 1) array)
+    "Lx", "Ly", "boxed_rows", "n_boxed", "box_shape", "box_index", "box_coords", "inv_scale",
+    "fit_bands", "fit_sums", "no_axis",
     # conjugate gradients: right-hand sides, solutions, work space (flat)
     "b", "x", "work", "box", "rtol", "max_iterations", "fringe_from", "fringe_min_rows",
     "fringe_layers", "fringe_on", "iterations",
@@ -158,14 +160,14 @@ def assemble_mass(cm, x, m, p, nbx, nby, dim):
 
 
 @njit(cache=True)
-def _kronecker_factors(cm, g, rows, nbx, dim):
-    """Group g's banded Cholesky factors, box and Gauss row sums
-    (KroneckerData._factor), unless they were built for the same rows."""
+def _kronecker_box(cm, g, rows, nbx, dim):
+    """Group g's index box and box numbering (KroneckerData._box), unless
+    they were built for the same rows."""
     n = rows.shape[0]
-    if cm.n_factored[g] == n:
+    if cm.n_boxed[g] == n:
         same = True
         for r in range(n):
-            if cm.factored_rows[g, r] != rows[r]:
+            if cm.boxed_rows[g, r] != rows[r]:
                 same = False
                 break
         if same:
@@ -181,27 +183,15 @@ def _kronecker_factors(cm, g, rows, nbx, dim):
         a1 = max(a1, a + 1)
         b0 = min(b0, b)
         b1 = max(b1, b + 1)
-    L = BANDED_CHOLESKY(cm.bands_x, a0, a1)
-    for i in range(a1 - a0):
-        cm.Lx[g, i, 0] = 1.0 / L[i, 0]
-        for d in range(1, L.shape[1]):
-            cm.Lx[g, i, d] = L[i, d]
-    if dim == 2:
-        L = BANDED_CHOLESKY(cm.bands_y, b0, b1)
-        for i in range(b1 - b0):
-            cm.Ly[g, i, 0] = 1.0 / L[i, 0]
-            for d in range(1, L.shape[1]):
-                cm.Ly[g, i, d] = L[i, d]
     for r in range(n):
-        a = rows[r] % nbx
-        b = rows[r] // nbx
-        if dim == 2:
-            cm.gauss[g, r] = cm.sums_x[a] * cm.sums_y[b]
-        else:
-            cm.gauss[g, r] = cm.sums_x[a]
-        cm.box_index[g, r] = (b - b0) * (a1 - a0) + (a - a0)
-        cm.factored_rows[g, r] = rows[r]
-    cm.n_factored[g] = n
+        a = rows[r] % nbx - a0
+        b = rows[r] // nbx - b0
+        cm.box_index[g, r] = b * (a1 - a0) + a
+        cm.box_coords[g, r, 0] = a
+        cm.box_coords[g, r, 1] = b
+        cm.box_coords[g, r, 2] = 0
+        cm.boxed_rows[g, r] = rows[r]
+    cm.n_boxed[g] = n
     cm.box_shape[g, 0] = a0
     cm.box_shape[g, 1] = b0
     cm.box_shape[g, 2] = b1 - b0
@@ -247,15 +237,11 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns):
             cm.inv_diag[g, r] = 1.0 / mass[rows[r]]
         if n == 0:
             continue
-        _kronecker_factors(cm, g, rows, nbx, dim)
-        for r in range(n):
-            k = rows[r]
-            if cm.fast[k] >= cm.lumped_row:  # a lumped row: its own diagonal
-                cm.local[g, r] = -1
-                cm.inv_scale[g, r] = 1.0 / cm.A[g, r, centre]
-            else:
-                cm.local[g, r] = cm.box_index[g, r]
-                cm.inv_scale[g, r] = 1.0 / np.sqrt(mass[k] / cm.gauss[g, r])
+        _kronecker_box(cm, g, rows, nbx, dim)
+        ny = cm.box_shape[g, 2]
+        nx = cm.box_shape[g, 3]
+        FIT_KRONECKER(cm.A[g, :n], cm.box_coords[g, :n], cm.Lx[g, :nx], cm.Ly[g, :ny],
+                      cm.no_axis, cm.inv_scale[g, :n], cm.fit_bands, cm.fit_sums)
 
 
 @njit(cache=True)
@@ -312,7 +298,7 @@ def mass_solve(cm, nt, count, rhs0, kind0, values0, has0, out0, rhs1, kind1, val
             problem[j] = j // ncomp
         ny = cm.box_shape[g, 2]
         nx = cm.box_shape[g, 3]
-        kron = (cm.Lx[g], cm.Ly[g], cm.local[g, :n], cm.inv_scale[g, :n],
+        kron = (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n],
                 cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)))
         limit = cm.max_iterations if cm.max_iterations > 0 else 10 * n + 100
         work = cm.work[:6 * n * nc].reshape((6, n, nc))

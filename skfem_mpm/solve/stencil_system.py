@@ -37,8 +37,9 @@ class StencilSystem:
     :meth:`solve_many`) at once. Only the free dofs enter the iteration:
     for each constraint pattern a kernel copies their rows of the stencil
     into a compact row-by-row (ELL) matrix. The preconditioner is the
-    Kronecker one of :mod:`skfem_mpm.kernels.kronecker` (``"kronecker"``,
-    default), with the fringe correction of :mod:`skfem_mpm.kernels.fringe`
+    Kronecker one of :mod:`skfem_mpm.kernels.kronecker` with the factors
+    fitted to that matrix each step (:func:`~skfem_mpm.kernels.kronecker.fit_kronecker`;
+    ``"kronecker"``, default), with the fringe correction of :mod:`skfem_mpm.kernels.fringe`
     on ``FRINGE_LAYERS`` layers of the free-dof set's edge (2D) once the
     Kronecker step alone has needed ``FRINGE_FROM`` iterations (0 layers:
     never), or the inverse lumped mass (``"lumped"``).
@@ -48,7 +49,6 @@ class StencilSystem:
     FRINGE_LAYERS = 3
     max_iterations = None  # per CG run; None: 10 x the free dofs + 100
     iteration_log = None  # a list: each CG run appends its iterations (benchmarks)
-    LUMPED_ROW = 0.2
 
     def __init__(self, kernels, stencil, lumped, constraints, fast, warm, rtol=1e-13):
         self.k = kernels
@@ -117,10 +117,8 @@ class StencilSystem:
         inv_diag = 1.0 / self.lumped[rows]
         kron = fringe = None
         if self.preconditioner == "kronecker" and rows.size:
-            centre = (ns - 1) // 2
-            kron = KroneckerData(*self.k.axis_mass(), self.geometry, rows, self.lumped,
-                                 self.fast[rows] >= self.LUMPED_ROW, A[:, centre].copy(),
-                                 previous=self.memo.get(f"kronecker{g}"))
+            kron = KroneckerData.of_system(A, rows, self.geometry,
+                                           previous=self.memo.get(f"kronecker{g}"))
             self.memo[f"kronecker{g}"] = kron
             if self.fringe_layers > 0 and (self.FRINGE_FROM <= 0
                                            or f"fringe{g}_on" in self.warm):
