@@ -44,7 +44,10 @@ new stress, V, F (finite strain) and packed material state into the
 second set of arrays, swapped at commit like x and v; gravity, fixed
 constraints, a traction on a side of the body with tau(t)
 (``run.traction``: None, or the data of
-:mod:`skfem_mpm.solve.compiled_loop_traction`). A step that would need anything else stops the loop before
+:mod:`skfem_mpm.solve.compiled_loop_traction`); with MUSL, USL and CD,
+grid modifiers with a compiled rule (local damping, frictional walls:
+``run.force_rules``, ``run.velocity_rules``, None or the packed rules of
+:mod:`skfem_mpm.solve.compiled_loop_modifiers`). A step that would need anything else stops the loop before
 it writes the current state (``run.stop``): a non-finite value or
 material state, J <= 0, a volume <= 0 or a
 particle outside the grid (2), a tiny-mass merge the lumped kernel
@@ -55,7 +58,7 @@ step was taken, and the next ones need the executor (the fringe
 correction turned on).
 
 Phase times (nanoseconds of the monotonic clock) add up in ``run.phase_ns``:
-0 p2g, 1 solve, 2 g2p, 3 mass_matrix, 4 reconstruct, 5 constitutive.
+0 p2g, 1 solve, 2 g2p, 3 mass_matrix, 4 reconstruct, 5 constitutive, 6 effects.
 """
 import numpy as np
 from numba import njit, types
@@ -122,6 +125,9 @@ FIELDS = (
     "law_flags", "no_index",
     # a side traction: a SideTraction (None: none; compiled_loop_traction)
     "traction",
+    # grid modifiers (damping, walls): GridRules of the force and of MUSL's
+    # re-projected velocity (None: none; compiled_loop_modifiers)
+    "force_rules", "velocity_rules",
 )
 
 
@@ -387,7 +393,7 @@ def _prepare_grid(run):
 @overload_method(RunType, "solve_acceleration")
 def _solve_acceleration(run):
     if not _consistent(run):
-        return lambda run: run.lumped_solve(run.force, run.gravity, run.a)
+        return lambda run: run.lumped_solve(run.force, run.acceleration_gravity, run.a)
 
     def impl(run):
         if run.cm.hybrid:  # lumped acceleration (gravity is in the force)
@@ -400,12 +406,14 @@ def _solve_acceleration(run):
 @overload_method(RunType, "solve_grid")
 def _solve_grid(run, state, grid, end_velocity=None):
     consistent = _consistent(run)
+    modified = _force_rules(run)
     if end_velocity is None or isinstance(end_velocity, (types.NoneType, types.Omitted)):
         def impl(run, state, grid, end_velocity=None):  # MUSL: a only
             if run.stop:
                 return run.a
             t0 = monotonic_ns()
             run.prepare_grid()
+            run.modify_force()  # damping, walls (compiled_loop_modifiers)
             run.solve_acceleration()
             run.phase_ns[1] += monotonic_ns() - t0
             return run.a
@@ -418,7 +426,10 @@ def _solve_grid(run, state, grid, end_velocity=None):
             t0 = monotonic_ns()
             vdt = end_velocity * run.dt
             run.prepare_grid()
-            if run.cm.hybrid:
+            if modified:  # v^n, the modified force, then a (compiled_loop_modifiers)
+                run.modify_force()
+                run.solve_acceleration()
+            elif run.cm.hybrid:
                 run.lumped_solve(run.force, run.no_gravity, run.a)
                 run.mass_solve(1, run.momentum, 1, run.v_old, run.momentum, 1, run.v_old)
             else:
@@ -437,12 +448,15 @@ def _solve_grid(run, state, grid, end_velocity=None):
             return run.a
         t0 = monotonic_ns()
         vdt = end_velocity * run.dt
-        if run.small_count == 0:  # one pass
+        if run.small_count == 0 and not modified:  # one pass
             USL_GRID(run.mass, run.momentum, run.force, run.gravity, run.mask, run.force,
                      run.force, False, vdt, run.a, run.v_grid)
         else:
-            run.lumped_solve(run.force, run.gravity, run.a)
-            run.lumped_solve(run.momentum, run.no_gravity, run.v_old)
+            if modified:  # v^n and the modified force (compiled_loop_modifiers)
+                run.modify_force()
+            else:
+                run.lumped_solve(run.momentum, run.no_gravity, run.v_old)
+            run.lumped_solve(run.force, run.acceleration_gravity, run.a)
             for k in range(run.a.shape[0]):
                 for c in range(run.a.shape[1]):
                     run.v_grid[k, c] = run.a[k, c] * vdt + run.v_old[k, c]
@@ -499,6 +513,7 @@ def _project_velocity(run, state, grid):
         run.velocities_done = True
         t1 = monotonic_ns()
         run.solve_projected_velocity()
+        run.modify_velocity()  # walls (compiled_loop_modifiers)
         run.phase_ns[2] += t1 - t0
         run.phase_ns[1] += monotonic_ns() - t1
     return impl
