@@ -36,13 +36,14 @@ EFFECTS = {
 }
 
 # (scheme, mass, degree, dim, effects): every scheme with each mass and
-# dimension, each effect set in 1D and 2D
+# dimension (rk4: lumped and consistent), each effect set in 1D and 2D
 CASES = [("musl", "lumped", 2, 2, "walls+damping"), ("usl", "lumped", 1, 1, "walls+damping"),
          ("cd", "lumped", 3, 2, "walls"), ("musl", "lumped", 2, 1, "damping+fixed"),
          ("usl", "consistent", 2, 2, "fixed+wall"), ("musl", "consistent", 3, 1, "walls"),
          ("cd", "consistent", 2, 1, "fixed+wall"), ("musl", "consistent", 2, 2, "damping+fixed"),
          ("musl", "hybrid", 2, 2, "walls+damping"), ("usl", "lumped", 2, 2, "fixed+wall"),
-         ("cd", "lumped", 1, 1, "damping+fixed")]
+         ("cd", "lumped", 1, 1, "damping+fixed"), ("rk4", "lumped", 2, 1, "walls+damping"),
+         ("rk4", "consistent", 2, 2, "fixed+wall")]
 
 
 def modified_scene(scheme, mass, degree, dim, effects, steps=23):
@@ -102,17 +103,15 @@ def test_what_the_loop_leaves_to_the_executor():
     state = prepare(with_footing, Method(scheme="musl"))
     assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
         (False, f"a grid modifier without a compiled rule ({footing!r})")
-    state = prepare(scene, Method(scheme="rk4"))
-    assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
-        (False, "rk4 with grid modifiers")
-    state = prepare(scene, Method(scheme="musl"))
-    assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == (True, "")
+    for scheme in ("musl", "rk4"):
+        state = prepare(scene, Method(scheme=scheme))
+        assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == (True, "")
 
 
 def test_the_executor_agrees_with_the_reference(monkeypatch):
     """The compiled executor's rules (kernels) against the effects' NumPy
     methods (the reference executor), every scheme the loop runs."""
-    for scheme in ("musl", "usl", "cd"):
+    for scheme in ("musl", "usl", "cd", "rk4"):
         scene = modified_scene(scheme, "lumped", 2, 2, "walls+damping", steps=20)
         ref = simulate(scene, Method(scheme=scheme, backend="numpy"), save_every=5)
         fast = without_loop(monkeypatch, scene, Method(scheme=scheme), save_every=5)

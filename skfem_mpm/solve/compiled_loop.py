@@ -138,7 +138,6 @@ def loop_applies(state, executor):
          "traction on a side of the body with tau(t)"),
         (_without_rule(executor) is not None,
          f"a grid modifier without a compiled rule ({_without_rule(executor)!r})"),
-        (m.scheme == "rk4" and bool(state.force_modifiers), "rk4 with grid modifiers"),
         (bool(state.constraints.prescribed), "prescribed velocities"),
         (state.adaptive, "an adaptive time step"),
         (state.grid.dim not in (1, 2, 3), f"{state.grid.dim}D"),

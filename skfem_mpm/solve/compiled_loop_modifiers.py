@@ -6,15 +6,15 @@ The compiled executor's grid modifiers (``CompiledExecutor.solve_grid``
 and ``project_velocity``, :mod:`skfem_mpm.solve.compiled_modifiers`) in
 the same order on the same kernels (:mod:`skfem_mpm.kernels.grid_modifiers`):
 
-    modify_force      before the acceleration solve: the grid velocity at
-                      the start of the step, M v^n = P (lumped, or
-                      consistent: one CG run of its own, kept as the
-                      velocity's warm start), gravity into the force
-                      (lumped mass: f + m g; consistent mass: prepare_grid
-                      did it), then every force rule in the scene's order
-                      with the lumped mass and v^n (MODIFY_FORCES); the
-                      acceleration solve then adds no gravity
-                      (``acceleration_gravity``)
+    modify_force      before the acceleration solve (rk4: each stage's):
+                      the grid velocity at the start of the step,
+                      M v^n = P (lumped, or consistent: one CG run of its
+                      own, kept as the velocity's warm start), gravity
+                      into the force (lumped mass: f + m g; consistent
+                      mass: prepare_grid did it), then every force rule in
+                      the scene's order with the lumped mass and v^n
+                      (MODIFY_FORCES); the acceleration solve then adds no
+                      gravity (``acceleration_gravity``)
     modify_velocity   MUSL: every velocity rule on the re-projected grid
                       velocity (MODIFY_VELOCITIES)
 

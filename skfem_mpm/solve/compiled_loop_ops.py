@@ -44,11 +44,11 @@ new stress, V, F (finite strain) and packed material state into the
 second set of arrays, swapped at commit like x and v; gravity, fixed
 constraints, a traction on a side of the body with tau(t)
 (``run.traction``: None, or the data of
-:mod:`skfem_mpm.solve.compiled_loop_traction`); with MUSL, USL and CD,
-grid modifiers with a compiled rule (local damping, frictional walls:
-``run.force_rules``, ``run.velocity_rules``, None or the packed rules of
-:mod:`skfem_mpm.solve.compiled_loop_modifiers`). A step that would need anything else stops the loop before
-it writes the current state (``run.stop``): a non-finite value or
+:mod:`skfem_mpm.solve.compiled_loop_traction`); grid modifiers with a
+compiled rule (local damping, frictional walls: ``run.force_rules``,
+``run.velocity_rules``, None or the packed rules of
+:mod:`skfem_mpm.solve.compiled_loop_modifiers`). A step that would need
+anything else stops the loop before it writes the current state (``run.stop``): a non-finite value or
 material state, J <= 0, a volume <= 0 or a
 particle outside the grid (2), a tiny-mass merge the lumped kernel
 cannot do (1), tiny-mass dofs with consistent mass (4), a CG run above
@@ -646,6 +646,7 @@ def _stage_rates(run, state, particles, c, reactions=False):
     consistent = _consistent(run)
     reconstructed = _reconstructed(run)
     traction = _traction(run)
+    modified = _force_rules(run)
 
     def impl(run, state, particles, c, reactions=False):
         """R(t + c dt, particles): particles to grid, M v = P and M a = f,
@@ -660,7 +661,10 @@ def _stage_rates(run, state, particles, c, reactions=False):
             return slot
         t0 = monotonic_ns()
         run.prepare_grid()
-        if not consistent:
+        if modified:  # v, the modified force, then a (compiled_loop_modifiers)
+            run.modify_force()
+            run.solve_acceleration()
+        elif not consistent:
             run.lumped_solve(run.momentum, run.no_gravity, run.v_old)
             run.lumped_solve(run.force, run.gravity, run.a)
         elif run.cm.hybrid:  # lumped acceleration (gravity is in the force)
