@@ -99,10 +99,7 @@ def _modify_force(run):
             run.mass_solve(1, run.momentum, 1, run.v_old, run.momentum, 1, run.v_old)
         else:
             run.lumped_solve(run.momentum, run.no_gravity, run.v_old)
-            if run.gravity_work:
-                for k in range(run.force.shape[0]):
-                    for c in range(run.force.shape[1]):
-                        run.force[k, c] = run.force[k, c] + run.mass[k] * run.gravity[c]
+            run.gravity_into_force()
         if not run.stop:
             r = run.force_rules
             MODIFY_FORCES(r.codes, r.parameters, r.offsets, r.dofs, run.force, run.v_old,

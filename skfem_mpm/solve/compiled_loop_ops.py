@@ -374,6 +374,17 @@ def _mass_solve(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
     return impl
 
 
+@overload_method(RunType, "gravity_into_force")
+def _gravity_into_force(run):
+    def impl(run):
+        """f_k += m_k g (with gravity; the solves then add none)."""
+        if run.gravity_work:
+            for k in range(run.force.shape[0]):
+                for c in range(run.force.shape[1]):
+                    run.force[k, c] = run.force[k, c] + run.mass[k] * run.gravity[c]
+    return impl
+
+
 @overload_method(RunType, "prepare_grid")
 def _prepare_grid(run):
     if not _consistent(run):
@@ -381,10 +392,7 @@ def _prepare_grid(run):
 
     def impl(run):
         """Consistent mass: gravity as the force m g, then the step's system."""
-        if run.gravity_work:
-            for k in range(run.force.shape[0]):
-                for c in range(run.force.shape[1]):
-                    run.force[k, c] = run.force[k, c] + run.mass[k] * run.gravity[c]
+        run.gravity_into_force()
         call(prepare_mass, run.cm, run.mass, run.mask, run.degree, run.nbx, run.nby,
              run.x.shape[1])
     return impl
