@@ -31,7 +31,7 @@ The protocol (what an executor asks of every effect; the defaults of
                                    the grid side with Gauss quadrature)
 
 A grid modifier (:class:`GridModifier`) may also give its compiled form,
-``grid_rule()``: a :class:`~skfem_mpm.kernels.grid_modifiers.GridRule`
+``grid_rule(grid)``: a :class:`~skfem_mpm.kernels.grid_modifiers.GridRule`
 (a rule of that kernel module and its data), which the compiled executor
 and the compiled step loop apply instead of the NumPy methods (None: the
 compiled executor calls the NumPy methods each step, and the compiled loop
@@ -136,8 +136,9 @@ class GridModifier:
         """A grid velocity (dofs, dim) that no force produced, changed."""
         return velocity
 
-    def grid_rule(self):
-        """The compiled form (a kernels.grid_modifiers.GridRule), or None."""
+    def grid_rule(self, grid):
+        """The compiled form on ``grid`` (a kernels.grid_modifiers.GridRule),
+        or None."""
         return None
 
 
@@ -514,7 +515,7 @@ class Damping(Effect, GridModifier):
     def modify_force(self, force, velocity, mass=None, dt=None):
         return force - self.alpha * np.abs(force) * np.sign(velocity)
 
-    def grid_rule(self):
+    def grid_rule(self, grid):
         """The same rule compiled (kernels.grid_modifiers.local_damping)."""
         return GridRule(LOCAL_DAMPING, (self.alpha,), np.zeros(0, dtype=np.int64), False)
 
@@ -567,11 +568,15 @@ class Wall(Effect, GridModifier):
         return f"Wall({self.side!r}, friction={self.friction:g})"
 
     def check(self, grid):
-        axis, end = side_axis(self.side, grid.dim)
-        self._dofs = np.asarray(grid.boundary_dofs(self.side))
-        self._normal = np.zeros(grid.dim)
-        self._normal[axis] = 1.0 if end == 1 else -1.0
+        self._dofs, self._normal = self._geometry(grid)
         self._ndofs = grid.ndofs
+
+    def _geometry(self, grid):
+        """(the side's dofs, its outward normal) on ``grid``."""
+        axis, end = side_axis(self.side, grid.dim)
+        normal = np.zeros(grid.dim)
+        normal[axis] = 1.0 if end == 1 else -1.0
+        return np.asarray(grid.boundary_dofs(self.side)), normal
 
     def bind(self, particles, grid):
         """A run starts without a reaction (an earlier run's is not reported
@@ -588,17 +593,12 @@ class Wall(Effect, GridModifier):
     def velocity_modifiers(self):
         return [self]
 
-    def grid_rule(self):
+    def grid_rule(self, grid):
         """The same contact rule compiled (kernels.grid_modifiers.wall_force and
-        wall_velocity): parameters (mu, the outward normal)."""
-        self._checked()
-        return GridRule(FRICTIONAL_WALL, (self.friction, *self._normal),
-                        np.asarray(self._dofs, dtype=np.int64), True)
-
-    def _checked(self, force=None):
-        if self._dofs is None or (force is not None and force.shape[0] != self._ndofs):
-            raise ValueError(f"{self!r} was checked against another grid (call "
-                             f"Scene(...) with this grid first)")
+        wall_velocity) on ``grid``'s side: parameters (mu, the outward normal)."""
+        dofs, normal = self._geometry(grid)
+        return GridRule(FRICTIONAL_WALL, (self.friction, *normal),
+                        np.asarray(dofs, dtype=np.int64), True)
 
     def modify_velocity(self, velocity, mass):
         """The same contact rule on a grid velocity that no force produced
@@ -619,7 +619,9 @@ class Wall(Effect, GridModifier):
 
     def modify_force(self, force, velocity, mass, dt):
         """The grid force with the wall's contact force added (class docstring)."""
-        self._checked(force)
+        if self._dofs is None or force.shape[0] != self._ndofs:
+            raise ValueError(f"{self!r} was checked against another grid (call "
+                             f"Scene(...) with this grid first)")
         d = self._dofs
         m = mass[d]
         has_mass = m > 0

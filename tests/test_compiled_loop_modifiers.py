@@ -151,7 +151,7 @@ def test_the_rules_are_the_effects_numpy_methods(dim):
     modifiers.insert(1, Damping(0.3))
     for m in modifiers:
         m.check(grid)
-    packed = grid_modifiers.pack_rules([m.grid_rule() for m in modifiers], dim)
+    packed = grid_modifiers.pack_rules([m.grid_rule(grid) for m in modifiers], dim)
     contact = False
     for trial in range(20):
         force, velocity, mass = _random_grid_state(grid, rng)

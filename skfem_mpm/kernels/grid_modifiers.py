@@ -8,7 +8,7 @@ sources; their NumPy ``modify_force`` / ``modify_velocity`` are the
 reference executor's oracle). The compiled executor and the compiled step
 loop both apply them here, so the two agree bit for bit.
 
-A modifier gives its compiled form as a :class:`GridRule` (``grid_rule()``
+A modifier gives its compiled form as a :class:`GridRule` (``grid_rule(grid)``
 of :class:`skfem_mpm.effects.GridModifier`): a rule code, its parameters
 and the dofs it acts on. :func:`pack_rules` packs the rules of a run in
 their order into flat arrays; :func:`modify_forces` and

@@ -143,8 +143,8 @@ class CompiledExecutor(CompiledRungeKutta):
             else:
                 self.other_forces.append(f)
         # damping, walls: their compiled rules (kernels.grid_modifiers)
-        self.force_modifiers = CompiledModifiers(state.force_modifiers, state.grid.dim)
-        self.velocity_modifiers = CompiledModifiers(state.velocity_modifiers, state.grid.dim)
+        self.force_modifiers = CompiledModifiers(state.force_modifiers, state.grid)
+        self.velocity_modifiers = CompiledModifiers(state.velocity_modifiers, state.grid)
         self.fused = one_linear_elastic(state.bodies)
         # every material has a compiled point law: the constitutive kernel runs them
         self.point_laws = not self.fused and all(

@@ -155,7 +155,7 @@ def loop_applies(state, executor):
 
 def _without_rule(executor):
     """The first grid modifier of the executor's run without a compiled
-    rule (``grid_rule()`` None: a Footing), or None."""
+    rule (``grid_rule(grid)`` None: a Footing), or None."""
     if executor is None:
         return None
     return executor.force_modifiers.without_rule() or executor.velocity_modifiers.without_rule()

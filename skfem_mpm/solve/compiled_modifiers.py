@@ -2,7 +2,7 @@
 
 Each modifier of the scene (``State.force_modifiers``,
 ``State.velocity_modifiers``: :class:`skfem_mpm.effects.GridModifier`)
-that gives a compiled form (``grid_rule()``) is applied by the kernels of
+that gives a compiled form (``grid_rule(grid)``) is applied by the kernels of
 :mod:`skfem_mpm.kernels.grid_modifiers`; one without a compiled form by
 its own NumPy method. The order is the scene's, as on the reference
 executor. The compiled executor calls :meth:`CompiledModifiers.modify_force`
@@ -18,11 +18,12 @@ __all__ = ["CompiledModifiers"]
 
 
 class CompiledModifiers:
-    """The modifiers ``modifiers`` (in order) of a run on a ``dim``-D grid."""
+    """The modifiers ``modifiers`` (in order) of a run on ``grid``."""
 
-    def __init__(self, modifiers, dim):
+    def __init__(self, modifiers, grid):
+        dim = grid.dim
         self.modifiers = list(modifiers)
-        self.rules = [m.grid_rule() for m in self.modifiers]
+        self.rules = [m.grid_rule(grid) for m in self.modifiers]
         self._one = [None if rule is None else pack_rules([rule], dim) for rule in self.rules]
         self.dim = dim
 
