@@ -197,3 +197,45 @@ def test_a_run_without_modifiers_compiles_none_of_them():
     assert out.returncode == 0, out.stderr[-3000:]
     report = json.loads(out.stdout.strip().splitlines()[-1])
     assert report == {"path": "fast (compiled loop)", "rules": 0}
+
+
+_EXECUTOR_RUN = r"""
+import json, sys
+sys.path.insert(0, "tests")
+import importlib
+from numba.core.registry import CPUDispatcher
+from skfem_mpm import Method, simulate
+from skfem_mpm.solve import compiled_loop
+from test_compiled_loop_modifiers import modified_scene
+sim_module = importlib.import_module("skfem_mpm.solve.simulate")
+
+def compiled():
+    return {f"{name}.{attr}": len(value.overloads)
+            for name, module in list(sys.modules.items()) if name.startswith("skfem_mpm")
+            for attr, value in vars(module).items() if isinstance(value, CPUDispatcher)}
+
+after_warm_up = {}
+original = sim_module.warm_up
+
+def warm_up(state, fast, loop=None):
+    seconds = original(state, fast, loop)
+    after_warm_up.update(compiled())
+    return seconds
+
+sim_module.warm_up = warm_up
+compiled_loop.ENABLED = False
+r = simulate(modified_scene(sys.argv[1], "lumped", 2, 2, "walls+damping"), Method(scheme=sys.argv[1]))
+late = sorted(k for k, v in compiled().items() if v > after_warm_up.get(k, 0))
+print(json.dumps({"path": r.path, "late": late,
+                  "rules": after_warm_up.get("skfem_mpm.kernels.grid_modifiers.modify_forces")}))
+"""
+
+
+def test_the_executors_rules_compile_in_the_warm_up():
+    """Without the loop, the executor's rule kernels compile in the warm-up,
+    not inside the timed steps (MUSL: the velocity rules too)."""
+    out = subprocess.run([sys.executable, "-c", _EXECUTOR_RUN, "musl"], capture_output=True,
+                         text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report == {"path": "fast", "late": [], "rules": 1}
