@@ -20,7 +20,7 @@ from skfem_mpm.solve import compiled_loop
 from skfem_mpm.solve.compiled import CompiledExecutor
 from skfem_mpm.solve.state import prepare
 
-from test_compiled_loop import looped_and_stepped, without_loop
+from test_compiled_loop import box_scene, looped_and_stepped, without_loop
 from test_executors import scene_for
 
 # effects of each case: walls on different sides, with and without
@@ -71,6 +71,19 @@ def test_modifiers_give_the_executors_bits(monkeypatch, case):
     for key in walls:  # every wall touched the body: its reaction is recorded
         assert np.abs(looped.reactions[-1][key]).max() > 0.0, key
     assert "effects" in looped.phase_table()
+
+
+@pytest.mark.parametrize("scheme", ("musl", "usl"))
+def test_modifiers_in_3d_give_the_executors_bits(monkeypatch, scheme):
+    """3D lumped: walls on two sides (with and without friction) and a damping."""
+    box = box_scene(scheme, 2, "gravity")
+    scene = Scene(box.grid, box.bodies, box.t_end,
+                  effects=[Gravity((0.0, 0.0, -2.0)), Wall("zmin", friction=0.3), Wall("xmin"),
+                           Damping(0.1)])
+    looped, _ = looped_and_stepped(monkeypatch, scene, Method(scheme=scheme))
+    assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] == 13
+    for key in ("Wall('zmin', friction=0.3)", "Wall('xmin', friction=0)"):
+        assert np.abs(looped.reactions[-1][key]).max() > 0.0, key
 
 
 def test_modifiers_with_parallel_kernels(monkeypatch):
