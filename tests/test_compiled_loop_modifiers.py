@@ -22,6 +22,7 @@ from skfem_mpm.solve.state import prepare
 
 from test_compiled_loop import box_scene, looped_and_stepped, without_loop
 from test_executors import scene_for
+from test_warmup import WATCH_COMPILES
 
 # effects of each case: walls on different sides, with and without
 # friction, alone or with damping (and a Fixed side where noted)
@@ -212,32 +213,13 @@ def test_a_run_without_modifiers_compiles_none_of_them():
     assert report == {"path": "fast (compiled loop)", "rules": 0}
 
 
-_EXECUTOR_RUN = r"""
-import json, sys
+_EXECUTOR_RUN = WATCH_COMPILES + r"""
 sys.path.insert(0, "tests")
-import importlib
-from numba.core.registry import CPUDispatcher
-from skfem_mpm import Method, simulate
 from skfem_mpm.solve import compiled_loop
 from test_compiled_loop_modifiers import modified_scene
-sim_module = importlib.import_module("skfem_mpm.solve.simulate")
-
-def compiled():
-    return {f"{name}.{attr}": len(value.overloads)
-            for name, module in list(sys.modules.items()) if name.startswith("skfem_mpm")
-            for attr, value in vars(module).items() if isinstance(value, CPUDispatcher)}
-
-after_warm_up = {}
-original = sim_module.warm_up
-
-def warm_up(state, fast, loop=None):
-    seconds = original(state, fast, loop)
-    after_warm_up.update(compiled())
-    return seconds
-
-sim_module.warm_up = warm_up
 compiled_loop.ENABLED = False
-r = simulate(modified_scene(sys.argv[1], "lumped", 2, 2, "walls+damping"), Method(scheme=sys.argv[1]))
+scheme = sys.argv[1]
+r = simulate(modified_scene(scheme, "lumped", 2, 2, "walls+damping"), Method(scheme=scheme))
 late = sorted(k for k, v in compiled().items() if v > after_warm_up.get(k, 0))
 print(json.dumps({"path": r.path, "late": late,
                   "rules": after_warm_up.get("skfem_mpm.kernels.grid_modifiers.modify_forces")}))
