@@ -42,7 +42,9 @@ A particle force (:class:`ParticleForce`) gives ``forces(particles, t)``
 (n, dim) and may give ``grid_forces`` (where it is not applied at the
 particle centres), ``acceleration`` (a uniform acceleration g with
 f_p = m_p g: an executor may apply it on the grid as m_i g), ``surface``
-(a load on the body's surface, not a volume force), and the state it keeps
+(a load on the body's surface, not a volume force), ``reference_only``
+(its forces depend on the particles' reference data and t only: they can
+be evaluated ahead for the times of coming steps), and the state it keeps
 about particles (``rebind`` after removals, ``checkpoint_arrays`` /
 ``restore`` for restarts).
 """
@@ -55,8 +57,8 @@ from .kernels.grid_modifiers import FRICTIONAL_WALL, LOCAL_DAMPING, GridRule
 from .spline.grid import SIDE_AXES, side_axis
 from .validation import _short, check_finite_array, check_positive
 
-__all__ = ["Effect", "ParticleForce", "GridModifier", "Gravity", "BodyForce", "Traction", "Fixed", "Prescribed",
-           "Damping", "Wall", "Footing"]
+__all__ = ["Effect", "ParticleForce", "GridModifier", "Gravity", "BodyForce", "Traction", "Fixed",
+           "Prescribed", "Damping", "Wall", "Footing"]
 
 
 class Effect:
@@ -101,6 +103,12 @@ class ParticleForce:
 
     surface = False      # a load on the body's surface (not a volume force)
     acceleration = None  # a uniform acceleration g with f_p = m_p g, or None
+    # True when ``forces(particles, t)`` reads only the particles' reference
+    # data (X, m, V0, body: never changed by a step) and t, and the force
+    # reaches the grid as N^T f_p (no ``grid_forces``): the compiled loop
+    # then evaluates it ahead at the times of the steps it takes
+    # (solve/compiled_loop_body_force.py)
+    reference_only = False
 
     def forces(self, particles, t):  # pragma: no cover - interface
         """f_p, shape (n, dim)."""
@@ -190,6 +198,8 @@ class BodyForce(Effect, ParticleForce):
         if not callable(b):
             raise ValueError(f"BodyForce needs a callable b(X, t), got {b!r}")
         self.b = b
+
+    reference_only = True  # b(X, t) of the reference positions
 
     def __repr__(self):
         return f"BodyForce({getattr(self.b, '__name__', 'b')})"

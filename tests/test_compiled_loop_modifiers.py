@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from skfem_mpm import (Body, Damping, Fixed, Footing, Gravity, LinearElastic, Method,
-                       Particles, Scene, SplineGrid, Wall, simulate)
+                       Particles, Prescribed, Scene, SplineGrid, Wall, simulate)
 from skfem_mpm.kernels import grid_modifiers, serial
 from skfem_mpm.solve import compiled_loop
 from skfem_mpm.solve.compiled import CompiledExecutor
@@ -25,13 +25,18 @@ from test_executors import scene_for
 from test_warmup import WATCH_COMPILES
 
 # effects of each case: walls on different sides, with and without
-# friction, alone or with damping (and a Fixed side where noted)
+# friction, alone or with damping (and a Fixed side or prescribed velocities
+# where noted)
 EFFECTS = {
     "walls+damping": lambda dim: ([Wall("left"), Damping(0.1)] if dim == 1 else
                                   [Wall("bottom", friction=0.3), Wall("left"), Damping(0.1)]),
     "walls": lambda dim: ([Wall("left", friction=0.4)] if dim == 1 else
                           [Wall("left", friction=0.2), Wall("bottom", friction=0.5)]),
     "damping+fixed": lambda dim: [Fixed("left" if dim == 1 else "bottom"), Damping(0.2)],
+    "prescribed+damping": lambda dim: (
+        [Prescribed("left", 0, lambda t: 0.02 * t), Damping(0.1)] if dim == 1 else
+        [Fixed("bottom", 1), Prescribed("bottom", 0, lambda t: 0.02 * t),
+         Wall("left", friction=0.3), Damping(0.1)]),
     "fixed+wall": lambda dim: ([Fixed("left"), Wall("left", friction=0.2)] if dim == 1 else
                                [Fixed("left", 0), Wall("bottom", friction=0.3), Damping(0.05)]),
 }
@@ -44,7 +49,9 @@ CASES = [("musl", "lumped", 2, 2, "walls+damping"), ("usl", "lumped", 1, 1, "wal
          ("cd", "consistent", 2, 1, "fixed+wall"), ("musl", "consistent", 2, 2, "damping+fixed"),
          ("musl", "hybrid", 2, 2, "walls+damping"), ("usl", "lumped", 2, 2, "fixed+wall"),
          ("cd", "lumped", 1, 1, "damping+fixed"), ("rk4", "lumped", 2, 1, "walls+damping"),
-         ("rk4", "consistent", 2, 2, "fixed+wall")]
+         ("rk4", "consistent", 2, 2, "fixed+wall"), ("musl", "lumped", 2, 2, "prescribed+damping"),
+         ("usl", "consistent", 2, 1, "prescribed+damping"),
+         ("rk4", "lumped", 1, 2, "prescribed+damping")]
 
 
 def modified_scene(scheme, mass, degree, dim, effects, steps=23):

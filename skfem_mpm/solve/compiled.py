@@ -639,10 +639,10 @@ class CompiledExecutor(CompiledRungeKutta):
             elif self.gravity_work:
                 state.external_work += self.kernels.gravity_work(grid.mass, grid.velocity, dt,
                                                                  self.gravity)
-            if grid.work_forces is not None:
-                state.external_work += float(np.sum(grid.work_forces * (new.u - p.u)))
+            du = new.u - p.u if grid.work_forces is not None or grid.side_loads else None
+            if grid.work_forces is not None:  # sum_p f_p . du_p (the compiled loop's kernel)
+                state.external_work += loads_power(np.arange(p.n), grid.work_forces, du)
             if grid.side_loads:
-                du = new.u - p.u
                 for index, loads in grid.side_loads:
                     state.external_work += loads_power(index, loads, du)
         if grid.keep_acceleration:

@@ -57,6 +57,7 @@ from ..materials.state import state_layout
 from ..kernels.serial import for_threads
 from . import schemes
 from .compiled import side_traction
+from .compiled_loop_tables import ForceTable, PrescribedTable, reference_forces
 from .stencil_system import StencilSystem, stencil_residual
 from .timestep import COVERED, effective_mass_ratio, fast_dof_limit
 
@@ -70,6 +71,7 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 _TEMPLATES = [os.path.join(_HERE, name)
               for name in ("compiled_loop_ops.py", "compiled_loop_mass.py",
                            "compiled_loop_reconstruct.py", "compiled_loop_traction.py",
+                           "compiled_loop_body_force.py", "compiled_loop_prescribed.py",
                            "compiled_loop_modifiers.py")]
 
 # the grid kernels the operations call, under the names the operations use
@@ -134,11 +136,13 @@ def loop_applies(state, executor):
          "rk4 with a material other than linear elasticity (its NumPy rate laws)"),
         (not fused and len(state.bodies) == 1 and not isinstance(state.bodies[0][1], slice),
          "a body of some of the particles"),
-        (not _side_tractions_only(executor), "particle forces other than gravity and one "
-         "traction on a side of the body with tau(t)"),
+        (not _side_tractions_only(executor), "particle forces other than gravity, one "
+         "traction on a side of the body with tau(t) and forces of the reference "
+         "configuration (reference_only: a BodyForce)"),
+        (recon is not None and bool(reference_forces(executor.other_forces)),
+         "a body force with reconstruction"),
         (_without_rule(executor) is not None,
          f"a grid modifier without a compiled rule ({_without_rule(executor)!r})"),
-        (bool(state.constraints.prescribed), "prescribed velocities"),
         (state.adaptive, "an adaptive time step"),
         (state.grid.dim not in (1, 2, 3), f"{state.grid.dim}D"),
         (state.grid.dim == 3 and m.mass != "lumped", f"{m.mass} mass in 3D"),
@@ -163,10 +167,11 @@ def _without_rule(executor):
 
 def _side_tractions_only(executor):
     """Whether the executor's particle forces other than gravity are at most
-    one side traction with tau(t) (the loop's SideTraction)."""
+    one side traction with tau(t) (the loop's SideTraction) and forces of
+    the reference configuration (the loop's BodyForce)."""
     if executor is None:
         return False
-    forces = executor.other_forces
+    forces = [f for f in executor.other_forces if not f.reference_only]
     return not forces or (len(forces) == 1 and side_traction(forces[0]))
 
 
@@ -354,11 +359,20 @@ class StepLoop:
         fields.update(self._stage_arrays(n if self.scheme == "rk4" else 1, dim, fields))
         fields.update(self._law_arrays(material, executor, n, dim, k.nthreads))
         recon = executor.recon
-        side = executor.other_forces[0] if executor.other_forces else None
+        forces = reference_forces(executor.other_forces)
+        side = next((f for f in executor.other_forces if not f.reference_only), None)
+        # tabulated effects (compiled_loop_tables): a body force, prescribed velocities
+        self.forces = ForceTable(self.module, forces, state) if forces else None
+        self.prescribed = PrescribedTable(self.module, state) \
+            if state.constraints.prescribed else None
+        self.tables = [t for t in (self.forces, self.prescribed) if t is not None]
         fields.update(rc=None if recon is None else self._reconstruction(recon, p),
                       no_acceleration=np.zeros((nd if recon is not None else 1, dim)),
-                      displacement=empty((n if recon is not None or side else 1, dim)),
-                      traction=None if side is None else self._side_traction(side, state, k))
+                      displacement=empty((n if recon is not None or side or forces else 1,
+                                          dim)),
+                      traction=None if side is None else self._side_traction(side, state, k),
+                      body_force=None if not forces else self.forces.record,
+                      prescribed=None if self.prescribed is None else self.prescribed.record)
         if side is not None and fields["V0"].shape[0] != n:  # (a point law loads its own)
             fields["V0"] = np.ascontiguousarray(p.V0, dtype=np.float64)
         self.side, self.traction = side, fields["traction"]
@@ -582,7 +596,7 @@ class StepLoop:
             index=zeros((G, nd), dtype=np.int64), A=zeros((G, nd, ns)),
             cols=zeros((G, nd, ns), dtype=np.int32),
             # the fixed-column part is read only for nonzero constraint
-            # values, which the loop never has: never written (np.zeros
+            # values (prescribed velocities): else never written (np.zeros
             # leaves its pages unmapped)
             F=zeros((G, nd, ns)), fcols=zeros((G, nd, ns), dtype=np.int32),
             inv_diag=zeros((G, nd)),
@@ -661,6 +675,8 @@ class StepLoop:
         if self.traction is not None:
             dim = self._arrays[0].shape[1]
             self.module.set_traction_table(self.traction, np.zeros((1, 3, dim)), 0)
+        for table in self.tables:
+            table.compile()
         self.module.load_state(self.run_state, *self._arrays, 0.0, 0, 0.0)
         if not self.fused:
             F, packed = self.module.law_state(self.run_state)
@@ -691,6 +707,10 @@ class StepLoop:
         if p.n != self._arrays[0].shape[0]:  # particles were removed
             return 0
         mod, run = self.module, self.run_state
+        for table in self.tables:  # the steps their tables hold (a body force: a chunk)
+            n = table.cover(state, n)
+        if n == 0:  # an effect's function raised: the executor takes the step
+            return 0
         if self.traction is not None and not self._tabulate_traction(state, n):
             self.retired = True
             return 0

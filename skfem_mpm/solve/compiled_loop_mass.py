@@ -21,10 +21,12 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
                     (:class:`skfem_mpm.kernels.kronecker.KroneckerData`: banded
                     Cholesky factors of the axis masses on the free dofs'
                     index box, kept while the free-dof set stays)
-    mass_solve      M x = rhs on the free dofs (constrained and massless dofs
-                    0), one or two right-hand sides in one CG run (ell_pcg),
-                    warm started from the last solution of the same kind
-                    (0 acceleration, 1 velocity)
+    mass_solve      M x = rhs on the free dofs (constrained dofs their
+                    prescribed values, or 0; massless dofs 0: the fixed
+                    columns' known values moved to the right-hand side
+                    when any is nonzero), one or two right-hand sides in
+                    one CG run (ell_pcg), warm started from the last
+                    solution of the same kind (0 acceleration, 1 velocity)
 
 The fringe correction of the preconditioner (SuperLU factors of the
 free-dof set's edge) is not compiled: a group of at least
@@ -207,9 +209,10 @@ def _kronecker_factors(cm, g, rows, nbx, dim):
 
 
 @njit(cache=True)
-def prepare_mass(cm, mass, mask, p, nbx, nby, dim):
+def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns):
     """The step's fast-row fractions, free-dof groups, ELL rows and
-    preconditioner (see the module)."""
+    preconditioner (see the module); with ``fixed_columns`` (prescribed
+    velocities) also the rows' fixed-column part."""
     stencil = cm.stencil
     nd, ns = stencil.shape
     centre = (ns - 1) // 2
@@ -239,7 +242,7 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim):
         cm.n_rows[g] = n
         rows = cm.rows[g, :n]
         COMPACT_SYSTEM(stencil, p, nbx, nby, dim, rows, cm.index[g], cm.fast, cm.A[g, :n],
-                       cm.cols[g, :n], cm.F[g, :n], cm.fcols[g, :n], True, False)
+                       cm.cols[g, :n], cm.F[g, :n], cm.fcols[g, :n], True, fixed_columns)
         for r in range(n):
             cm.inv_diag[g, r] = 1.0 / mass[rows[r]]
         if n == 0:
@@ -256,13 +259,34 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim):
 
 
 @njit(cache=True)
-def mass_solve(cm, nt, count, rhs0, kind0, out0, rhs1, kind1, out1):
-    """M x = rhs for ``count`` (1 or 2) problems (rhs, warm-start kind, out)
-    in one CG run per group, constrained and massless dofs 0; each solution
-    is kept as its kind's next warm start. Returns False when CG stopped
-    above its tolerance (the executor then takes the step and raises)."""
-    out0[:] = 0.0
-    if count == 2:
+def _nonzero(values):
+    """Whether any entry of ``values`` is nonzero."""
+    flat = values.reshape(values.size)
+    for i in range(flat.size):
+        if flat[i] != 0.0:
+            return True
+    return False
+
+
+@njit(cache=True)
+def mass_solve(cm, nt, count, rhs0, kind0, values0, has0, out0, rhs1, kind1, values1, has1,
+               out1):
+    """M x = rhs for ``count`` (1 or 2) problems (rhs, warm-start kind,
+    constraint values and whether there are any, out) in one CG run per
+    group, constrained dofs their values (or 0), massless dofs 0; each
+    solution is kept as its kind's next warm start (StencilSystem.solve_many:
+    the fixed columns move to the right-hand side when a problem's values
+    are not all 0). Returns False when CG stopped above its tolerance (the
+    executor then takes the step and raises)."""
+    has0 = has0 and _nonzero(values0)
+    has1 = count == 2 and has1 and _nonzero(values1)
+    if has0:
+        copy_into(out0, values0)
+    else:
+        out0[:] = 0.0
+    if has1:
+        copy_into(out1, values1)
+    elif count == 2:
         out1[:] = 0.0
     for g in range(cm.group_size.shape[0]):
         n = cm.n_rows[g]
@@ -276,10 +300,11 @@ def mass_solve(cm, nt, count, rhs0, kind0, out0, rhs1, kind1, out1):
         fcols = cm.fcols[g, :n]
         b = cm.b[:n * nc].reshape((n, nc))
         x = cm.x[:n * nc].reshape((n, nc))
-        COMPACT_PROBLEM(rows, rhs0, rhs0, False, cm.warm[kind0] if cm.has_warm[kind0] else rhs0,
+        COMPACT_PROBLEM(rows, rhs0, values0, has0,
+                        cm.warm[kind0] if cm.has_warm[kind0] else rhs0,
                         cm.has_warm[kind0], comps, 0, F, fcols, b, x)
         if count == 2:
-            COMPACT_PROBLEM(rows, rhs1, rhs1, False,
+            COMPACT_PROBLEM(rows, rhs1, values1, has1,
                             cm.warm[kind1] if cm.has_warm[kind1] else rhs1, cm.has_warm[kind1],
                             comps, ncomp, F, fcols, b, x)
         problem = np.empty(nc, dtype=np.int64)

@@ -98,7 +98,7 @@ def _modify_force(run):
         if consistent:
             run.mass_solve(1, run.momentum, 1, run.v_old, run.momentum, 1, run.v_old)
         else:
-            run.lumped_solve(run.momentum, run.no_gravity, run.v_old)
+            run.lumped_solve(run.momentum, run.no_gravity, run.v_old, 1)
             run.gravity_into_force()
         if not run.stop:
             r = run.force_rules

@@ -44,13 +44,17 @@ new stress, V, F (finite strain) and packed material state into the
 second set of arrays, swapped at commit like x and v; gravity, fixed
 constraints, a traction on a side of the body with tau(t)
 (``run.traction``: None, or the data of
-:mod:`skfem_mpm.solve.compiled_loop_traction`); grid modifiers with a
+:mod:`skfem_mpm.solve.compiled_loop_traction`), particle forces of the
+reference configuration such as a BodyForce (``run.body_force``: None, or
+the data of :mod:`skfem_mpm.solve.compiled_loop_body_force`), prescribed
+grid velocities (``run.prescribed``: None, or the data of
+:mod:`skfem_mpm.solve.compiled_loop_prescribed`), grid modifiers with a
 compiled rule (local damping, frictional walls: ``run.force_rules``,
 ``run.velocity_rules``, None or the packed rules of
 :mod:`skfem_mpm.solve.compiled_loop_modifiers`). A step that would need
-anything else stops the loop before it writes the current state (``run.stop``): a non-finite value or
-material state, J <= 0, a volume <= 0 or a
-particle outside the grid (2), a tiny-mass merge the lumped kernel
+anything else stops the loop before it writes the current state
+(``run.stop``): a non-finite value or material state, J <= 0, a volume
+<= 0 or a particle outside the grid (2), a tiny-mass merge the lumped kernel
 cannot do (1), tiny-mass dofs with consistent mass (4), a CG run above
 its tolerance (3), a fitted density 0 at a Gauss point (5). The Python
 step then takes that step and says what happened. ``run.handover``: the
@@ -125,6 +129,11 @@ FIELDS = (
     "law_flags", "no_index",
     # a side traction: a SideTraction (None: none; compiled_loop_traction)
     "traction",
+    # particle forces of the reference configuration: a BodyForce (None:
+    # none; compiled_loop_body_force)
+    "body_force",
+    # prescribed grid velocities: a Prescribed (None: none; compiled_loop_prescribed)
+    "prescribed",
     # grid modifiers (damping, walls): GridRules of the force and of MUSL's
     # re-projected velocity (None: none; compiled_loop_modifiers)
     "force_rules", "velocity_rules",
@@ -288,9 +297,9 @@ def _scatter(run, particles, column):
     def impl(run, particles, column):
         """Lumped mass, momentum, force (and the consistent mass) of
         ``particles``, or with reconstruction of the quadrature points of
-        their fitted fields, plus a side traction's grid force at the
-        traction table's ``column`` (0: t, 1: t + dt/2, 2: t + dt); the
-        tiny-mass dofs counted."""
+        their fitted fields, plus a side traction's grid force and a body
+        force at their tables' ``column`` (0: t, 1: t + dt/2, 2: t + dt);
+        the tiny-mass dofs counted; the constraint values of that time."""
         t0 = monotonic_ns()
         if traction:  # its grid force first: the p2g kernel's copies are shared
             st = run.traction
@@ -319,9 +328,11 @@ def _scatter(run, particles, column):
             t0 = t_fit
         else:
             points = particles
-        P2G(run.p2g_at, points, run.grid, run.no_force, False, run.copies_p2g, run.touched_p2g)
+        fext, has_fext = run.particle_forces(column)  # (a body force: compiled_loop_body_force)
+        P2G(run.p2g_at, points, run.grid, fext, has_fext, run.copies_p2g, run.touched_p2g)
         REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, run.mass, run.momentum, run.force,
                       run.mass_range)
+        run.set_constraint_values(column)  # (prescribed velocities: compiled_loop_prescribed)
         if traction:
             for k in range(run.force.shape[0]):
                 for c in range(run.force.shape[1]):
@@ -352,14 +363,17 @@ def _scatter(run, particles, column):
 
 
 @overload_method(RunType, "lumped_solve")
-def _lumped_solve(run, rhs, gravity, out):
-    def impl(run, rhs, gravity, out):
-        """out = M_lumped^-1 rhs (+ gravity), fixed dofs 0; with tiny-mass
-        dofs the compiled merge (a merge it cannot do stops the loop)."""
+def _lumped_solve(run, rhs, gravity, out, kind):
+    def impl(run, rhs, gravity, out, kind):
+        """out = M_lumped^-1 rhs (+ gravity), constrained dofs their values
+        of ``kind`` (0 acceleration, 1 velocity, 2 velocity at t + dt:
+        run.constraint_values) or 0; with tiny-mass dofs the compiled merge
+        (a merge it cannot do stops the loop)."""
+        values, has_values = run.constraint_values(rhs, kind)
         if run.small_count == 0:
-            LUMPED_SOLVE(run.mass, rhs, gravity, run.mask, rhs, False, out)
-        elif MERGED_SOLVE(run.mass, rhs, gravity, run.mask, rhs, False, run.nbx, run.nby,
-                          run.mass.shape[0] // (run.nbx * run.nby),
+            LUMPED_SOLVE(run.mass, rhs, gravity, run.mask, values, has_values, out)
+        elif MERGED_SOLVE(run.mass, rhs, gravity, run.mask, values, has_values, run.nbx,
+                          run.nby, run.mass.shape[0] // (run.nbx * run.nby),
                           run.degree, run.small_tol, out) < 0:
             run.stop = 1
     return impl
@@ -368,8 +382,14 @@ def _lumped_solve(run, rhs, gravity, out):
 @overload_method(RunType, "mass_solve")
 def _mass_solve(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
     def impl(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
-        """Consistent M x = rhs for 1 or 2 problems (see compiled_loop_mass)."""
-        if not call(mass_solve, run.cm, run.nthreads, count, rhs0, kind0, out0, rhs1, kind1, out1):
+        """Consistent M x = rhs for 1 or 2 problems (see compiled_loop_mass);
+        ``kind`` 0 acceleration, 1 velocity, 2 velocity at t + dt: the
+        constraint values (run.constraint_values) and the warm start
+        (0 acceleration, else velocity)."""
+        values0, has0 = run.constraint_values(rhs0, kind0)
+        values1, has1 = run.constraint_values(rhs1, kind1)
+        if not call(mass_solve, run.cm, run.nthreads, count, rhs0, min(kind0, 1), values0, has0,
+                    out0, rhs1, min(kind1, 1), values1, has1, out1):
             run.stop = 3
     return impl
 
@@ -389,23 +409,24 @@ def _gravity_into_force(run):
 def _prepare_grid(run):
     if not _consistent(run):
         return lambda run: None
+    prescribed = _prescribed(run)  # the system's fixed columns are needed
 
     def impl(run):
         """Consistent mass: gravity as the force m g, then the step's system."""
         run.gravity_into_force()
         call(prepare_mass, run.cm, run.mass, run.mask, run.degree, run.nbx, run.nby,
-             run.x.shape[1])
+             run.x.shape[1], prescribed)
     return impl
 
 
 @overload_method(RunType, "solve_acceleration")
 def _solve_acceleration(run):
     if not _consistent(run):
-        return lambda run: run.lumped_solve(run.force, run.acceleration_gravity, run.a)
+        return lambda run: run.lumped_solve(run.force, run.acceleration_gravity, run.a, 0)
 
     def impl(run):
         if run.cm.hybrid:  # lumped acceleration (gravity is in the force)
-            run.lumped_solve(run.force, run.no_gravity, run.a)
+            run.lumped_solve(run.force, run.no_gravity, run.a, 0)
         else:
             run.mass_solve(1, run.force, 0, run.a, run.force, 0, run.a)
     return impl
@@ -438,7 +459,7 @@ def _solve_grid(run, state, grid, end_velocity=None):
                 run.modify_force()
                 run.solve_acceleration()
             elif run.cm.hybrid:
-                run.lumped_solve(run.force, run.no_gravity, run.a)
+                run.lumped_solve(run.force, run.no_gravity, run.a, 0)
                 run.mass_solve(1, run.momentum, 1, run.v_old, run.momentum, 1, run.v_old)
             else:
                 run.mass_solve(2, run.force, 0, run.a, run.momentum, 1, run.v_old)
@@ -457,14 +478,16 @@ def _solve_grid(run, state, grid, end_velocity=None):
         t0 = monotonic_ns()
         vdt = end_velocity * run.dt
         if run.small_count == 0 and not modified:  # one pass
-            USL_GRID(run.mass, run.momentum, run.force, run.gravity, run.mask, run.force,
-                     run.force, False, vdt, run.a, run.v_grid)
+            v_values, has_values = run.constraint_values(run.momentum, 1)
+            a_values, has_values = run.constraint_values(run.force, 0)
+            USL_GRID(run.mass, run.momentum, run.force, run.gravity, run.mask, v_values,
+                     a_values, has_values, vdt, run.a, run.v_grid)
         else:
             if modified:  # v^n and the modified force (compiled_loop_modifiers)
                 run.modify_force()
             else:
-                run.lumped_solve(run.momentum, run.no_gravity, run.v_old)
-            run.lumped_solve(run.force, run.acceleration_gravity, run.a)
+                run.lumped_solve(run.momentum, run.no_gravity, run.v_old, 1)
+            run.lumped_solve(run.force, run.acceleration_gravity, run.a, 0)
             for k in range(run.a.shape[0]):
                 for c in range(run.a.shape[1]):
                     run.v_grid[k, c] = run.a[k, c] * vdt + run.v_old[k, c]
@@ -485,11 +508,11 @@ def _update_particle_velocities(run, state, grid, velocity_factor=1.0,
 @overload_method(RunType, "solve_projected_velocity")
 def _solve_projected_velocity(run):
     if not _consistent(run):
-        return lambda run: run.lumped_solve(run.momentum_new, run.no_gravity, run.v_grid)
+        return lambda run: run.lumped_solve(run.momentum_new, run.no_gravity, run.v_grid, 2)
 
     def impl(run):  # see steps.project_velocity: the warm start moves by dt a
         shift_warm(run.cm, 1, run.dt, run.a)
-        run.mass_solve(1, run.momentum_new, 1, run.v_grid, run.momentum_new, 1, run.v_grid)
+        run.mass_solve(1, run.momentum_new, 2, run.v_grid, run.momentum_new, 2, run.v_grid)
     return impl
 
 
@@ -614,6 +637,7 @@ def _commit(run, state, grid):
     consistent = _consistent(run)
     reconstructed = _reconstructed(run)
     traction = _traction(run)
+    body_force = _body_force(run)
     if isinstance(grid, types.Float):  # rk4: ``grid`` is the step's external work
         def impl(run, state, grid):
             if run.stop:
@@ -630,7 +654,7 @@ def _commit(run, state, grid):
         if consistent and commit_mass(run.cm):  # the fringe correction is on
             run.handover = True
         du = run.displacement
-        if traction or (run.gravity_work and reconstructed):
+        if traction or body_force or (run.gravity_work and reconstructed):
             for i in range(du.shape[0]):
                 for c in range(du.shape[1]):
                     du[i, c] = run.u_new[i, c] - run.u[i, c]
@@ -639,6 +663,8 @@ def _commit(run, state, grid):
         elif run.gravity_work:  # see Kernels.gravity_work
             MASS_WEIGHTED_SUM(run.mass, run.v_grid, run.work_sum)
             run.work += WORK_INCREMENT(run.work_sum, run.dt, run.gravity)
+        if body_force:  # the work of the body force over the step
+            run.work += run.particle_forces_power(0, du)
         if traction:  # the work of the loads over the step
             run.work += LOADS_POWER(run.traction.index, run.traction.loads, du)
         _advance(run)
@@ -654,6 +680,7 @@ def _stage_rates(run, state, particles, c, reactions=False):
     consistent = _consistent(run)
     reconstructed = _reconstructed(run)
     traction = _traction(run)
+    body_force = _body_force(run)
     modified = _force_rules(run)
 
     def impl(run, state, particles, c, reactions=False):
@@ -664,7 +691,8 @@ def _stage_rates(run, state, particles, c, reactions=False):
         run.next_stage += 1
         if run.stop:
             return slot
-        run.scatter(particles, 0 if c == 0.0 else (1 if c == 0.5 else 2))
+        column = 0 if c == 0.0 else (1 if c == 0.5 else 2)  # of the traction's and forces' tables
+        run.scatter(particles, column)
         if run.stop:
             return slot
         t0 = monotonic_ns()
@@ -673,11 +701,11 @@ def _stage_rates(run, state, particles, c, reactions=False):
             run.modify_force()
             run.solve_acceleration()
         elif not consistent:
-            run.lumped_solve(run.momentum, run.no_gravity, run.v_old)
-            run.lumped_solve(run.force, run.gravity, run.a)
+            run.lumped_solve(run.momentum, run.no_gravity, run.v_old, 1)
+            run.lumped_solve(run.force, run.gravity, run.a, 0)
         elif run.cm.hybrid:  # lumped acceleration (gravity is in the force)
             run.mass_solve(1, run.momentum, 1, run.v_old, run.momentum, 1, run.v_old)
-            run.lumped_solve(run.force, run.no_gravity, run.a)
+            run.lumped_solve(run.force, run.no_gravity, run.a, 0)
         else:
             run.mass_solve(2, run.force, 0, run.a, run.momentum, 1, run.v_old)
         if run.stop:
@@ -697,6 +725,8 @@ def _stage_rates(run, state, particles, c, reactions=False):
             power = run.gravity_power(run.m, run.rate_x[slot])
         elif run.gravity_work:  # see Kernels.gravity_work: the power m v . g
             power = run.gravity_power(run.mass, run.v_old)
+        if body_force:
+            power += run.particle_forces_power(column, run.rate_x[slot])
         if traction:
             power += LOADS_POWER(run.traction.index, run.traction.loads, run.rate_x[slot])
         run.power[slot] = power

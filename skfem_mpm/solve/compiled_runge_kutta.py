@@ -143,8 +143,8 @@ class CompiledRungeKutta:
             power += self.kernels.gravity_work(particles.m, rk.x[slot], 1.0, self.gravity)
         elif self.gravity_work:
             power += self.kernels.gravity_work(mass, v, 1.0, self.gravity)
-        if grid.work_forces is not None:
-            power += float(np.sum(grid.work_forces * rk.x[slot]))
+        if grid.work_forces is not None:  # sum_p f_p . dx_p/dt (the compiled loop's kernel)
+            power += loads_power(np.arange(particles.n), grid.work_forces, rk.x[slot])
         for index, loads in grid.side_loads:
             power += loads_power(index, loads, rk.x[slot])
         return CompiledStageRates(slot, power)

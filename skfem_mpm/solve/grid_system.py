@@ -119,9 +119,15 @@ class Constraints:
     def values(self, t):
         """Grid velocities (dofs, dim) on constrained dofs at time t (0 elsewhere)."""
         out = np.zeros((self.ndofs, self.dim))
-        for c, dofs, fn in self.prescribed:
-            out[dofs, c] = prescribed_value(fn, t)
+        for (c, dofs, _), value in zip(self.prescribed, self.item_values(t)):
+            out[dofs, c] = value
         return out
+
+    def item_values(self, t):
+        """The velocity(t) of each prescribed item (component, dofs,
+        velocity), in the order of ``prescribed``: shape (items,)."""
+        return np.array([prescribed_value(fn, t) for _, _, fn in self.prescribed],
+                        dtype=np.float64)
 
     def reactions_at(self, mass, a, force, gravity=None):
         """Reactions for lumped mass, m a - f (f including m g), evaluated on

@@ -91,9 +91,15 @@ def prescribed_acceleration(constraints, t, h):
     difference (v(t - 2h) - 8 v(t - h) + 8 v(t + h) - v(t + 2h)) / (12 h)
     (exact for velocities polynomial of degree <= 4 in t); zeros when nothing
     is prescribed."""
-    values = constraints.values
     if not constraints.prescribed:
-        return values(t)
+        return constraints.values(t)
+    return velocity_rate(constraints.values, t, h)
+
+
+def velocity_rate(values, t, h):
+    """(values(t - 2h) - 8 values(t - h) + 8 values(t + h) - values(t + 2h)) / (12 h),
+    the rate of :func:`prescribed_acceleration` of any ``values(t)`` (the
+    grid's, or the compiled loop's per prescribed item)."""
     return (values(t - 2 * h) - 8 * values(t - h) + 8 * values(t + h)
             - values(t + 2 * h)) / (12 * h)
 
