@@ -21,14 +21,22 @@ The protocol (what an executor asks of every effect; the defaults of
 
     bind(particles, grid)       -> [particle forces]  (see ParticleForce)
     constraints(grid)           -> [(component, dofs, velocity(t) or None)]
-    velocity_modifiers()        -> [objects with modify_velocity(v, m) -> v]
+    velocity_modifiers()        -> [GridModifier: modify_velocity(v, m) -> v]
                                    (MUSL's re-projected grid velocity)
-    force_modifiers()           -> [objects with modify_force(f, v, m, dt) -> f]
+    force_modifiers()           -> [GridModifier: modify_force(f, v, m, dt) -> f]
                                    (f, v (dofs, dim): grid force and velocity at
                                    the start of the step; m (dofs,) the lumped
                                    nodal mass; dt the step)
     side_traction()             -> (side, traction(x, t)) or None  (fem loads
                                    the grid side with Gauss quadrature)
+
+A grid modifier (:class:`GridModifier`) may also give its compiled form,
+``grid_rule(grid)``: a :class:`~skfem_mpm.kernels.grid_modifiers.GridRule`
+(a rule of that kernel module and its data), which the compiled executor
+and the compiled step loop apply instead of the NumPy methods (None: the
+compiled executor calls the NumPy methods each step, and the compiled loop
+does not run the scene). A modifier that exerts a force on the bodies
+keeps its total of the last step in ``reaction``.
 
 A particle force (:class:`ParticleForce`) gives ``forces(particles, t)``
 (n, dim) and may give ``grid_forces`` (where it is not applied at the
@@ -45,11 +53,12 @@ import inspect
 import numpy as np
 
 from .errors import InvalidState
+from .kernels.grid_modifiers import FRICTIONAL_WALL, LOCAL_DAMPING, GridRule
 from .spline.grid import SIDE_AXES, side_axis
 from .validation import _short, check_finite_array, check_positive
 
-__all__ = ["Effect", "ParticleForce", "Gravity", "BodyForce", "Traction", "Fixed", "Prescribed",
-           "Damping", "Wall", "Footing"]
+__all__ = ["Effect", "ParticleForce", "GridModifier", "Gravity", "BodyForce", "Traction", "Fixed",
+           "Prescribed", "Damping", "Wall", "Footing"]
 
 
 class Effect:
@@ -118,6 +127,27 @@ class ParticleForce:
 
     def restore(self, arrays):
         """Take back what :meth:`checkpoint_arrays` gave."""
+
+
+class GridModifier:
+    """A change of the grid force before the solve or of MUSL's re-projected
+    grid velocity (what ``Effect.force_modifiers`` and
+    ``Effect.velocity_modifiers`` return); the defaults change nothing."""
+
+    reaction = None  # (dim,): the total force exerted on the bodies in the last step
+
+    def modify_force(self, force, velocity, mass, dt):
+        """The grid force (dofs, dim) changed (see the module docstring)."""
+        return force
+
+    def modify_velocity(self, velocity, mass):
+        """A grid velocity (dofs, dim) that no force produced, changed."""
+        return velocity
+
+    def grid_rule(self, grid):
+        """The compiled form on ``grid`` (a kernels.grid_modifiers.GridRule),
+        or None."""
+        return None
 
 
 def _numbers(name, value, what):
@@ -472,7 +502,7 @@ class Prescribed(Effect):
         return [(int(self.component), grid.boundary_dofs(self.side), self.velocity)]
 
 
-class Damping(Effect):
+class Damping(Effect, GridModifier):
     """Local (non-viscous) damping of geomechanics codes (Cundall 1987;
     Al-Kafaji 2013, Sec. 3.5): every grid force component is reduced by
     alpha times its magnitude against the direction of the grid velocity,
@@ -495,8 +525,12 @@ class Damping(Effect):
     def modify_force(self, force, velocity, mass=None, dt=None):
         return force - self.alpha * np.abs(force) * np.sign(velocity)
 
+    def grid_rule(self, grid):
+        """The same rule compiled (kernels.grid_modifiers.local_damping)."""
+        return GridRule(LOCAL_DAMPING, (self.alpha,), np.zeros(0, dtype=np.int64), False)
 
-class Wall(Effect):
+
+class Wall(Effect, GridModifier):
     """A rigid wall at a grid side with Coulomb friction, applied on the
     side's dofs (the functions that are non-zero there) as a contact force
     of the step (Bardenhagen, Brackbill, Sulsky 2000, Comput. Methods Appl.
@@ -544,11 +578,21 @@ class Wall(Effect):
         return f"Wall({self.side!r}, friction={self.friction:g})"
 
     def check(self, grid):
-        axis, end = side_axis(self.side, grid.dim)
-        self._dofs = np.asarray(grid.boundary_dofs(self.side))
-        self._normal = np.zeros(grid.dim)
-        self._normal[axis] = 1.0 if end == 1 else -1.0
+        self._dofs, self._normal = self._geometry(grid)
         self._ndofs = grid.ndofs
+
+    def _geometry(self, grid):
+        """(the side's dofs, its outward normal) on ``grid``."""
+        axis, end = side_axis(self.side, grid.dim)
+        normal = np.zeros(grid.dim)
+        normal[axis] = 1.0 if end == 1 else -1.0
+        return np.asarray(grid.boundary_dofs(self.side)), normal
+
+    def bind(self, particles, grid):
+        """A run starts without a reaction (an earlier run's is not reported
+        before its first step)."""
+        self.reaction = None
+        return []
 
     def force_modifiers(self):
         return [self]
@@ -558,6 +602,13 @@ class Wall(Effect):
 
     def velocity_modifiers(self):
         return [self]
+
+    def grid_rule(self, grid):
+        """The same contact rule compiled (kernels.grid_modifiers.wall_force and
+        wall_velocity) on ``grid``'s side: parameters (mu, the outward normal)."""
+        dofs, normal = self._geometry(grid)
+        return GridRule(FRICTIONAL_WALL, (self.friction, *normal),
+                        np.asarray(dofs, dtype=np.int64), True)
 
     def modify_velocity(self, velocity, mass):
         """The same contact rule on a grid velocity that no force produced
@@ -602,7 +653,7 @@ class Wall(Effect):
         return out
 
 
-class Footing(Effect):
+class Footing(Effect, GridModifier):
     """A rigid footing pushed vertically into the body at a prescribed speed
     (a plate-load or bearing-capacity test), applied on the grid along its
     current base, which is found anew each step (a fixed dof set would lose

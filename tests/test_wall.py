@@ -72,12 +72,13 @@ def test_a_block_on_an_incline_sticks_below_the_friction_angle(theta, sticks):
 
 
 def test_both_executors_agree_and_a_smooth_wall_keeps_the_momentum():
-    """Reference and compiled executors to 1e-12; friction 0: P_x constant;
-    Result.reactions carries the wall's force (normal about the weight)."""
+    """Reference and compiled paths (the compiled loop) to 1e-12; friction
+    0: P_x constant; Result.reactions carries the wall's force (normal
+    about the weight)."""
     scene = block_on_floor(t_end=0.05)
     ref = simulate(scene, Method(backend="numpy"), save_every=5)
     fast = simulate(scene, Method(backend="numba"), save_every=5)
-    assert fast.path == "fast"
+    assert fast.path == "fast (compiled loop)"
     for key in ("x", "v", "stress"):
         a, b = ref.history[key], fast.history[key]
         assert np.abs(a - b).max() <= 1e-12 * np.abs(a).max(), key

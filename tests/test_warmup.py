@@ -7,8 +7,9 @@ import sys
 import pytest
 
 # In a fresh process: the number of compiled signatures of every numba
-# function of the package after the warm-up and after the run.
-_CHILD = r"""
+# function of the package after the warm-up (``after_warm_up``) and now
+# (``compiled()``), then a benchmark's run.
+WATCH_COMPILES = r"""
 import json, sys
 import numpy as np
 from numba.core.registry import CPUDispatcher
@@ -39,6 +40,8 @@ def warm_up(state, fast, loop=None):
     return seconds
 
 sim_module.warm_up = warm_up
+"""
+_CHILD = WATCH_COMPILES + r"""
 bench, variant, mass, scheme = sys.argv[1:5]
 b = get_benchmark(bench, variant)
 scene = {1: lambda: b.scene(16, 2, 4), 2: lambda: b.scene(8, 2, 2),

@@ -53,6 +53,7 @@ from ..materials.state import PackedState, state_layout
 from ..spline import SplineGrid
 from . import steps
 from .compiled_reconstruct import CompiledReconstruction, QuadraturePoints, unsupported
+from .compiled_modifiers import CompiledModifiers
 from .compiled_runge_kutta import CompiledRungeKutta
 from .grid_system import GridSystem
 from .stencil_system import StencilSystem
@@ -141,6 +142,9 @@ class CompiledExecutor(CompiledRungeKutta):
                 self.gravity_work = True
             else:
                 self.other_forces.append(f)
+        # damping, walls: their compiled rules (kernels.grid_modifiers)
+        self.force_modifiers = CompiledModifiers(state.force_modifiers, state.grid)
+        self.velocity_modifiers = CompiledModifiers(state.velocity_modifiers, state.grid)
         self.fused = one_linear_elastic(state.bodies)
         # every material has a compiled point law: the constitutive kernel runs them
         self.point_laws = not self.fused and all(
@@ -463,8 +467,7 @@ class CompiledExecutor(CompiledRungeKutta):
                 if gravity is not None:
                     force = force + mass[:, None] * gravity[None, :]
                     gravity = None
-                for modifier in state.force_modifiers:
-                    force = modifier.modify_force(force, v_old, mass, dt)
+                force = self.force_modifiers.modify_force(force, v_old, mass, dt)
         factor = end_velocity
         v_grid = None
         with state.timer("solve"):
@@ -524,8 +527,8 @@ class CompiledExecutor(CompiledRungeKutta):
             grid.velocity = self._grid_solve(state, grid.system, grid.mass, momentum_new,
                                              c.values(state.t + dt) if c.prescribed else None,
                                              "velocity", self._v_new, grid.small)
-            for modifier in state.velocity_modifiers:  # walls
-                grid.velocity = modifier.modify_velocity(grid.velocity, grid.mass)
+            if self.velocity_modifiers:  # walls
+                grid.velocity = self.velocity_modifiers.modify_velocity(grid.velocity, grid.mass)
 
     def move_particles(self, state, grid):
         p, dt = state.particles, state.dt

@@ -45,8 +45,9 @@ import time
 import numba
 import numpy as np
 
-from ..kernels import (by_symbol, cholesky, constitutive, fast_dof, gauss_rule, kronecker, mpm,
-                       scatter, spline_1d, staging, tiny_mass, tls, traction, weights)
+from ..kernels import (by_symbol, cholesky, constitutive, fast_dof, gauss_rule, grid_modifiers,
+                       kronecker, mpm, scatter, spline_1d, staging, tiny_mass, tls, traction,
+                       weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
@@ -70,7 +71,8 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 _TEMPLATES = [os.path.join(_HERE, name)
               for name in ("compiled_loop_ops.py", "compiled_loop_mass.py",
                            "compiled_loop_reconstruct.py", "compiled_loop_traction.py",
-                           "compiled_loop_body_force.py", "compiled_loop_prescribed.py")]
+                           "compiled_loop_body_force.py", "compiled_loop_prescribed.py",
+                           "compiled_loop_modifiers.py")]
 
 # the grid kernels the operations call, under the names the operations use
 _GRID_KERNELS = {
@@ -96,6 +98,9 @@ _GRID_KERNELS = {
     # a side traction (compiled_loop_traction)
     "SIDE_FACES": traction.side_faces,
     "LOADS_POWER": traction.loads_power,
+    # damping, walls (compiled_loop_modifiers)
+    "MODIFY_FORCES": grid_modifiers.modify_forces,
+    "MODIFY_VELOCITIES": grid_modifiers.modify_velocities,
     # consistent mass (compiled_loop_mass)
     "CONSISTENT_1D": mpm.consistent_1d,
     "CONSISTENT_2D": mpm.consistent_2d,
@@ -136,8 +141,8 @@ def loop_applies(state, executor):
          "configuration (reference_only: a BodyForce)"),
         (recon is not None and bool(reference_forces(executor.other_forces)),
          "a body force with reconstruction"),
-        (bool(state.force_modifiers), "grid force modifiers"),
-        (bool(getattr(state, "velocity_modifiers", ())), "grid velocity modifiers"),
+        (_without_rule(executor) is not None,
+         f"a grid modifier without a compiled rule ({_without_rule(executor)!r})"),
         (state.adaptive, "an adaptive time step"),
         (state.grid.dim not in (1, 2, 3), f"{state.grid.dim}D"),
         (state.grid.dim == 3 and m.mass != "lumped", f"{m.mass} mass in 3D"),
@@ -150,6 +155,14 @@ def loop_applies(state, executor):
         if why is not None:
             return False, why
     return True, ""
+
+
+def _without_rule(executor):
+    """The first grid modifier of the executor's run without a compiled
+    rule (``grid_rule(grid)`` None: a Footing), or None."""
+    if executor is None:
+        return None
+    return executor.force_modifiers.without_rule() or executor.velocity_modifiers.without_rule()
 
 
 def _side_tractions_only(executor):
@@ -286,7 +299,7 @@ def loop_module(dim, parallel, window):
     depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass,
                                                      fast_dof, staging, gauss_rule, spline_1d,
                                                      tls, cholesky, weights, traction, constitutive,
-                                                     by_symbol))
+                                                     grid_modifiers, by_symbol))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -363,6 +376,8 @@ class StepLoop:
         if side is not None and fields["V0"].shape[0] != n:  # (a point law loads its own)
             fields["V0"] = np.ascontiguousarray(p.V0, dtype=np.float64)
         self.side, self.traction = side, fields["traction"]
+        self.force_rules = fields["force_rules"] = self._rules(executor.force_modifiers)
+        fields["velocity_rules"] = self._rules(executor.velocity_modifiers)
         self._table = (0, 0)  # the steps the traction's table holds
         # consistent or hybrid mass: the run's mass system (None: lumped)
         self.cm = fields["cm"] = None if state.method.mass == "lumped" else \
@@ -438,6 +453,13 @@ class StepLoop:
             own = fields[name]
             arrays[f"reaction_{name}"] = empty(own.shape) if self.scheme == "rk4" else own
         return arrays
+
+    def _rules(self, modifiers):
+        """The run's packed grid rules (compiled_loop_modifiers) of
+        ``modifiers`` (a CompiledModifiers), or None without any."""
+        if not modifiers:
+            return None
+        return self.module.new_grid_rules(*modifiers.packed())
 
     def _side_traction(self, f, state, k):
         """The run's side traction (compiled_loop_traction) of the effect
@@ -601,7 +623,7 @@ class StepLoop:
 
     WARM_KINDS = ("acceleration", "velocity")
     # the phases of run.phase_ns (compiled_loop_ops)
-    PHASES = ("p2g", "solve", "g2p", "mass_matrix", "reconstruct", "constitutive")
+    PHASES = ("p2g", "solve", "g2p", "mass_matrix", "reconstruct", "constitutive", "effects")
 
     def _load_warm(self, state):
         """The run starts its CG runs from the state's warm starts."""
@@ -662,6 +684,8 @@ class StepLoop:
         self.module.current(self.run_state)
         self.module.grid_arrays(self.run_state)
         self.module.records(self.run_state)
+        if self.force_rules is not None:
+            self.module.rule_reactions(self.force_rules)
 
     # With parallel kernels a call of the loop lasts about this long, so
     # that the thread policy (solve/threads.py), which acts between calls,
@@ -719,7 +743,11 @@ class StepLoop:
         elif state.constraints.any:
             mass, a, force = mod.grid_arrays(run)
             gravity = self.executor.gravity if self.executor.gravity_work else None
+            if self.force_rules is not None:  # modify_force put it into the force
+                gravity = None
             state.defer_reactions(state.constraints, mass, a, force, gravity)
+        if self.force_rules is not None:  # the walls' reactions of the last step
+            self.executor.force_modifiers.take_reactions(mod.rule_reactions(self.force_rules))
         for phase, ns in zip(self.PHASES, phase_ns.tolist()):
             if ns:
                 state.timer.add(phase, ns * 1e-9)

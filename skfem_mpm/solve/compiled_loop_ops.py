@@ -48,10 +48,13 @@ constraints, a traction on a side of the body with tau(t)
 reference configuration such as a BodyForce (``run.body_force``: None, or
 the data of :mod:`skfem_mpm.solve.compiled_loop_body_force`), prescribed
 grid velocities (``run.prescribed``: None, or the data of
-:mod:`skfem_mpm.solve.compiled_loop_prescribed`). A step that would need anything else stops the loop before
-it writes the current state (``run.stop``): a non-finite value or
-material state, J <= 0, a volume <= 0 or a
-particle outside the grid (2), a tiny-mass merge the lumped kernel
+:mod:`skfem_mpm.solve.compiled_loop_prescribed`), grid modifiers with a
+compiled rule (local damping, frictional walls: ``run.force_rules``,
+``run.velocity_rules``, None or the packed rules of
+:mod:`skfem_mpm.solve.compiled_loop_modifiers`). A step that would need
+anything else stops the loop before it writes the current state
+(``run.stop``): a non-finite value or material state, J <= 0, a volume
+<= 0 or a particle outside the grid (2), a tiny-mass merge the lumped kernel
 cannot do (1), tiny-mass dofs with consistent mass (4), a CG run above
 its tolerance (3), a fitted density 0 at a Gauss point (5). The Python
 step then takes that step and says what happened. ``run.handover``: the
@@ -59,7 +62,7 @@ step was taken, and the next ones need the executor (the fringe
 correction turned on).
 
 Phase times (nanoseconds of the monotonic clock) add up in ``run.phase_ns``:
-0 p2g, 1 solve, 2 g2p, 3 mass_matrix, 4 reconstruct, 5 constitutive.
+0 p2g, 1 solve, 2 g2p, 3 mass_matrix, 4 reconstruct, 5 constitutive, 6 effects.
 """
 import numpy as np
 from numba import njit, types
@@ -131,6 +134,9 @@ FIELDS = (
     "body_force",
     # prescribed grid velocities: a Prescribed (None: none; compiled_loop_prescribed)
     "prescribed",
+    # grid modifiers (damping, walls): GridRules of the force and of MUSL's
+    # re-projected velocity (None: none; compiled_loop_modifiers)
+    "force_rules", "velocity_rules",
 )
 
 
@@ -388,6 +394,17 @@ def _mass_solve(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
     return impl
 
 
+@overload_method(RunType, "gravity_into_force")
+def _gravity_into_force(run):
+    def impl(run):
+        """f_k += m_k g (with gravity; the solves then add none)."""
+        if run.gravity_work:
+            for k in range(run.force.shape[0]):
+                for c in range(run.force.shape[1]):
+                    run.force[k, c] = run.force[k, c] + run.mass[k] * run.gravity[c]
+    return impl
+
+
 @overload_method(RunType, "prepare_grid")
 def _prepare_grid(run):
     if not _consistent(run):
@@ -396,10 +413,7 @@ def _prepare_grid(run):
 
     def impl(run):
         """Consistent mass: gravity as the force m g, then the step's system."""
-        if run.gravity_work:
-            for k in range(run.force.shape[0]):
-                for c in range(run.force.shape[1]):
-                    run.force[k, c] = run.force[k, c] + run.mass[k] * run.gravity[c]
+        run.gravity_into_force()
         call(prepare_mass, run.cm, run.mass, run.mask, run.degree, run.nbx, run.nby,
              run.x.shape[1], prescribed)
     return impl
@@ -408,7 +422,7 @@ def _prepare_grid(run):
 @overload_method(RunType, "solve_acceleration")
 def _solve_acceleration(run):
     if not _consistent(run):
-        return lambda run: run.lumped_solve(run.force, run.gravity, run.a, 0)
+        return lambda run: run.lumped_solve(run.force, run.acceleration_gravity, run.a, 0)
 
     def impl(run):
         if run.cm.hybrid:  # lumped acceleration (gravity is in the force)
@@ -421,12 +435,14 @@ def _solve_acceleration(run):
 @overload_method(RunType, "solve_grid")
 def _solve_grid(run, state, grid, end_velocity=None):
     consistent = _consistent(run)
+    modified = _force_rules(run)
     if end_velocity is None or isinstance(end_velocity, (types.NoneType, types.Omitted)):
         def impl(run, state, grid, end_velocity=None):  # MUSL: a only
             if run.stop:
                 return run.a
             t0 = monotonic_ns()
             run.prepare_grid()
+            run.modify_force()  # damping, walls (compiled_loop_modifiers)
             run.solve_acceleration()
             run.phase_ns[1] += monotonic_ns() - t0
             return run.a
@@ -439,7 +455,10 @@ def _solve_grid(run, state, grid, end_velocity=None):
             t0 = monotonic_ns()
             vdt = end_velocity * run.dt
             run.prepare_grid()
-            if run.cm.hybrid:
+            if modified:  # v^n, the modified force, then a (compiled_loop_modifiers)
+                run.modify_force()
+                run.solve_acceleration()
+            elif run.cm.hybrid:
                 run.lumped_solve(run.force, run.no_gravity, run.a, 0)
                 run.mass_solve(1, run.momentum, 1, run.v_old, run.momentum, 1, run.v_old)
             else:
@@ -458,14 +477,17 @@ def _solve_grid(run, state, grid, end_velocity=None):
             return run.a
         t0 = monotonic_ns()
         vdt = end_velocity * run.dt
-        if run.small_count == 0:  # one pass
+        if run.small_count == 0 and not modified:  # one pass
             v_values, has_values = run.constraint_values(run.momentum, 1)
             a_values, has_values = run.constraint_values(run.force, 0)
             USL_GRID(run.mass, run.momentum, run.force, run.gravity, run.mask, v_values,
                      a_values, has_values, vdt, run.a, run.v_grid)
         else:
-            run.lumped_solve(run.force, run.gravity, run.a, 0)
-            run.lumped_solve(run.momentum, run.no_gravity, run.v_old, 1)
+            if modified:  # v^n and the modified force (compiled_loop_modifiers)
+                run.modify_force()
+            else:
+                run.lumped_solve(run.momentum, run.no_gravity, run.v_old, 1)
+            run.lumped_solve(run.force, run.acceleration_gravity, run.a, 0)
             for k in range(run.a.shape[0]):
                 for c in range(run.a.shape[1]):
                     run.v_grid[k, c] = run.a[k, c] * vdt + run.v_old[k, c]
@@ -522,6 +544,7 @@ def _project_velocity(run, state, grid):
         run.velocities_done = True
         t1 = monotonic_ns()
         run.solve_projected_velocity()
+        run.modify_velocity()  # walls (compiled_loop_modifiers)
         run.phase_ns[2] += t1 - t0
         run.phase_ns[1] += monotonic_ns() - t1
     return impl
@@ -658,6 +681,7 @@ def _stage_rates(run, state, particles, c, reactions=False):
     reconstructed = _reconstructed(run)
     traction = _traction(run)
     body_force = _body_force(run)
+    modified = _force_rules(run)
 
     def impl(run, state, particles, c, reactions=False):
         """R(t + c dt, particles): particles to grid, M v = P and M a = f,
@@ -673,7 +697,10 @@ def _stage_rates(run, state, particles, c, reactions=False):
             return slot
         t0 = monotonic_ns()
         run.prepare_grid()
-        if not consistent:
+        if modified:  # v, the modified force, then a (compiled_loop_modifiers)
+            run.modify_force()
+            run.solve_acceleration()
+        elif not consistent:
             run.lumped_solve(run.momentum, run.no_gravity, run.v_old, 1)
             run.lumped_solve(run.force, run.gravity, run.a, 0)
         elif run.cm.hybrid:  # lumped acceleration (gravity is in the force)

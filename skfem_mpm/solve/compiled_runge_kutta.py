@@ -115,8 +115,7 @@ class CompiledRungeKutta:
                     if gravity is not None:
                         force = force + mass[:, None] * gravity[None, :]
                         gravity = None
-                    for modifier in state.force_modifiers:
-                        force = modifier.modify_force(force, v, mass, state.dt)
+                    force = self.force_modifiers.modify_force(force, v, mass, state.dt)
             with state.timer("solve"):
                 a = self._grid_solve(state, a_system, mass, force, a_values, "acceleration",
                                      self._a, a_small, gravity)

@@ -165,7 +165,7 @@ def stage_rates(state, particles, t, reactions=False):
     if state.force_modifiers:
         with state.timer("effects"):
             for modifier in state.force_modifiers:
-                force = modifier.modify_force(force, v)
+                force = modifier.modify_force(force, v, data.lumped, state.dt)
     with state.timer("solve"):
         a = system.solve(force, prescribed_acceleration(c, t, state.dt), "acceleration")
         system.remember("acceleration", a)

@@ -80,7 +80,8 @@ def warm_up(state, fast, loop=None):
 
     t0 = time.perf_counter()
     warm_up_kernels(state.grid, fast=fast, materials=state.materials, method=state.method,
-                    parallel=state.particles.n >= serial.SERIAL_BELOW)
+                    parallel=state.particles.n >= serial.SERIAL_BELOW,
+                    grid_rules=bool(state.force_modifiers or state.velocity_modifiers))
     if loop is not None:
         loop.compile()
     return time.perf_counter() - t0

@@ -5,7 +5,8 @@ import numpy as np
 __all__ = ["warm_up_kernels"]
 
 
-def warm_up_kernels(grid, fast=False, materials=(), method=None, parallel=True):
+def warm_up_kernels(grid, fast=False, materials=(), method=None, parallel=True,
+                    grid_rules=False):
     """Compile on a small grid of the same dimension and degree (the machine
     code does not depend on the grid's size, and no grid-sized buffer is
     allocated); with ``fast``, also the constitutive kernel and the point
@@ -17,7 +18,8 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None, parallel=True):
     hybrid mass, the MUSL re-projection only for MUSL, the one-pass USL grid
     step only for USL and CD, the g2p kernel for every scheme but RK4, whose
     stage rates and combination only it, the tiny-mass scan only when the
-    merge is on."""
+    merge is on, the grid modifiers' rules (damping, walls) only with
+    ``grid_rules``."""
     if not hasattr(grid, "breakpoints"):
         return
     from ..spline import SplineGrid
@@ -92,6 +94,8 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None, parallel=True):
             k.usl_grid(np.ones(grid.ndofs), zeros, zeros, np.zeros(dim), mask, values, values,
                        0.0, out, zeros.copy())
     _warm_up_point_laws(k, grid.dim, materials)
+    if grid_rules:
+        _warm_up_grid_rules(grid.ndofs, dim)
     if method is None or method.reconstruction != "none":
         _warm_up_reconstruction(grid, method)
 
@@ -115,6 +119,17 @@ def _warm_up_consistent(k, p, grid):
         system.solve(np.ones((grid.ndofs, dim)), np.zeros((grid.ndofs, dim)), "velocity")
     system.residual(np.ones((grid.ndofs, dim)), np.ones((grid.ndofs, dim)))
     k.kernel(fast_row_fractions)(K, st, np.ones(grid.ndofs), 1.0, np.empty(grid.ndofs))
+
+
+def _warm_up_grid_rules(ndofs, dim):
+    """The grid modifiers' kernels (kernels.grid_modifiers), with no rule."""
+    from ..kernels.grid_modifiers import modify_forces, modify_velocities, pack_rules
+
+    codes, parameters, offsets, dofs, reactions = pack_rules([], dim)
+    zeros = np.zeros((ndofs, dim))
+    modify_forces(codes, parameters, offsets, dofs, zeros, zeros.copy(), np.ones(ndofs), 0.1,
+                  reactions)
+    modify_velocities(codes, parameters, offsets, dofs, zeros, np.ones(ndofs))
 
 
 def _warm_up_reconstruction(grid, method):
