@@ -839,7 +839,7 @@ class ColumnCollapse(Benchmark):
     has_exact = False
     defaults = {"a": 1.0, "L0": 1.0, "rho": 1.0, "g": 9.81, "phi": 30.0, "c": 0.0,
                 "floor_angle": 30.0, "nu": 0.3, "stiffness": 2e3, "duration": 8.0,
-                "K0": None, "t_end": None}
+                "K0": None, "disconnect": 1.01, "t_end": None}
     variants = {"default": {}}
     amplitude = 1.0
 
@@ -861,7 +861,8 @@ class ColumnCollapse(Benchmark):
         K0 = 1 - np.sin(np.radians(self.phi)) if self.K0 is None else self.K0
         particles = geostatic_stress(particles, self.H0, self.g, K0=K0)
         E = self.stiffness * self.rho * self.g * self.H0
-        material = MohrCoulomb(E, self.nu, self.phi, self.c, large_deformation=True)
+        material = MohrCoulomb(E, self.nu, self.phi, self.c, large_deformation=True,
+                               disconnect_at=self.disconnect or None)
         effects = [Gravity((0.0, -self.g)), Wall("left", friction=0.0),
                    Wall("bottom", friction=float(np.tan(np.radians(self.floor_angle))))]
         return Scene(grid, Body(particles, material),

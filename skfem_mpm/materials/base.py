@@ -18,6 +18,10 @@ A material has
                             ``p.state[name]``, shape (n, *shape)
     wave_speed(p)           the largest P-wave speed of the particles, for
                             the critical time step
+    wave_speed_bound(p)     a bound on wave_speed over the whole run, or None
+                            (default): a finite-strain material with a bound
+                            runs at the fixed step of that bound instead of a
+                            step that follows the current wave speed
     strain_energy(p)        total stored energy sum_p W_p V0_p (or V_p)
     check_dim(dim)          raise for dimensions it does not model
     point_update            the compiled law of one particle, or None (then the
@@ -121,6 +125,11 @@ class Material:
 
     def wave_speed(self, particles):  # pragma: no cover - interface
         raise NotImplementedError
+
+    def wave_speed_bound(self, particles):
+        """A bound on :meth:`wave_speed` for the whole run, or None (the
+        speed follows the deformation)."""
+        return None
 
     def strain_energy(self, particles):  # pragma: no cover - interface
         raise NotImplementedError

@@ -59,6 +59,9 @@ class BBar(Material):
     def wave_speed(self, particles):
         return self.material.wave_speed(particles)
 
+    def wave_speed_bound(self, particles):
+        return self.material.wave_speed_bound(particles)
+
     def strain_energy(self, particles):
         return self.material.strain_energy(particles)
 

@@ -3,6 +3,7 @@ import numpy as np
 
 from ..validation import check_positive
 from .compiled import PointUpdate
+from .base import det
 from .plastic import ElastoPlastic, from_principal, principal
 
 __all__ = ["MohrCoulomb"]
@@ -43,6 +44,19 @@ class MohrCoulomb(ElastoPlastic):
     associated flow): a sequential, not simultaneous, two-surface return;
     its result is admissible for both criteria (it only lowers f_a).
 
+    ``disconnect_at`` J_c (> 1, optional; needs ``large_deformation=True``):
+    grains out of contact. A cohesionless granular material whose density
+    falls below a critical density rho_c = rho_0 / J_c carries no stress
+    (Dunatunga and Kamrin 2015, J. Fluid Mech. 779, 483-513: the
+    "disconnected" phase); so a particle with J = det F = V / V0 > J_c gets
+    sigma = 0 (sigma_zz = 0 in 2D; the plastic strain kept) instead of the
+    return above, and bears load again once compressed back to J <= J_c
+    (its stress then grows from zero). Such a particle has no stiffness, so
+    :meth:`wave_speed` counts a density of at least rho_0 / J_c. Without it,
+    a grain flung out of the mass keeps the stiffness of the dense material
+    over a volume that keeps growing (the apex return lets J grow freely):
+    once compressed again it pushes with a stress times that volume.
+
     The trial stress, sigma_zz, ``large_deformation`` and the state are
     those of :mod:`.plastic`. In plane-strain biaxial loading with
     psi = 0 (sigma_zz intermediate) the limit state is, compression
@@ -52,25 +66,65 @@ class MohrCoulomb(ElastoPlastic):
     point_update = PointUpdate("skfem_mpm.materials.plastic_laws:mohr_coulomb")
 
     def __init__(self, E, nu, friction_angle, cohesion, dilation_angle=0.0,
-                 tension_cutoff=None, large_deformation=False):
+                 tension_cutoff=None, large_deformation=False, disconnect_at=None):
         self._elastic(E, nu, large_deformation)
         self._frictional(friction_angle, cohesion, dilation_angle)
         if tension_cutoff is not None:
             tension_cutoff = check_positive("tension_cutoff", tension_cutoff, allow_zero=True)
         self.tension_cutoff = tension_cutoff
+        if disconnect_at is not None:
+            disconnect_at = check_positive("disconnect_at", disconnect_at)
+            if not disconnect_at > 1.0:
+                raise ValueError(f"disconnect_at must be a volume ratio J_c > 1 (the grains "
+                                 f"lose contact when V / V0 exceeds it), got {disconnect_at}")
+            if not self.large_deformation:
+                raise ValueError(f"disconnect_at={disconnect_at} reads J = det F, which only "
+                                 f"large_deformation=True tracks; got large_deformation=False")
+        self.disconnect_at = disconnect_at
 
     def __repr__(self):
         return (f"MohrCoulomb(E={self.E:g}, nu={self.nu:g}, "
                 f"friction_angle={self.friction_angle:g}, cohesion={self.cohesion:g}, "
-                f"dilation_angle={self.dilation_angle:g}, tension_cutoff={self.tension_cutoff})")
+                f"dilation_angle={self.dilation_angle:g}, tension_cutoff={self.tension_cutoff}, "
+                f"disconnect_at={self.disconnect_at})")
 
     def point_parameters(self, dim):
-        """(lambda, mu, rotate, sin phi, sin psi, c cos phi, K, T or -1)."""
+        """(lambda, mu, rotate, sin phi, sin psi, c cos phi, K, T or -1, J_c or -1)."""
         phi, psi = np.radians(self.friction_angle), np.radians(self.dilation_angle)
         cutoff = -1.0 if self.tension_cutoff is None else self.tension_cutoff
+        disconnect = -1.0 if self.disconnect_at is None else self.disconnect_at
         return np.array(self.elastic_parameters()
                         + [np.sin(phi), np.sin(psi), self.cohesion * np.cos(phi), self.K,
-                           cutoff])
+                           cutoff, disconnect])
+
+    def update(self, particles, L, dt):
+        """The elastoplastic update (:mod:`.plastic`), then zero stress on
+        the disconnected particles (det F > ``disconnect_at``)."""
+        stress, V, F, state = super().update(particles, L, dt)
+        if self.disconnect_at is not None:
+            apart = det(F) > self.disconnect_at
+            stress = np.where(apart[:, None, None], 0.0, stress)
+            if "sigma_zz" in state:
+                state = dict(state, sigma_zz=np.where(apart, 0.0, state["sigma_zz"]))
+        return stress, V, F, state
+
+    def wave_speed(self, particles):
+        """sqrt((lambda + 2 mu) / rho), rho at least rho_0 / J_c with
+        ``disconnect_at`` (the disconnected particles have no stiffness)."""
+        if self.disconnect_at is None:
+            return super().wave_speed(particles)
+        rho = np.maximum(particles.m / particles.V,
+                         particles.m / (particles.V0 * self.disconnect_at))
+        return float(np.sqrt((self.lam + 2 * self.mu) / rho.min()))
+
+    def wave_speed_bound(self, particles):
+        """With ``disconnect_at``: sqrt((lambda + 2 mu) J_c / rho_0), the
+        largest speed any particle reaches (a particle that bears load has
+        J <= J_c); None without it."""
+        if self.disconnect_at is None:
+            return None
+        rho = particles.m / (particles.V0 * self.disconnect_at)
+        return float(np.sqrt((self.lam + 2 * self.mu) / rho.min()))
 
     def return_map(self, trial, state):
         values, vectors = principal(trial)

@@ -16,6 +16,7 @@ import math
 import numpy as np
 from numba import carray, cfunc, njit
 
+from ..kernels.constitutive import _det
 from .compiled import POINT_SIGNATURE
 
 __all__ = ["von_mises_law", "drucker_prager_law", "mohr_coulomb_law", "von_mises",
@@ -267,7 +268,17 @@ def mohr_coulomb_law(params, L, F, dt, stress, state, stress_out, state_out):
     principal stresses c +- r (c = (sxx + syy) / 2, r = |((sxx - syy) / 2,
     sxy)|) and sigma_zz in closed form, the new in-plane stress
     (q_hi + q_lo) / 2 I + (q_hi - q_lo) / 2 (cos 2t, sin 2t; sin 2t, -cos 2t);
-    3D: Jacobi eigen-decomposition (eigh3)."""
+    3D: Jacobi eigen-decomposition (eigh3). Disconnected grains
+    (params[8] = J_c > 0 and det F > J_c, F the deformation gradient after
+    the step): zero stress and sigma_zz, the plastic strain kept."""
+    if params[8] > 0.0 and _det(F, F.shape[0]) > params[8]:
+        dim = L.shape[0]
+        for i in range(dim):
+            for j in range(dim):
+                stress_out[i, j] = 0.0
+        if dim == 2:
+            state_out[1] = 0.0
+        return
     T = trial(params, L, dt, stress, state)
     S = T
     if L.shape[0] == 2:

@@ -144,16 +144,26 @@ class State:
 
     @property
     def adaptive(self):
-        """The step size follows the current wave speed (finite strain, no
-        fixed dt); fixed for the run."""
+        """The step size follows the current wave speed (no fixed dt and a
+        finite-strain material without a wave speed bound); fixed for the run."""
         if self._adaptive is None:
-            self._adaptive = self.method.dt is None and self.scene.finite_strain
+            self._adaptive = self.method.dt is None and any(
+                m.finite_strain and bound is None for m, bound in self._bounds())
         return self._adaptive
 
-    def wave_speed(self):
+    def _bounds(self):
+        """(material, its wave_speed_bound of its particles) per body."""
         p = self.particles
-        speeds = [m.wave_speed(p if len(self.bodies) == 1 else p.subset(idx))
-                  for m, idx in self.bodies]
+        return [(m, m.wave_speed_bound(p if len(self.bodies) == 1 else p.subset(idx)))
+                for m, idx in self.bodies]
+
+    def wave_speed(self):
+        """The largest wave speed of the bodies: a finite-strain material's
+        bound where it has one (the step it sets holds for the whole run)."""
+        p = self.particles
+        speeds = [bound if m.finite_strain and bound is not None else
+                  m.wave_speed(p if len(self.bodies) == 1 else p.subset(idx))
+                  for (m, bound), (_, idx) in zip(self._bounds(), self.bodies)]
         return max(speeds)
 
     def _choose_time_step(self):
