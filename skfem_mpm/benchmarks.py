@@ -935,17 +935,22 @@ class ColumnCollapse(Benchmark):
                 "plastic_strain_max": float(p.state["plastic_strain"].max())}
 
 
-def thickness_front(x, volume, thickness, window):
-    """The largest c (on steps of window / 8 from 0) where the layer of
-    points x (n,) with volumes ``volume`` is at least ``thickness`` thick:
-    sum of the volumes with |x - c| < window / 2, over ``window``. 0 if
-    nowhere."""
+def deposit_thickness(x, volume, centres, window):
+    """The thickness of a layer of points x (n,) with volumes ``volume`` at
+    ``centres``: the sum of the volumes with |x - c| < window / 2, over
+    ``window``."""
     order = np.argsort(x)
     xs, cumulative = x[order], np.concatenate(([0.0], np.cumsum(volume[order])))
-    centres = np.arange(0.0, xs[-1] + window, window / 8)
     inside = cumulative[np.searchsorted(xs, centres + window / 2)] \
         - cumulative[np.searchsorted(xs, centres - window / 2, side="right")]
-    thick = np.flatnonzero(inside / window >= thickness)
+    return inside / window
+
+
+def thickness_front(x, volume, thickness, window):
+    """The largest centre c (on steps of window / 8 from 0) where the
+    :func:`deposit_thickness` is at least ``thickness``; 0 if nowhere."""
+    centres = np.arange(0.0, x.max() + window, window / 8)
+    thick = np.flatnonzero(deposit_thickness(x, volume, centres, window) >= thickness)
     return float(centres[thick[-1]]) if thick.size else 0.0
 
 
