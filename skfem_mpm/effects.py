@@ -552,7 +552,13 @@ class Wall(Effect, GridModifier):
 
     So a node in contact ends the step with zero normal velocity and its
     tangential velocity reduced by at most mu d_n (the Coulomb bound on the
-    impulse). MUSL's re-projected grid velocity (which moves the particles)
+    impulse). Only the side's functions are touched (with open knot
+    vectors, the first row); a particle near the wall also moves with the
+    next rows, which follow through the body's stress: a sliding body
+    loses tangential momentum at mu times the normal impulse however thin
+    it is, unless its own shear strength on planes parallel to the wall is
+    below mu (a Mohr-Coulomb material without dilation: sin(phi) in steady
+    simple shear), when it shears above the wall instead. MUSL's re-projected grid velocity (which moves the particles)
     gets the same rule with v* = v (``modify_velocity``). ``friction=0`` is a smooth (sliding) wall; ``Fixed`` stays the
     no-slip wall. The contact force is computed with the lumped mass, so
     the no-penetration condition is exact with ``mass="lumped"`` and
