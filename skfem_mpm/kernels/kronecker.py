@@ -164,7 +164,10 @@ def fit_kronecker(A, coords, Lx, Ly, Lz, inv_scale, bands, sums):
     row_sums = _axis_marginals(A, coords, Lx.shape[1] - 1, bands, sums)
     for d, L in enumerate((Lx, Ly, Lz)):
         n = L.shape[0]
-        if n == 1:
+        if n == 1:  # not applied: the identity (1 / L_00 = 1), its sums left out below
+            L[0, 0] = 1.0
+            for k in range(1, L.shape[1]):
+                L[0, k] = 0.0
             continue
         for i in range(n):
             if bands[d, i, 0] <= 0.0:
@@ -173,7 +176,9 @@ def fit_kronecker(A, coords, Lx, Ly, Lz, inv_scale, bands, sums):
         for i in range(n):
             L[i, 0] = 1.0 / L[i, 0]
     for r in range(A.shape[0]):
-        lk = sums[0, coords[r, 0]]
+        lk = 1.0
+        if Lx.shape[0] > 1:
+            lk *= sums[0, coords[r, 0]]
         if Ly.shape[0] > 1:
             lk *= sums[1, coords[r, 1]]
         if Lz.shape[0] > 1:
