@@ -57,7 +57,7 @@ from ..materials.state import state_layout
 from ..kernels.serial import for_threads
 from . import schemes
 from .compiled import side_traction
-from .compiled_loop_tables import ForceTable, PrescribedTable, reference_forces
+from .compiled_loop_tables import ForceTable, PrescribedTable, TractionTable, reference_forces
 from .stencil_system import StencilSystem, stencil_residual
 from .timestep import COVERED, effective_mass_ratio, fast_dof_limit
 
@@ -365,7 +365,6 @@ class StepLoop:
         self.forces = ForceTable(self.module, forces, state) if forces else None
         self.prescribed = PrescribedTable(self.module, state) \
             if state.constraints.prescribed else None
-        self.tables = [t for t in (self.forces, self.prescribed) if t is not None]
         fields.update(rc=None if recon is None else self._reconstruction(recon, p),
                       no_acceleration=np.zeros((nd if recon is not None else 1, dim)),
                       displacement=empty((n if recon is not None or side or forces else 1,
@@ -376,9 +375,10 @@ class StepLoop:
         if side is not None and fields["V0"].shape[0] != n:  # (a point law loads its own)
             fields["V0"] = np.ascontiguousarray(p.V0, dtype=np.float64)
         self.side, self.traction = side, fields["traction"]
+        tau = None if side is None else TractionTable(self.module, side, self.traction, state)
+        self.tables = [t for t in (self.forces, self.prescribed, tau) if t is not None]
         self.force_rules = fields["force_rules"] = self._rules(executor.force_modifiers)
         fields["velocity_rules"] = self._rules(executor.velocity_modifiers)
-        self._table = (0, 0)  # the steps the traction's table holds
         # consistent or hybrid mass: the run's mass system (None: lumped)
         self.cm = fields["cm"] = None if state.method.mass == "lumped" else \
             self._mass_system(state, k)
@@ -464,7 +464,7 @@ class StepLoop:
     def _side_traction(self, f, state, k):
         """The run's side traction (compiled_loop_traction) of the effect
         ``f`` (a SurfaceTraction of tau(t)); its table is filled before each
-        call of the loop (:meth:`_tabulate_traction`)."""
+        call of the loop (:class:`~skfem_mpm.solve.compiled_loop_tables.TractionTable`)."""
         dim, nd, count = state.grid.dim, state.grid.ndofs, f.index.size
         zeros = np.zeros
         fields = dict(
@@ -478,30 +478,6 @@ class StepLoop:
             force=zeros((nd, dim)), mass_range=zeros((k.nthreads, 2)))
         return self.module.new_side_traction(
             *(fields[name] for name in self.module.TRACTION_FIELDS))
-
-    def _tabulate_traction(self, state, n):
-        """tau(t) of the side traction at the times of the next n steps (and
-        of their rk4 stages: t + dt/2, t + dt), as the executor evaluates it
-        (its step's t: State.time_at), unless the table already
-        holds them (a loop that stopped early is called again on the same
-        steps); False when tau does not return one vector of the grid's
-        dimension (the executor takes the run)."""
-        first, rows = self._table
-        if first <= state.step and state.step + n <= first + rows:
-            return True
-        dim, dt = state.grid.dim, state.dt
-        table = np.zeros((n, 3, dim))
-        stages = (0.0, 0.5, 1.0) if self.scheme == "rk4" else (0.0,)
-        for j in range(n):
-            t = state.t if j == 0 else state.time_at(state.step + j)
-            for column, c in enumerate(stages):
-                tau = np.asarray(self.side.effect.traction(None, t + c * dt), dtype=np.float64)
-                if tau.size != dim:
-                    return False
-                table[j, column] = tau.reshape(dim)
-        self.module.set_traction_table(self.traction, table, int(state.step))
-        self._table = (int(state.step), n)
-        return True
 
     def _reconstruction(self, recon, p):
         """The reconstruction data of the run (compiled_loop_reconstruct), with
@@ -668,9 +644,6 @@ class StepLoop:
             nd, dim = self.executor.kernels.ndofs, self._arrays[0].shape[1]
             self.module.load_warm(self.cm, np.zeros((2, nd, dim)), np.zeros(2, dtype=np.bool_))
             self.module.mass_records(self.cm)
-        if self.traction is not None:
-            dim = self._arrays[0].shape[1]
-            self.module.set_traction_table(self.traction, np.zeros((1, 3, dim)), 0)
         for table in self.tables:
             table.compile()
         self.module.load_state(self.run_state, *self._arrays, 0.0, 0, 0.0)
@@ -706,9 +679,6 @@ class StepLoop:
         for table in self.tables:  # the steps their tables hold (a body force: a chunk)
             n = table.cover(state, n)
         if n == 0:  # an effect's function raised: the executor takes the step
-            return 0
-        if self.traction is not None and not self._tabulate_traction(state, n):
-            self.retired = True
             return 0
         consistent = self.cm is not None
         if consistent:

@@ -1,8 +1,9 @@
 """The Python side of the compiled loop's tabulated effects: a body force's
-f_p and the prescribed velocities, evaluated ahead at the times of the
+f_p, the prescribed velocities and a side traction's tau, evaluated ahead at the times of the
 steps a call of the loop may take (the effects' functions are Python;
 the loop reads the tables: :mod:`skfem_mpm.solve.compiled_loop_body_force`,
-:mod:`skfem_mpm.solve.compiled_loop_prescribed`).
+:mod:`skfem_mpm.solve.compiled_loop_prescribed`,
+:mod:`skfem_mpm.solve.compiled_loop_traction`).
 
 Each table covers the steps from ``first`` to ``first + rows``; a loop that
 stopped early is called again on steps the table holds, which it keeps.
@@ -15,7 +16,7 @@ import numpy as np
 
 from .runge_kutta import velocity_rate
 
-__all__ = ["ForceTable", "PrescribedTable", "reference_forces"]
+__all__ = ["ForceTable", "PrescribedTable", "TractionTable", "reference_forces"]
 
 STAGE_TIMES = {"rk4": (0.0, 0.5, 1.0)}
 """The fractions c of dt at which a scheme evaluates its forces (others: t only)."""
@@ -141,3 +142,31 @@ class PrescribedTable(_Table):
 
     def compile(self):
         self.set(np.zeros((1,) + self.shape), 0)
+
+
+class TractionTable(_Table):
+    """tau(t) of a side traction (the loop's SideTraction reads column 0 at
+    t, 1 at t + dt/2, 2 at t + dt); a tau that is not one vector of the
+    grid's dimension ends the table there (the executor takes the step)."""
+
+    chunk = 1 << 62  # a few numbers per step
+
+    def __init__(self, module, side, record, state):
+        super().__init__(state.method.scheme)
+        self.module, self.side, self.record = module, side, record
+        self.dim = state.grid.dim
+
+    def empty(self, n):
+        return np.zeros((n, 3, self.dim))
+
+    def evaluate(self, state, t, c, out):
+        tau = np.asarray(self.side.effect.traction(None, t + c * state.dt), dtype=np.float64)
+        if tau.size != self.dim:
+            raise ValueError(f"tau(t) must give {self.dim} components, got {tau.size}")
+        out[...] = tau.reshape(self.dim)
+
+    def set(self, table, first):
+        self.module.set_traction_table(self.record, table, first)
+
+    def compile(self):
+        self.set(np.zeros((1, 3, self.dim)), 0)
