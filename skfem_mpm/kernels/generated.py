@@ -97,7 +97,7 @@ def module_header(*imports):
         "import numpy as np",
         "from numba import njit, prange",
         "",
-        "from skfem_mpm.kernels.stencil import axis_functions",
+        "from skfem_mpm.kernels.stencil import closed_axis_functions, extracted_axis_functions",
         "from skfem_mpm.kernels.weights import FAST",
         *imports,
         "",

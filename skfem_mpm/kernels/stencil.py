@@ -18,7 +18,12 @@ uniform axis (p <= e < cells - p) the closed form of the uniform B-spline
 pieces (de Boor, A Practical Guide to Splines, 1978, ch. IX), elsewhere
 the cell's Bezier extraction matrix applied to the Bernstein polynomials
 (Borden et al. 2011, eq. 8; :mod:`skfem_mpm.kernels.weights`). Both return
-scalars, so a kernel keeps a particle's weights in registers.
+scalars, so a kernel keeps a particle's weights in registers. The generated
+kernels call the closed form (:func:`closed_axis_functions`) with scalars
+only and the extraction, not inlined, where it does not apply: an inlined
+function of arrays makes numba count references to them on every call,
+which the serial kernels (no parallel region to outline the loop into)
+paid per particle and axis.
 
 :func:`stencil_rows` and :func:`row_products` write the source text of the
 loops over the (p + 1)^dim nodes for the kernels generated per dimension
@@ -30,7 +35,8 @@ from numba import njit
 
 from .weights import FAST, bernstein4, locate_axis_point
 
-__all__ = ["axis_functions", "row_products", "stencil_rows"]
+__all__ = ["axis_functions", "closed_axis_functions", "extracted_axis_functions",
+           "row_products", "stencil_rows"]
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def axis_functions(x, breaks, uniform, inv_h, C, p):
@@ -43,24 +49,36 @@ def axis_functions(x, breaks, uniform, inv_h, C, p):
     p = 3: (r^3, 3 xi^3 - 6 xi^2 + 4, -3 xi^3 + 3 xi^2 + 3 xi + 1, xi^3) / 6.
     Other cells: extraction of the Bernstein polynomials. A NaN coordinate
     takes the extraction path (the comparisons on t are false)."""
-    ncells = breaks.shape[0] - 1
-    t = (x - breaks[0]) * inv_h
+    closed, e, w0, w1, w2, w3, g0, g1, g2, g3 = closed_axis_functions(
+        x, breaks[0], breaks.shape[0] - 1, uniform, inv_h, p)
+    if closed:
+        return e, w0, w1, w2, w3, g0, g1, g2, g3
+    return extracted_axis_functions(x, breaks, uniform, inv_h, C, p)
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def closed_axis_functions(x, first_break, ncells, uniform, inv_h, p):
+    """(True, e, w_0..w_3, g_0..g_3) of :func:`axis_functions` on an
+    interior cell of a uniform axis (its first breakpoint ``first_break``,
+    ``ncells`` cells), else (False, 0, zeros): the closed form only, of
+    scalars only (see the module)."""
+    t = (x - first_break) * inv_h
     if uniform and t >= p and t < ncells - p:
         e = int(t)
         xi = t - e
         r = 1.0 - xi
         if p == 1:
-            return e, r, xi, 0.0, 0.0, -inv_h, inv_h, 0.0, 0.0
+            return True, e, r, xi, 0.0, 0.0, -inv_h, inv_h, 0.0, 0.0
         if p == 2:
-            return (e, 0.5 * r * r, 0.5 + xi * r, 0.5 * xi * xi, 0.0,
+            return (True, e, 0.5 * r * r, 0.5 + xi * r, 0.5 * xi * xi, 0.0,
                     -r * inv_h, (1.0 - 2.0 * xi) * inv_h, xi * inv_h, 0.0)
         xi2 = xi * xi
         xi3 = xi2 * xi
-        return (e, r * r * r / 6.0, (3.0 * xi3 - 6.0 * xi2 + 4.0) / 6.0,
+        return (True, e, r * r * r / 6.0, (3.0 * xi3 - 6.0 * xi2 + 4.0) / 6.0,
                 (-3.0 * xi3 + 3.0 * xi2 + 3.0 * xi + 1.0) / 6.0, xi3 / 6.0,
                 -0.5 * r * r * inv_h, (1.5 * xi2 - 2.0 * xi) * inv_h,
                 (-1.5 * xi2 + xi + 0.5) * inv_h, 0.5 * xi2 * inv_h)
-    return extracted_axis_functions(x, breaks, uniform, inv_h, C, p)
+    return False, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
@@ -111,17 +129,26 @@ def weight_names(d, p):
 def axis_fields(dim):
     """Lines unpacking the grid record's axes (before a parallel loop, which
     takes arrays and scalars only)."""
-    return [f"b{d}, u{d}, ih{d}, C{d} = grid[0][{d}]" for d in range(dim)]
+    lines = []
+    for d in range(dim):
+        lines += [f"b{d}, u{d}, ih{d}, C{d} = grid[0][{d}]",
+                  f"first_break{d} = b{d}[0]", f"ncells{d} = b{d}.shape[0] - 1"]
+    return lines
 
 
 def axis_calls(dim, p, x="x", i="i"):
-    """Lines computing every axis' cell, values and derivatives of particle i."""
+    """Lines computing every axis' cell, values and derivatives of particle i
+    (:func:`axis_functions`: the closed form, else the extraction)."""
     lines = []
     for d in range(dim):
         e, w, g = weight_names(d, p)
         pad = ["_"] * (3 - p)
         lhs = ", ".join([e] + w + pad + g + pad)
-        lines.append(f"{lhs} = axis_functions({x}[{i}, {d}], b{d}, u{d}, ih{d}, C{d}, {p})")
+        xd = f"{x}[{i}, {d}]"
+        lines += [f"closed{d}, {lhs} = closed_axis_functions({xd}, first_break{d}, ncells{d}, "
+                  f"u{d}, ih{d}, {p})",
+                  f"if not closed{d}:",
+                  f"    {lhs} = extracted_axis_functions({xd}, b{d}, u{d}, ih{d}, C{d}, {p})"]
     return lines
 
 
