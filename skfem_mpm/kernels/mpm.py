@@ -25,6 +25,7 @@ from .fringe import apply_corrected
 from .kronecker import apply_kronecker, apply_kronecker_axes
 from .scatter import holders
 from .serial import for_threads
+from .stencil import closed_axis_functions
 from .tiny_mass import merged_lumped_solve_axes
 from .transfer import Transfers
 from .weights import FAST, extracted_functions, locate_axis_point
@@ -72,24 +73,6 @@ def _axis(x, breaks, uniform, inv_h, C, p, w, dw):
     return e
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _quadratic_interior(x, breaks, inv_h):
-    """Uniform quadratic axis, scalar form of :func:`_axis` for interior
-    cells (2 <= e < cells - 2): (e, w0, w1, w2, dw0, dw1, dw2); e = -1 for
-    the boundary cells, which take the general path. Keeping the weights in
-    registers instead of small arrays roughly halves the 1D kernels' time.
-    The local coordinate is xi = t - e with t = (x - u_0) / h (no load of
-    the cell's breakpoint)."""
-    t = (x - breaks[0]) * inv_h
-    e = int(np.floor(t))
-    if e < 2 or e >= breaks.shape[0] - 3:  # also catches NaN (e is then negative)
-        return -1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    xi = t - e
-    r = 1.0 - xi
-    return (e, 0.5 * r * r, 0.5 + xi * r, 0.5 * xi * xi,
-            -r * inv_h, (1.0 - 2.0 * xi) * inv_h, xi * inv_h)
-
-
 # A scatter kernel adds into its thread's copy of the grid and records the
 # node range it touched (touched[t] = first, last + 1); the copy is zero
 # outside that range. The next call zeros only that range before adding,
@@ -120,10 +103,11 @@ def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies, touched):
     each thread touches (``touched``, as the scatter kernels).
     :func:`reduce_stencil` sums them and mirrors the rest. Quadratic
     interior particles of a uniform axis keep their weights in registers
-    (:func:`_quadratic_interior`; the same sums in the same order)."""
+    (:func:`~skfem_mpm.kernels.stencil.closed_axis_functions`; the same sums in the same order)."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
     quadratic = p == 2 and ux
+    x0, ncx = bx[0], bx.shape[0] - 1
     for t in prange(nt):
         M = mass_copies[t]
         K = stiff_copies[t]
@@ -138,8 +122,9 @@ def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies, touched):
         for i in range(lo, hi):
             mi = m[i]
             if quadratic:
-                e, w0, w1, w2, d0, d1, d2 = _quadratic_interior(x[i, 0], bx, ihx)
-                if e >= 0:
+                interior, e, w0, w1, w2, _, d0, d1, d2, _ = closed_axis_functions(
+                    x[i, 0], x0, ncx, ux, ihx, 2)
+                if interior:
                     first = min(first, e)
                     last = max(last, e + 3)
                     K[e] += mi * d0 * d0
@@ -231,6 +216,7 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
     nt = mass_copies.shape[0]
     width = 2 * p + 1
     quadratic = p == 2 and ux and uy
+    x0, ncx, y0, ncy = bx[0], bx.shape[0] - 1, by[0], by.shape[0] - 1
     for t in prange(nt):
         M = mass_copies[t]
         K = stiff_copies[t]
@@ -252,9 +238,11 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
         for i in range(lo, hi):
             mi = m[i]
             if quadratic:
-                ex, wx0, wx1, wx2, dx0, dx1, dx2 = _quadratic_interior(x[i, 0], bx, ihx)
-                ey, wy0, wy1, wy2, dy0, dy1, dy2 = _quadratic_interior(x[i, 1], by, ihy)
-                if ex >= 0 and ey >= 0:
+                in_x, ex, wx0, wx1, wx2, _, dx0, dx1, dx2, _ = closed_axis_functions(
+                    x[i, 0], x0, ncx, ux, ihx, 2)
+                in_y, ey, wy0, wy1, wy2, _, dy0, dy1, dy2, _ = closed_axis_functions(
+                    x[i, 1], y0, ncy, uy, ihy, 2)
+                if in_x and in_y:
                     if ex != run_x or ey != run_y:
                         _flush_mass_window(M, K, S, Kw, run_x, run_y, nbx)
                         run_x = ex
