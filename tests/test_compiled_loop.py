@@ -445,6 +445,9 @@ LAW_CASES = [  # every scheme x mass pair, each material in both dimensions it m
     dict(material="von-mises", dim=2, scheme="musl", mass="consistent", degree=1, aligned=True),
     dict(material="mohr-coulomb", dim=2, scheme="usl", mass="lumped", degree=2,
          reconstruction="tls", ppc=3),
+    # rk4 stages a finite-strain law at each stage's F (dF/dt = L F, the law with dt = 0)
+    dict(material="neo-hookean", dim=1, scheme="rk4", mass="consistent", degree=3),
+    dict(material="neo-hookean", dim=2, scheme="rk4", mass="lumped", degree=2),
 ]
 
 
@@ -489,8 +492,8 @@ def test_point_laws_give_the_executors_bits(monkeypatch, case):
 
 def test_the_point_law_cases_cover_every_pair():
     pairs = {(c["scheme"], c["mass"]) for c in LAW_CASES}
-    assert pairs == {(s, m) for s in ("musl", "usl", "cd") for m in ("lumped", "consistent")
-                     } | {("musl", "hybrid")}
+    assert pairs == {(s, m) for s in ("musl", "usl", "cd", "rk4")
+                     for m in ("lumped", "consistent")} | {("musl", "hybrid")}
     for material in ("custom-compiled", "neo-hookean"):
         assert {c["dim"] for c in LAW_CASES if c["material"] == material} == {1, 2}
 
@@ -642,8 +645,9 @@ def test_what_the_loop_leaves_to_the_executor():
     for material, scheme, why in [
             (CappedStress(10.0, 0.3, 0.05), "musl",
              "a material without a compiled point law (point_update None)"),
-            (NeoHookean(10.0, 0.3), "rk4",
-             "rk4 with a material other than linear elasticity (its NumPy rate laws)"),
+            (UnfusedLinearElastic(10.0, 0.3), "rk4",
+             "rk4 with a small-strain material other than linear elasticity (its NumPy "
+             "stress_rate)"),
             (CappedStressCompiled(10.0, 0.3, 0.05), "cd", "")]:
         state = prepare(Scene(grid, Body(particles, material), scene.t_end, effects=effects),
                         Method(scheme=scheme))
@@ -657,6 +661,11 @@ def test_what_the_loop_leaves_to_the_executor():
     state = prepare(neo, Method(scheme="musl"))  # finite strain: dt adaptive by default
     assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
         (False, "an adaptive time step")
+
+
+class UnfusedLinearElastic(LinearElastic):
+    """Linear elasticity not fused into the transfer kernels (its type is not
+    LinearElastic): a small-strain point law with a NumPy stress rate."""
 
 
 def box_scene(scheme, degree, effect, steps=13):

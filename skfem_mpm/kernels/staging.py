@@ -16,7 +16,7 @@ from F afterwards (sigma(F), V0 det F).
 """
 from numba import njit, prange
 
-__all__ = ["combine_stages"]
+__all__ = ["combine_stages", "deformation_rate"]
 
 
 @njit(cache=True, inline="always")
@@ -60,3 +60,18 @@ def combine_stages(c, x, u, v, stress, V, F, kx, kv, ks, kV, kF, small, finite,
                 for a in range(dim):
                     for b in range(dim):
                         F_out[i, a, b] = _sum(F[i, a, b], c, kF, i, a, b)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def deformation_rate(L, F, out, nt):
+    """out_i = L_i F_i (n, dim, dim) for every particle i, in ``nt`` blocks:
+    the rate of the deformation gradient, dF/dt = L F."""
+    n, dim = L.shape[0], L.shape[1]
+    for t in prange(nt):
+        for i in range(t * n // nt, (t + 1) * n // nt):
+            for a in range(dim):
+                for b in range(dim):
+                    s = 0.0
+                    for c in range(dim):
+                        s += L[i, a, c] * F[i, c, b]
+                    out[i, a, b] = s

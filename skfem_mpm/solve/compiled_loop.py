@@ -18,7 +18,8 @@ step and raises, removes or merges as its docstrings say.
 
 Materials: one body, linear elastic (fused into the transfer kernels) or,
 with MUSL, USL and CD, a material with a compiled point law, updated by the
-executor's constitutive kernel inside the loop; the loop hands the new F
+executor's constitutive kernel inside the loop (with rk4 a finite-strain
+one, its law called at each stage's F); the loop hands the new F
 (finite strain) and the material state (views of its packed buffer) back
 to ``state.particles`` as the executor does, and loads them again after
 the executor has taken a step.
@@ -85,6 +86,7 @@ _GRID_KERNELS = {
     "SMALL_MASS_2D": mpm.small_mass_2d,
     "SMALL_MASS_AXES": mpm.small_mass_axes,
     "COMBINE_STAGES": staging.combine_stages,
+    "DEFORMATION_RATE": staging.deformation_rate,
     # a material's compiled point law (not fused linear elasticity)
     "MATERIAL_UPDATE": constitutive.material_update,
     # reconstruction (compiled_loop_reconstruct)
@@ -132,8 +134,9 @@ def loop_applies(state, executor):
         (len(state.bodies) != 1 and not fused, "several bodies of different materials"),
         (not fused and not getattr(executor, "point_laws", False),
          "a material without a compiled point law (point_update None)"),
-        (not fused and m.scheme == "rk4",
-         "rk4 with a material other than linear elasticity (its NumPy rate laws)"),
+        (not fused and m.scheme == "rk4" and not executor.finite,
+         "rk4 with a small-strain material other than linear elasticity (its NumPy "
+         "stress_rate)"),
         (not fused and len(state.bodies) == 1 and not isinstance(state.bodies[0][1], slice),
          "a body of some of the particles"),
         (not _side_tractions_only(executor), "particle forces other than gravity, one "
@@ -356,8 +359,8 @@ class StepLoop:
             phase_ns=np.zeros(len(self.PHASES), dtype=np.int64), nthreads=int(k.nthreads),
             p2g_at=0, g2p2g_at=0, g2p_at=0, rates_at=0)
         fields.update(executor.grid_arrays())  # mass, momentum, force, ..., v_old
-        fields.update(self._stage_arrays(n if self.scheme == "rk4" else 1, dim, fields))
         fields.update(self._law_arrays(material, executor, n, dim, k.nthreads))
+        fields.update(self._stage_arrays(n if self.scheme == "rk4" else 1, dim, fields))
         recon = executor.recon
         forces = reference_forces(executor.other_forces)
         side = next((f for f in executor.other_forces if not f.reference_only), None)
@@ -440,14 +443,18 @@ class StepLoop:
 
     def _stage_arrays(self, n, dim, fields):
         """The rk4 arrays of n particles (see compiled_loop_ops.FIELDS; other
-        schemes: n = 1, and the reactions read the step's own grid arrays)."""
+        schemes: n = 1, and the reactions read the step's own grid arrays;
+        F's only for a finite-strain point law, after :meth:`_law_arrays`)."""
         empty, zeros = np.empty, np.zeros
         stages = 4
+        staged_F = self.scheme == "rk4" and self.finite
         arrays = dict(
             x_stage=empty((n, dim)), v_stage=empty((n, dim)), u_stage=empty((n, dim)),
             V_stage=empty(n), stress_stage=empty((n, dim, dim)), rate_x=zeros((stages, n, dim)),
             rate_v=zeros((stages, n, dim)), rate_stress=zeros((stages, n, dim, dim)),
-            rate_V=zeros((stages, n)), rate_F=zeros((1, 1, 1, 1)), power=zeros(stages),
+            rate_V=zeros((stages, n)),
+            rate_F=zeros((stages, n, dim, dim) if staged_F else (1, 1, 1, 1)),
+            F_stage=empty((n, dim, dim) if staged_F else (1, 1, 1)), power=zeros(stages),
             stage_weights=zeros(stages), next_stage=0)
         for name in ("mass", "a", "force"):
             own = fields[name]

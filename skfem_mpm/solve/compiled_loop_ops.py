@@ -37,7 +37,8 @@ particle-knot spline reconstruction or the published TLS reconstruction
 TLSReconstruction); a run of each kind compiles only its own operations;
 one body, or several of one linear elastic material: linear elastic (its stress update fused into g2p, its stress
 rate into the rk4 rates gather; ``run.law_at`` None), or with MUSL, USL
-and CD a material with a compiled point law (``run.law_at``: the address
+and CD (rk4: finite strain, the law at each stage's F) a material with a
+compiled point law (``run.law_at``: the address
 of its C callback): g2p stores L and the executor's constitutive kernel
 (``MATERIAL_UPDATE``, :mod:`skfem_mpm.kernels.constitutive`) writes the
 new stress, V, F (finite strain) and packed material state into the
@@ -105,11 +106,12 @@ FIELDS = (
     # the native entry points of the run's degree's transfer kernels (call_at)
     "p2g_at", "g2p2g_at", "g2p_at", "rates_at",
     # rk4 (placeholders of one particle for the other schemes): the stage
-    # particles, the rates of the four stages (leading stage axis), each
+    # particles, the rates of the four stages (leading stage axis; F's and
+    # the stage F only for a finite-strain point law), each
     # stage's power of the external forces, the weights times dt of a
     # combination, the next stage's slot
     "x_stage", "v_stage", "u_stage", "V_stage", "stress_stage", "rate_x", "rate_v",
-    "rate_stress", "rate_V", "rate_F", "power", "stage_weights", "next_stage",
+    "rate_stress", "rate_V", "rate_F", "F_stage", "power", "stage_weights", "next_stage",
     # the grid arrays the reactions come from: the step's own (mass, a,
     # force), or with rk4 copies of its first stage's
     "reaction_mass", "reaction_a", "reaction_force",
@@ -682,6 +684,7 @@ def _stage_rates(run, state, particles, c, reactions=False):
     traction = _traction(run)
     body_force = _body_force(run)
     modified = _force_rules(run)
+    point_law = _point_law(run)
 
     def impl(run, state, particles, c, reactions=False):
         """R(t + c dt, particles): particles to grid, M v = P and M a = f,
@@ -717,9 +720,14 @@ def _stage_rates(run, state, particles, c, reactions=False):
             if consistent:
                 keep_stage_mass(run.cm)
         t1 = monotonic_ns()
-        RATES(run.rates_at, particles, run.grid, run.a, run.v_old, (True, run.lam, run.mu),
-              run.nthreads, run.rate_x[slot], run.rate_v[slot], run.L, run.rate_stress[slot],
-              run.rate_V[slot])
+        # fused linear elasticity: its stress rate; a point law: L, and with
+        # finite strain dF/dt = L F at the stage's F (the current one first)
+        RATES(run.rates_at, particles, run.grid, run.a, run.v_old,
+              (not point_law, run.lam, run.mu), run.nthreads, run.rate_x[slot],
+              run.rate_v[slot], run.L, run.rate_stress[slot], run.rate_V[slot])
+        if point_law and run.finite:
+            DEFORMATION_RATE(run.L, run.F if slot == 0 else run.F_stage, run.rate_F[slot],
+                             run.nthreads)
         power = 0.0
         if run.gravity_work and reconstructed:  # the particles' m_p dx_p/dt . g
             power = run.gravity_power(run.m, run.rate_x[slot])
@@ -738,16 +746,34 @@ def _stage_rates(run, state, particles, c, reactions=False):
 
 
 @overload_method(RunType, "combine_into")
-def _combine_into(run, rates, weights, x, u, v, stress, V):
-    def impl(run, rates, weights, x, u, v, stress, V):
-        """(x, u, v, stress, V) = y_n + dt sum_s w_s k_s (kernels.staging)."""
+def _combine_into(run, rates, weights, x, u, v, stress, V, F):
+    point_law = _point_law(run)
+
+    def impl(run, rates, weights, x, u, v, stress, V, F):
+        """(x, u, v, stress, V) = y_n + dt sum_s w_s k_s (kernels.staging);
+        a finite-strain point law: F likewise, then sigma = law(F) and
+        V = V0 det F (the constitutive kernel with dt = 0, as the
+        executor's CompiledRungeKutta._law_stage); J <= 0 stops. Returns
+        the nanoseconds of the law (the constitutive phase)."""
         c = run.stage_weights
         c[:] = 0.0
         for s in range(len(rates)):
             c[rates[s]] += weights[s] * run.dt
-        COMBINE_STAGES(c, run.x, run.u, run.v, run.stress, run.V, run.L, run.rate_x,
-                       run.rate_v, run.rate_stress, run.rate_V, run.rate_F, True, False, x, u,
-                       v, stress, V, run.L, run.nthreads)
+        finite = point_law and run.finite
+        COMBINE_STAGES(c, run.x, run.u, run.v, run.stress, run.V,
+                       run.F if finite else run.L, run.rate_x, run.rate_v, run.rate_stress,
+                       run.rate_V, run.rate_F, not finite, finite, x, u, v, stress, V,
+                       F if finite else run.L, run.nthreads)
+        if not finite:
+            return 0
+        t0 = monotonic_ns()
+        MATERIAL_UPDATE(run.law_at, run.law_params, run.no_index, True, run.L, 0.0, True,
+                        stress, F, V, run.V0, run.mstate, stress, F, V, run.mstate_new,
+                        run.law_flags)
+        for t in range(run.law_flags.shape[0]):
+            if run.law_flags[t] >= 0:
+                run.stop = 2
+        return monotonic_ns() - t0
     return impl
 
 
@@ -759,12 +785,13 @@ def _stage(run, state, rates, weights):
         if run.stop:
             return stage
         t0 = monotonic_ns()
-        run.combine_into(rates, weights, run.x_stage, run.u_stage, run.v_stage,
-                         run.stress_stage, run.V_stage)
+        law = run.combine_into(rates, weights, run.x_stage, run.u_stage, run.v_stage,
+                               run.stress_stage, run.V_stage, run.F_stage)
         for i in range(run.V_stage.shape[0]):
             if not run.V_stage[i] > 0.0:
                 run.stop = 2
-        run.phase_ns[2] += monotonic_ns() - t0
+        run.phase_ns[2] += monotonic_ns() - t0 - law
+        run.phase_ns[5] += law
         return stage
     return impl
 
@@ -779,11 +806,12 @@ def _combine(run, state, rates, weights):
         if run.stop:
             return 0.0
         t0 = monotonic_ns()
-        run.combine_into(rates, weights, run.x_new, run.u_new, run.v_new, run.stress_new,
-                         run.V_new)
+        law = run.combine_into(rates, weights, run.x_new, run.u_new, run.v_new,
+                               run.stress_new, run.V_new, run.F_new)
         if not _valid_state(run.x_new, run.v_new, run.stress_new, run.V_new, run.grid[0]):
             run.stop = 2
-        run.phase_ns[2] += monotonic_ns() - t0
+        run.phase_ns[2] += monotonic_ns() - t0 - law
+        run.phase_ns[5] += law
         power = 0.0
         for s in range(len(rates)):
             power += weights[s] * run.power[rates[s]]

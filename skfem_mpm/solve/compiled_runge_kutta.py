@@ -18,18 +18,25 @@ stage, R(t, y) at the staged particles y:
                             linear elasticity, its stress rate, else L
                             (:mod:`skfem_mpm.kernels.gather`); other
                             small-strain materials' ``stress_rate``; L F
+                            (:func:`~skfem_mpm.kernels.staging.deformation_rate`
+                            for one body)
 
 The rates of the stages sit in preallocated arrays with a leading stage
 axis; ``stage`` and ``combine`` form y_n + dt sum_s w_s k_s in one kernel
 (:mod:`skfem_mpm.kernels.staging`), then a finite-strain material's
-sigma(F) and V0 det F. A stage's particles live in one reused set of
+sigma(F) and V0 det F: for one body with a compiled point law, the
+constitutive kernel with dt = 0 (A = I, so F stays and the law is called at
+the staged F; a stageable material's law is its sigma(F), see
+:func:`~skfem_mpm.solve.runge_kutta.staging_error`), as the compiled loop
+does; else its NumPy ``cauchy_stress``. A stage's particles live in one reused set of
 arrays; the step's result goes into the executor's second set of particle
 arrays, current only after ``commit``.
 """
 import numpy as np
 
 from ..errors import InvalidState
-from ..kernels.staging import combine_stages
+from ..kernels.constitutive import material_update
+from ..kernels.staging import combine_stages, deformation_rate
 from ..kernels.traction import loads_power
 from .runge_kutta import check_stage_volumes, finite_strain_stage, prescribed_acceleration
 
@@ -157,7 +164,8 @@ class CompiledRungeKutta:
             for material, index in state.bodies:
                 if material.finite_strain:
                     if single:
-                        np.matmul(L, particles.F, out=rk.F[slot])
+                        self.kernels.kernel(deformation_rate)(L, particles.F, rk.F[slot],
+                                                              self.kernels.nthreads)
                     else:
                         rk.F[slot][index] = L[index] @ particles.F[index]
                 else:
@@ -181,9 +189,29 @@ class CompiledRungeKutta:
             combine(c, p.x, p.u, p.v, p.stress, p.V, F, rk.x, rk.v, rk.stress, rk.V, rk.F, small,
                     finite, out["x"], out["u"], out["v"], out["stress"], out["V"], F_out,
                     self.kernels.nthreads)
-        if finite:
+        if finite and self.point_laws and len(state.bodies) == 1:
+            self._law_stage(state, F_out, out["stress"], out["V"])
+        elif finite:
             finite_strain_stage(state, F_out, out["stress"], out["V"])
         check_stage_volumes(out["V"])
+
+    def _law_stage(self, state, F, stress, V):
+        """sigma = law(F) and V = V0 det F of one finite-strain body with a
+        compiled point law at the staged F (the constitutive kernel with
+        dt = 0: A = I leaves F as it is); InvalidState at the first J <= 0."""
+        material, p = state.bodies[0][0], state.particles
+        flags = self._first_bad
+        no_state = self.kernels.scratch("no_state", (p.n, 0))
+        with state.timer("constitutive"):
+            self.kernels.kernel(material_update)(
+                material.point_update.address(), material.point_parameters(p.dim),
+                self._no_index, True, self._rk.L, 0.0, True, stress, F, V, p.V0, no_state,
+                stress, F, V, no_state, flags)
+        hits = flags[flags >= 0]
+        if hits.size:
+            k = int(hits.min())
+            raise InvalidState(f"J = det F <= 0 at particle {k} in a Runge-Kutta stage",
+                               particle=k)
 
     def stage(self, state, rates, weights):
         """The stage particles y_n + dt sum_s w_s k_s (in reused arrays)."""
