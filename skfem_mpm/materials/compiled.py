@@ -30,6 +30,8 @@ use in each process (about a second); the built-in laws' callbacks
 
 The volume (V <- V det(I + dt L); V0 det F for finite strain) and F
 (F <- (I + dt L) F) are kinematics: the kernel updates them, not the law.
+With ``scheme="rk4"`` a finite-strain law without state is called at each
+stage's F with dt = 0 and must give sigma(F) there (its ``cauchy_stress``).
 """
 import importlib
 

@@ -43,7 +43,10 @@ kinematic state alone: a small-strain material through its stress rate
 through sigma(F) (hyperelasticity: ``cauchy_stress(F)``). Path-dependent
 materials (plasticity, per-particle state fields) are refused by
 :func:`check_staged`: their return mapping is not a rate the stages can
-combine.
+combine. The compiled executor and loop stage one finite-strain body with
+a compiled point law through that law, called at the staged F with
+dt = 0: a stageable material's law must then return its sigma(F), the
+``cauchy_stress`` this module calls.
 
 The external work of a step is the RK4 quadrature of the power of the
 particle forces, dt sum_s b_s sum_p f_p(stage s) . dx_p/dt(stage s); the
