@@ -54,8 +54,8 @@ from numba import njit
 from .weights import extracted_functions, locate_axis_point
 
 __all__ = ["LOCAL_DAMPING", "FRICTIONAL_WALL", "FOOTING", "RULE_STATE", "GridRule",
-           "pack_rules", "local_damping", "wall_force", "wall_velocity", "footing_force",
-           "footing_velocity", "modify_forces", "modify_velocities"]
+           "pack_rules", "local_damping", "wall_force", "wall_velocity", "footing_columns",
+           "footing_force", "footing_velocity", "modify_forces", "modify_velocities"]
 
 LOCAL_DAMPING = 1
 FRICTIONAL_WALL = 2
@@ -219,22 +219,17 @@ def footing_base(parameters, data, y_b, w, dw):
 
 
 @njit(cache=True, error_model="numpy")
-def footing_force(columns, parameters, data, state, force, velocity, mass, dt, reaction):
-    """The footing's contact force added to ``force`` (see the module);
-    ``reaction`` (dim,) the sum of the contact forces; the state's clock
-    advances by dt and its y_b is the base of this step."""
-    nd, dim = force.shape
-    base, speed, ramp = parameters[0], parameters[1], parameters[2]
-    rough = parameters[3] != 0.0
-    stride = int(parameters[4])
-    ncells = int(parameters[5])
-    p = int(parameters[6])
-    t = state[0]
-    y_b = min(max(base - footing_settlement(t, speed, ramp), data[0]), data[ncells])
-    w = np.empty(p + 1)
-    dw = np.empty(p + 1)
-    first = footing_base(parameters, data, y_b, w, dw)
-    target = footing_velocity_at(t + dt, speed, ramp)
+def footing_columns(columns, stride, first, w, rough, target, mass, velocity, force, dt,
+                    forced, reaction):
+    """The footing's correction on each column's dofs c + stride (first + a)
+    with the vertical weights w (see the module). ``forced``: the force
+    form (v* = v + dt f / m; f += w lambda, lambda = (v_F - sum w v*) /
+    (dt S), ``reaction`` the sum); else the velocity form (v* = v;
+    v += w mu / m, mu = (v_F - sum w v) / S; ``force`` and ``reaction`` not
+    used). v_F = ``target`` vertically, 0 horizontally (rough); dofs
+    without mass are left out (S = sum w^2 / m over the others)."""
+    dim = velocity.shape[1]
+    p = w.shape[0] - 1
     for c in range(dim):
         reaction[c] = 0.0
     for j in range(columns.shape[0]):
@@ -254,14 +249,40 @@ def footing_force(columns, parameters, data, state, force, velocity, mass, dt, r
                 k = columns[j] + stride * (first + a)
                 m = mass[k]
                 if m > 0.0:
-                    moved += w[a] * (velocity[k, c] + dt * force[k, c] / m)
-            lam = (goal - moved) / (dt * S)
+                    v = velocity[k, c] + dt * force[k, c] / m if forced else velocity[k, c]
+                    moved += w[a] * v
+            if forced:
+                lam = (goal - moved) / (dt * S)
+            else:
+                lam = (goal - moved) / S
             for a in range(p + 1):
                 k = columns[j] + stride * (first + a)
-                if mass[k] > 0.0:
-                    contact = w[a] * lam
-                    force[k, c] += contact
-                    reaction[c] += contact
+                m = mass[k]
+                if m > 0.0:
+                    if forced:
+                        contact = w[a] * lam
+                        force[k, c] += contact
+                        reaction[c] += contact
+                    else:
+                        velocity[k, c] += w[a] * lam / m
+
+
+@njit(cache=True, error_model="numpy")
+def footing_force(columns, parameters, data, state, force, velocity, mass, dt, reaction):
+    """The footing's contact force added to ``force`` (see the module);
+    ``reaction`` (dim,) the sum of the contact forces; the state's clock
+    advances by dt and its y_b is the base of this step."""
+    speed, ramp = parameters[1], parameters[2]
+    ncells = int(parameters[5])
+    p = int(parameters[6])
+    t = state[0]
+    y_b = min(max(parameters[0] - footing_settlement(t, speed, ramp), data[0]), data[ncells])
+    w = np.empty(p + 1)
+    dw = np.empty(p + 1)
+    first = footing_base(parameters, data, y_b, w, dw)
+    footing_columns(columns, int(parameters[4]), first, w, parameters[3] != 0.0,
+                    footing_velocity_at(t + dt, speed, ramp), mass, velocity, force, dt, True,
+                    reaction)
     state[0] = t + dt
     state[1] = y_b
 
@@ -271,41 +292,16 @@ def footing_velocity(columns, parameters, data, state, velocity, mass):
     """The footing's rule on a grid velocity no force produced, at the
     base of its last force step and the velocity of its clock (see the
     module); nothing before a force step (y_b NaN)."""
-    dim = velocity.shape[1]
     y_b = state[1]
     if not np.isfinite(y_b):
         return
-    speed, ramp = parameters[1], parameters[2]
-    rough = parameters[3] != 0.0
-    stride = int(parameters[4])
     p = int(parameters[6])
     w = np.empty(p + 1)
     dw = np.empty(p + 1)
     first = footing_base(parameters, data, y_b, w, dw)
-    target = footing_velocity_at(state[0], speed, ramp)
-    for j in range(columns.shape[0]):
-        S = 0.0
-        for a in range(p + 1):
-            m = mass[columns[j] + stride * (first + a)]
-            if m > 0.0:
-                S += w[a] * w[a] / m
-        if not S > 0.0:
-            continue
-        for c in range(dim):
-            if not rough and c != dim - 1:
-                continue
-            goal = target if c == dim - 1 else 0.0
-            moved = 0.0
-            for a in range(p + 1):
-                k = columns[j] + stride * (first + a)
-                if mass[k] > 0.0:
-                    moved += w[a] * velocity[k, c]
-            mu = (goal - moved) / S
-            for a in range(p + 1):
-                k = columns[j] + stride * (first + a)
-                m = mass[k]
-                if m > 0.0:
-                    velocity[k, c] += w[a] * mu / m
+    footing_columns(columns, int(parameters[4]), first, w, parameters[3] != 0.0,
+                    footing_velocity_at(state[0], parameters[1], parameters[2]), mass,
+                    velocity, velocity, 0.0, False, np.empty(velocity.shape[1]))
 
 
 @njit(cache=True, error_model="numpy")
