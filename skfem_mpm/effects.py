@@ -36,7 +36,11 @@ A grid modifier (:class:`GridModifier`) may also give its compiled form,
 and the compiled step loop apply instead of the NumPy methods (None: the
 compiled executor calls the NumPy methods each step, and the compiled loop
 does not run the scene). A modifier that exerts a force on the bodies
-keeps its total of the last step in ``reaction``.
+keeps its total of the last step in ``reaction``. A rule that keeps a
+state between steps (the footing's clock) starts each compiled call from
+``rule_state()`` and hands what its steps did back through
+``take_rule_steps(states, reactions)`` (its state and reaction after each
+step taken), so that the executor and the compiled loop can take turns.
 
 A particle force (:class:`ParticleForce`) gives ``forces(particles, t)``
 (n, dim) and may give ``grid_forces`` (where it is not applied at the
@@ -53,7 +57,7 @@ import inspect
 import numpy as np
 
 from .errors import InvalidState
-from .kernels.grid_modifiers import FRICTIONAL_WALL, LOCAL_DAMPING, GridRule
+from .kernels.grid_modifiers import FOOTING, FRICTIONAL_WALL, LOCAL_DAMPING, RULE_STATE, GridRule
 from .spline.grid import SIDE_AXES, side_axis
 from .validation import _short, check_finite_array, check_positive
 
@@ -148,6 +152,18 @@ class GridModifier:
         """The compiled form on ``grid`` (a kernels.grid_modifiers.GridRule),
         or None."""
         return None
+
+    def rule_state(self):
+        """The state (kernels.grid_modifiers.RULE_STATE numbers) its compiled
+        rule starts the next step from (none kept by default: zeros)."""
+        return np.zeros(RULE_STATE)
+
+    def take_rule_steps(self, states, reactions):
+        """After compiled steps of a reacting rule: its state (k, RULE_STATE)
+        and reaction (k, dim) after each step taken; the last reaction
+        becomes ``reaction``."""
+        if len(reactions):
+            self.reaction = np.array(reactions[-1], dtype=np.float64)
 
 
 def _numbers(name, value, what):
@@ -704,6 +720,9 @@ class Footing(Effect, GridModifier):
 
     The footing keeps its own clock (the sum of the steps since the run
     started): a run restarted from a checkpoint starts it again at s = 0.
+    Its compiled rule (``grid_rule``: kernels.grid_modifiers FOOTING) is
+    the same constraint, chosen anew each step in compiled code, so that
+    the compiled step loop runs a footing scene.
     """
 
     def __init__(self, span, base, speed, rough=True, ramp=0.0):
@@ -725,6 +744,7 @@ class Footing(Effect, GridModifier):
         self._grid = None
         self._active = None
         self._t = 0.0
+        self._base_now = np.nan  # the base height of the last force step
         self.history = []
 
     def __repr__(self):
@@ -760,6 +780,13 @@ class Footing(Effect, GridModifier):
         if not lo < self.base <= hi:
             raise ValueError(f"base must lie in the grid's vertical range ({lo:g}, {hi:g}], "
                              f"got {self.base:g}")
+        self._columns, self._stride = self._geometry(grid)
+        self._grid = grid
+        self._ndofs = grid.ndofs
+
+    def _geometry(self, grid):
+        """(the columns: the horizontal functions whose Greville abscissa
+        lies in ``span``, as dofs of the lowest layer; the dofs per layer)."""
         stride = int(np.prod(grid.basis_per_axis[:-1]))  # dofs per horizontal layer
         greville = grid.doflocs()[:, :stride]
         tol = 1e-9 * max(grid.h)
@@ -769,14 +796,38 @@ class Footing(Effect, GridModifier):
         if not inside.any():
             raise ValueError(f"span {self.span.tolist()} contains no Greville abscissa of the "
                              f"grid: make it at least a cell wide")
-        self._columns = np.flatnonzero(inside)
-        self._stride = stride
-        self._grid = grid
-        self._ndofs = grid.ndofs
+        return np.flatnonzero(inside), stride
+
+    def grid_rule(self, grid):
+        """The same constraint compiled (kernels.grid_modifiers.footing_force
+        and footing_velocity) on ``grid``: parameters (base, speed, ramp,
+        rough, dofs per layer, the vertical axis's cells, degree and
+        uniform), the columns, the vertical axis (breakpoints, extraction)."""
+        columns, stride = self._geometry(grid)
+        breaks = np.asarray(grid.breakpoints[-1], dtype=np.float64)
+        extraction = np.asarray(grid.extraction[-1], dtype=np.float64)
+        parameters = (self.base, self.speed, self.ramp, float(self.rough), float(stride),
+                      float(breaks.size - 1), float(grid.degree), float(grid._uniform[-1]))
+        return GridRule(FOOTING, parameters, columns.astype(np.int64), True,
+                        np.concatenate((breaks, extraction.ravel())))
+
+    def rule_state(self):
+        """(its clock, the base height of its last force step)."""
+        return np.array([self._t, self._base_now])
+
+    def take_rule_steps(self, states, reactions):
+        """The clock, base, reaction and history of compiled steps."""
+        for state, reaction in zip(states, reactions):
+            t = float(state[0])
+            self.history.append((t, self.settlement_at(t), np.array(reaction, dtype=np.float64)))
+        if len(reactions):
+            self._t, self._base_now = float(states[-1][0]), float(states[-1][1])
+            self.reaction = np.array(reactions[-1], dtype=np.float64)
 
     def bind(self, particles, grid):
         """A run starts the footing's clock (and its record) again."""
         self._t = 0.0
+        self._base_now = np.nan
         self.history = []
         self.reaction = None
         self._active = None
@@ -797,6 +848,7 @@ class Footing(Effect, GridModifier):
         grid = self._grid
         y_b = min(max(self.base - self.settlement_at(self._t), grid.bounds[-1][0]),
                   grid.bounds[-1][1])
+        self._base_now = y_b
         first, values, _ = grid.axis_functions(grid.dim - 1, np.array([y_b]), backend="numpy")
         rows = int(first[0]) + np.arange(grid.degree + 1)
         dofs = self._columns[:, None] + self._stride * rows[None, :]

@@ -15,6 +15,7 @@ import pytest
 
 from skfem_mpm import (Body, Damping, Fixed, Footing, Gravity, LinearElastic, Method,
                        Particles, Prescribed, Scene, SplineGrid, Wall, simulate)
+from skfem_mpm.effects import Effect, GridModifier
 from skfem_mpm.kernels import grid_modifiers, serial
 from skfem_mpm.solve import compiled_loop
 from skfem_mpm.solve.compiled import CompiledExecutor
@@ -116,16 +117,30 @@ def test_the_walls_reactions_at_every_step(monkeypatch):
             assert np.array_equal(a[key], b[key]), key
 
 
+class ScaledForce(Effect, GridModifier):
+    """A user's grid modifier in NumPy only (no compiled rule)."""
+
+    def __repr__(self):
+        return "ScaledForce()"
+
+    def force_modifiers(self):
+        return [self]
+
+    def modify_force(self, force, velocity, mass, dt):
+        return 0.5 * force
+
+
 def test_what_the_loop_leaves_to_the_executor():
     scene = modified_scene("musl", "lumped", 2, 2, "walls+damping", steps=5)
-    footing = Footing((0.0, 0.3), 0.6, 0.1)
-    with_footing = Scene(scene.grid, scene.bodies, scene.t_end,
-                         effects=list(scene.effects) + [footing])
-    state = prepare(with_footing, Method(scheme="musl"))
+    own = ScaledForce()
+    with_own = Scene(scene.grid, scene.bodies, scene.t_end, effects=list(scene.effects) + [own])
+    state = prepare(with_own, Method(scheme="musl"))
     assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
-        (False, f"a grid modifier without a compiled rule ({footing!r})")
-    for scheme in ("musl", "rk4"):
-        state = prepare(scene, Method(scheme=scheme))
+        (False, "a grid modifier without a compiled rule (ScaledForce())")
+    footing = Footing((0.0, 0.3), 0.6, 0.1)  # a footing has its rule
+    for scheme, effects in (("musl", [footing]), ("rk4", [])):
+        state = prepare(Scene(scene.grid, scene.bodies, scene.t_end,
+                              effects=list(scene.effects) + effects), Method(scheme=scheme))
         assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == (True, "")
 
 
@@ -181,7 +196,7 @@ def test_the_rules_are_the_effects_numpy_methods(dim):
         for m in modifiers:
             expected = m.modify_force(expected, velocity, mass, dt)
         got = force.copy()
-        grid_modifiers.modify_forces(*packed[:4], got, velocity, mass, dt, packed[4])
+        grid_modifiers.modify_forces(*packed[:4], got, velocity, mass, dt, *packed[4:])
         assert np.allclose(got, expected, rtol=1e-14, atol=1e-14 * np.abs(force).max())
         walls = [m for m in modifiers if isinstance(m, Wall)]
         rows = [r for r, m in enumerate(modifiers) if isinstance(m, Wall)]
@@ -191,7 +206,7 @@ def test_the_rules_are_the_effects_numpy_methods(dim):
         for m in walls:
             expected_v = m.modify_velocity(expected_v, mass)
         got_v = velocity.copy()
-        grid_modifiers.modify_velocities(*packed[:4], got_v, mass)
+        grid_modifiers.modify_velocities(*packed[:4], got_v, mass, *packed[5:])
         assert np.allclose(got_v, expected_v, rtol=1e-14, atol=1e-15)
         contact |= not np.array_equal(got_v, velocity)
     assert contact

@@ -27,6 +27,10 @@ A material has
     point_update            the compiled law of one particle, or None (then the
                             compiled executor calls ``update``)
     point_parameters(dim)   the float64 array of parameters ``point_update`` reads
+    cell_average            True: the compiled paths give ``point_update`` the
+                            velocity gradient with its dilatation averaged over
+                            each grid cell (B-bar: :class:`BBar`), False (default)
+                            the particle's own
 
 Write your own by following the same shape (see examples/custom_material.py).
 2D is plane strain throughout; 1D is uniaxial strain; 3D is the full solid.
@@ -83,6 +87,7 @@ class Material:
 
     finite_strain = False
     point_update = None
+    cell_average = False
 
     def point_parameters(self, dim):
         """The parameters of ``point_update`` (a float64 array)."""

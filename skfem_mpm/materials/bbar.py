@@ -2,6 +2,7 @@
 particle's velocity gradient averaged over the particles of its cell."""
 import numpy as np
 
+from ..spline import SplineGrid
 from .base import Material
 
 __all__ = ["BBar"]
@@ -29,12 +30,19 @@ class BBar(Material):
     per cell instead of one per particle the flow is free again. The
     deviatoric part is untouched.
 
-    The averaging runs in NumPy (``point_update`` is None, so the compiled
-    executor calls ``update``: Python per step, vectorised). ``grid`` must
-    be the scene's grid (the particles are located in its cells).
+    On the compiled paths (the compiled executor and the compiled step
+    loop) the average is a pass over the particles before the constitutive
+    kernel (:func:`skfem_mpm.kernels.bbar.average_dilatation`, which gives
+    this ``averaged`` to the last bit: ``cell_average`` is True), and the
+    wrapped material's compiled point law (``point_update``,
+    ``point_parameters``) then runs with L_bar; a wrapped material without
+    one, or a grid that is not a SplineGrid, leaves ``point_update`` None
+    (the compiled executor then calls ``update``: Python per step,
+    vectorised). ``grid`` must be the scene's grid (the particles are
+    located in its cells).
     """
 
-    point_update = None
+    cell_average = True
 
     def __init__(self, material, grid):
         if not isinstance(material, Material) or isinstance(material, BBar):
@@ -46,6 +54,11 @@ class BBar(Material):
         self.material = material
         self.grid = grid
         self.finite_strain = material.finite_strain
+        self.point_update = material.point_update if isinstance(grid, SplineGrid) else None
+
+    def point_parameters(self, dim):
+        """The wrapped material's (its point law runs with L_bar)."""
+        return self.material.point_parameters(dim)
 
     def __repr__(self):
         return f"BBar({self.material!r})"

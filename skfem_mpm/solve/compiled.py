@@ -43,7 +43,9 @@ import numpy as np
 
 from ..effects import SurfaceTraction
 from ..errors import InvalidState
+from ..kernels.bbar import average_dilatation
 from ..kernels.constitutive import material_update
+from ..kernels.records import grid_record
 from ..kernels import serial
 from ..kernels.fast_dof import limit_by_effective_mass
 from ..kernels.mpm import Kernels, fast_row_fractions
@@ -166,6 +168,7 @@ class CompiledExecutor(CompiledRungeKutta):
         self._no_index = np.zeros(0, dtype=np.int64)
         self._first_bad = np.full(self.kernels.nthreads, -1, dtype=np.int64)
         self._state = {}  # id(material) -> its PackedState (None: no state)
+        self._cell_axes = {}  # id(grid) -> its axes record (B-bar's cells)
         self.recon = None
         if state.method.reconstruction != "none":
             self.recon = CompiledReconstruction(state, self.kernels)
@@ -571,6 +574,8 @@ class CompiledExecutor(CompiledRungeKutta):
             written = []
             for material, index in state.bodies:
                 every = isinstance(index, slice)
+                if material.cell_average:  # B-bar: L_bar into L (kernels.bbar)
+                    self.average_dilatation(material, index, p, grid.L)
                 packed = self._packed_state(material, p.dim)
                 if packed is None:
                     state_in = state_out = no_state
@@ -593,6 +598,21 @@ class CompiledExecutor(CompiledRungeKutta):
                 new.state = self._written_state(p, written)
         if bad >= 0:
             raise InvalidState(f"J = det(I + dt L) <= 0 at particle {bad}", particle=bad)
+
+    def average_dilatation(self, material, index, p, L):
+        """L <- L_bar of the body ``index`` of ``p`` on ``material``'s grid
+        (kernels.bbar.average_dilatation: the cell average of B-bar)."""
+        key = id(material.grid)
+        if key not in self._cell_axes:
+            self._cell_axes[key] = grid_record(material.grid)[0]
+        axes = self._cell_axes[key]
+        cells = material.grid.ncells
+        every = isinstance(index, slice)
+        count = p.n if every else index.size
+        average_dilatation(axes, self._no_index if every else index, every, p.x, p.V, L,
+                           self.kernels.scratch("bbar_volume", cells),
+                           self.kernels.scratch("bbar_weighted", cells),
+                           self.kernels.scratch("bbar_cell", count, np.int64))
 
     def _packed_state(self, material, dim):
         """The material's packed state buffers, or None without state."""

@@ -46,9 +46,9 @@ import time
 import numba
 import numpy as np
 
-from ..kernels import (by_symbol, cholesky, constitutive, fast_dof, gauss_rule, grid_modifiers,
-                       kronecker, mpm, scatter, spline_1d, staging, tiny_mass, tls, traction,
-                       weights)
+from ..kernels import (bbar, by_symbol, cholesky, constitutive, fast_dof, gauss_rule,
+                       grid_modifiers, kronecker, mpm, scatter, spline_1d, staging, tiny_mass,
+                       tls, traction, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
@@ -89,6 +89,7 @@ _GRID_KERNELS = {
     "DEFORMATION_RATE": staging.deformation_rate,
     # a material's compiled point law (not fused linear elasticity)
     "MATERIAL_UPDATE": constitutive.material_update,
+    "AVERAGE_DILATATION": bbar.average_dilatation,  # B-bar
     # reconstruction (compiled_loop_reconstruct)
     "GAUSS_RULE_1D": gauss_rule.gauss_rule_1d,
     "NOT_A_KNOT_SPLINE": spline_1d.not_a_knot_spline,
@@ -302,7 +303,7 @@ def loop_module(dim, parallel, window):
     depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass,
                                                      fast_dof, staging, gauss_rule, spline_1d,
                                                      tls, cholesky, weights, traction, constitutive,
-                                                     grid_modifiers, by_symbol))
+                                                     grid_modifiers, bbar, by_symbol))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -380,8 +381,11 @@ class StepLoop:
         self.side, self.traction = side, fields["traction"]
         tau = None if side is None else TractionTable(self.module, side, self.traction, state)
         self.tables = [t for t in (self.forces, self.prescribed, tau) if t is not None]
-        self.force_rules = fields["force_rules"] = self._rules(executor.force_modifiers)
-        fields["velocity_rules"] = self._rules(executor.velocity_modifiers)
+        self._rule_arrays = {}  # "force" / "velocity": the packed rules' arrays
+        self.force_rules = fields["force_rules"] = self._rules(
+            "force", executor.force_modifiers, 4 if self.scheme == "rk4" else 1)
+        self.velocity_rules = fields["velocity_rules"] = self._rules(
+            "velocity", executor.velocity_modifiers, 0, executor.force_modifiers)
         # consistent or hybrid mass: the run's mass system (None: lumped)
         self.cm = fields["cm"] = None if state.method.mass == "lumped" else \
             self._mass_system(state, k)
@@ -402,9 +406,13 @@ class StepLoop:
                       F=empty((1, 1, 1)), F_new=empty((1, 1, 1)), V0=empty(1),
                       mstate=empty((1, 0)), mstate_new=empty((1, 0)),
                       law_flags=np.full(nthreads, -1, dtype=np.int64),
-                      no_index=np.zeros(0, dtype=np.int64))
+                      no_index=np.zeros(0, dtype=np.int64), cell_average=None)
         if self.fused:
             return arrays
+        if material.cell_average:  # B-bar (kernels.bbar)
+            cells = material.grid.ncells
+            arrays["cell_average"] = (grid_record(material.grid)[0], np.zeros(cells),
+                                      np.zeros(cells), np.zeros(n, dtype=np.int64))
         self.finite = bool(executor.finite)
         layout = state_layout(material, dim)
         self.layout = layout if layout else None
@@ -461,12 +469,48 @@ class StepLoop:
             arrays[f"reaction_{name}"] = empty(own.shape) if self.scheme == "rk4" else own
         return arrays
 
-    def _rules(self, modifiers):
+    # With grid rules a call of the loop takes at most this many steps (their
+    # log holds a row per step: rk4 per stage)
+    RULE_LOG_STEPS = 512
+
+    def _rules(self, kind, modifiers, calls_per_step, forces=None):
         """The run's packed grid rules (compiled_loop_modifiers) of
-        ``modifiers`` (a CompiledModifiers), or None without any."""
+        ``modifiers`` (a CompiledModifiers), or None without any: a log of
+        ``calls_per_step`` rows a step (the force rules); ``forces``: the
+        force modifiers whose rules' states the velocity rules read."""
         if not modifiers:
             return None
-        return self.module.new_grid_rules(*modifiers.packed())
+        codes, parameters, offsets, dofs, reactions, data_offsets, data, states = \
+            modifiers.packed()
+        rows = self.RULE_LOG_STEPS * calls_per_step
+        log_states = np.zeros((rows, *states.shape))
+        log_reactions = np.zeros((rows, *reactions.shape))
+        owners = [] if forces is None else forces.modifiers
+        shared = np.array([next((r for r, f in enumerate(owners) if f is m), -1)
+                           for m in modifiers.modifiers], dtype=np.int64)
+        fields = dict(codes=codes, parameters=parameters, offsets=offsets, dofs=dofs,
+                      reactions=reactions, data_offsets=data_offsets, data=data,
+                      states=states, log_states=log_states, log_reactions=log_reactions,
+                      logged=0, shared=shared)
+        self._rule_arrays[kind] = (modifiers, fields)
+        return self.module.new_grid_rules(*(fields[n] for n in self.module.RULE_FIELDS))
+
+    def _load_rule_states(self):
+        """The rules start from their modifiers' states (a step the loop
+        stopped, or the executor's steps, moved them), the log from its
+        first row."""
+        for modifiers, fields in self._rule_arrays.values():
+            modifiers.load_states(fields["states"])
+        if self.force_rules is not None:
+            self.module.reset_rule_log(self.force_rules)
+
+    def _rule_results(self, taken):
+        """The states and reactions of the ``taken`` steps to the force
+        rules' modifiers (a footing's clock and history, the walls' reactions)."""
+        modifiers, _ = self._rule_arrays["force"]
+        logged, states, reactions = self.module.rule_log(self.force_rules)
+        rows = min(int(logged), taken * (4 if self.scheme == "rk4" else 1))
+        modifiers.take_steps(states[:rows], reactions[:rows])
 
     def _side_traction(self, f, state, k):
         """The run's side traction (compiled_loop_traction) of the effect
@@ -665,7 +709,8 @@ class StepLoop:
         self.module.grid_arrays(self.run_state)
         self.module.records(self.run_state)
         if self.force_rules is not None:
-            self.module.rule_reactions(self.force_rules)
+            self.module.rule_log(self.force_rules)
+            self.module.reset_rule_log(self.force_rules)
 
     # With parallel kernels a call of the loop lasts about this long, so
     # that the thread policy (solve/threads.py), which acts between calls,
@@ -687,6 +732,9 @@ class StepLoop:
             n = table.cover(state, n)
         if n == 0:  # an effect's function raised: the executor takes the step
             return 0
+        if self.force_rules is not None:  # (their log's rows)
+            n = min(n, self.RULE_LOG_STEPS)
+            self._load_rule_states()
         consistent = self.cm is not None
         if consistent:
             self._load_warm(state)
@@ -723,8 +771,8 @@ class StepLoop:
             if self.force_rules is not None:  # modify_force put it into the force
                 gravity = None
             state.defer_reactions(state.constraints, mass, a, force, gravity)
-        if self.force_rules is not None:  # the walls' reactions of the last step
-            self.executor.force_modifiers.take_reactions(mod.rule_reactions(self.force_rules))
+        if self.force_rules is not None:  # the walls' reactions, the footings' records
+            self._rule_results(taken)
         for phase, ns in zip(self.PHASES, phase_ns.tolist()):
             if ns:
                 state.timer.add(phase, ns * 1e-9)

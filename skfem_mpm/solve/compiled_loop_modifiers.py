@@ -1,4 +1,4 @@
-"""Grid modifiers on a compiled run (damping, walls): part of the source of
+"""Grid modifiers on a compiled run (damping, walls, footings): part of the source of
 the generated loop modules (not imported as a module; see
 :mod:`skfem_mpm.solve.compiled_loop_ops`).
 
@@ -14,17 +14,26 @@ the same order on the same kernels (:mod:`skfem_mpm.kernels.grid_modifiers`):
                       mass: prepare_grid did it), then every force rule in
                       the scene's order with the lumped mass and v^n
                       (MODIFY_FORCES); the acceleration solve then adds no
-                      gravity (``acceleration_gravity``)
+                      gravity (``acceleration_gravity``); the rules' states
+                      and reactions go into the next row of the log
     modify_velocity   MUSL: every velocity rule on the re-projected grid
-                      velocity (MODIFY_VELOCITIES)
+                      velocity (MODIFY_VELOCITIES), each from the state its
+                      force form left this step (``shared``)
 
 ``run.force_rules`` and ``run.velocity_rules`` are None (a run without
 them compiles none of this) or :class:`GridRules`, the packed rules of
-``kernels.grid_modifiers.pack_rules``; a rule with a reaction (a wall)
-writes the total force it exerted into its row of ``reactions``, which
+``kernels.grid_modifiers.pack_rules`` and a log: a rule with a reaction
+(a wall, a footing) writes the total force it exerted into its row of
+``reactions``, a rule with a state (a footing's clock) its state into its
+row of ``states``; after each force step both go into row ``logged`` of
+``log_states`` and ``log_reactions`` (one row per call of modify_force:
+per step, rk4 per stage), which
 :class:`~skfem_mpm.solve.compiled_loop.StepLoop` hands back to the
-modifiers after a call of the loop. The executor times all of
-``modify_force`` as effects (``run.phase_ns[6]``).
+modifiers for the steps taken after a call of the loop (a step the loop
+stopped is taken again by the executor from the modifiers' own state).
+``shared[r]``: the row of the force rules whose state velocity rule r
+reads (-1: none). The executor times all of ``modify_force`` as effects
+(``run.phase_ns[6]``).
 """
 
 
@@ -38,9 +47,12 @@ GridRulesType.__name__ = GridRulesType.__qualname__ = f"GridRulesType_{VARIANT}"
 globals()[GridRulesType.__name__] = GridRulesType
 
 
-# kernels.grid_modifiers.pack_rules: codes (R,), parameters (R, 1 + dim),
-# offsets (R + 1,), dofs, reactions (R, dim)
-RULE_FIELDS = ("codes", "parameters", "offsets", "dofs", "reactions")
+# kernels.grid_modifiers.pack_rules: codes (R,), parameters (R, P),
+# offsets (R + 1,), dofs, reactions (R, dim), data_offsets (R + 1,), data,
+# states (R, RULE_STATE); the log: states (rows, R, RULE_STATE), reactions
+# (rows, R, dim), the rows written; the force rule whose state each rule reads
+RULE_FIELDS = ("codes", "parameters", "offsets", "dofs", "reactions", "data_offsets", "data",
+               "states", "log_states", "log_reactions", "logged", "shared")
 
 
 class GridRules(structref.StructRefProxy):
@@ -60,9 +72,15 @@ def new_grid_rules(*fields):
 
 
 @njit(cache=True)
-def rule_reactions(rules):
-    """The reactions (R, dim) the rules wrote in the last step."""
-    return rules.reactions
+def rule_log(rules):
+    """The log of the last call: its rows written, states and reactions."""
+    return rules.logged, rules.log_states, rules.log_reactions
+
+
+@njit(cache=True)
+def reset_rule_log(rules):
+    """A call of the loop starts writing the log at its first row."""
+    rules.logged = 0
 
 
 def _force_rules(run):
@@ -103,7 +121,14 @@ def _modify_force(run):
         if not run.stop:
             r = run.force_rules
             MODIFY_FORCES(r.codes, r.parameters, r.offsets, r.dofs, run.force, run.v_old,
-                          run.mass, run.dt, r.reactions)
+                          run.mass, run.dt, r.reactions, r.data_offsets, r.data, r.states)
+            row = r.logged
+            if row < r.log_states.shape[0]:
+                copy_into(r.log_states[row], r.states)
+                copy_into(r.log_reactions[row], r.reactions)
+            else:  # StepLoop sizes the log for every call of a run: never
+                run.stop = 2
+            r.logged = row + 1
         elapsed = monotonic_ns() - t0
         run.phase_ns[6] += elapsed  # effects, not the solve that encloses it
         run.phase_ns[1] -= elapsed
@@ -114,11 +139,18 @@ def _modify_force(run):
 def _modify_velocity(run):
     if not _velocity_rules(run):
         return lambda run: None
+    forced = _force_rules(run)
 
     def impl(run):
-        """The velocity rules on MUSL's re-projected grid velocity (lumped mass)."""
+        """The velocity rules on MUSL's re-projected grid velocity (lumped
+        mass), from the states their force forms left this step."""
         if run.stop:
             return
         r = run.velocity_rules
-        MODIFY_VELOCITIES(r.codes, r.parameters, r.offsets, r.dofs, run.v_grid, run.mass)
+        if forced:
+            for i in range(r.shared.shape[0]):
+                if r.shared[i] >= 0:
+                    copy_into(r.states[i], run.force_rules.states[r.shared[i]])
+        MODIFY_VELOCITIES(r.codes, r.parameters, r.offsets, r.dofs, run.v_grid, run.mass,
+                          r.data_offsets, r.data, r.states)
     return impl

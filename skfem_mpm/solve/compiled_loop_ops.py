@@ -38,8 +38,9 @@ TLSReconstruction); a run of each kind compiles only its own operations;
 one body, or several of one linear elastic material: linear elastic (its stress update fused into g2p, its stress
 rate into the rk4 rates gather; ``run.law_at`` None), or with MUSL, USL
 and CD (rk4: finite strain, the law at each stage's F) a material with a
-compiled point law (``run.law_at``: the address
-of its C callback): g2p stores L and the executor's constitutive kernel
+compiled point law (``run.law_at``: the address of its C callback;
+B-bar's cell average of the dilatation rate before it,
+``run.cell_average``): g2p stores L and the executor's constitutive kernel
 (``MATERIAL_UPDATE``, :mod:`skfem_mpm.kernels.constitutive`) writes the
 new stress, V, F (finite strain) and packed material state into the
 second set of arrays, swapped at commit like x and v; gravity, fixed
@@ -50,7 +51,7 @@ reference configuration such as a BodyForce (``run.body_force``: None, or
 the data of :mod:`skfem_mpm.solve.compiled_loop_body_force`), prescribed
 grid velocities (``run.prescribed``: None, or the data of
 :mod:`skfem_mpm.solve.compiled_loop_prescribed`), grid modifiers with a
-compiled rule (local damping, frictional walls: ``run.force_rules``,
+compiled rule (local damping, frictional walls, rigid footings: ``run.force_rules``,
 ``run.velocity_rules``, None or the packed rules of
 :mod:`skfem_mpm.solve.compiled_loop_modifiers`). A step that would need
 anything else stops the loop before it writes the current state
@@ -129,6 +130,10 @@ FIELDS = (
     # an empty index (the body holds every particle)
     "law_at", "law_params", "finite", "F", "F_new", "V0", "mstate", "mstate_new",
     "law_flags", "no_index",
+    # B-bar (a material with ``cell_average``): None, or (its grid's axes,
+    # work arrays: the cells' volumes and weighted dilatations, the
+    # particles' cells) of kernels.bbar.average_dilatation
+    "cell_average",
     # a side traction: a SideTraction (None: none; compiled_loop_traction)
     "traction",
     # particle forces of the reference configuration: a BodyForce (None:
@@ -161,6 +166,12 @@ def _point_law(run):
     """Whether the run (its numba type) updates the stress by a material's
     compiled point law (else linear elasticity is fused into g2p)."""
     return not isinstance(run.field_dict["law_at"], types.NoneType)
+
+
+def _cell_average(run):
+    """Whether the run (its numba type) averages the dilatation rate over
+    each cell before the point law (B-bar)."""
+    return not isinstance(run.field_dict["cell_average"], types.NoneType)
 
 
 def _tls(run):
@@ -580,15 +591,21 @@ def _update_stress(run, state, grid, velocity=None):
         def impl(run, state, grid, velocity=None):
             pass  # linear elasticity: fused into the g2p kernel
         return impl
+    bbar = _cell_average(run)
 
     def impl(run, state, grid, velocity=None):
         """The material's point law over every particle (the executor's
-        material_update call): stress, V (and F) from L into the new
+        material_update call; B-bar: L_bar into L first, the executor's
+        average_dilatation call): stress, V (and F) from L into the new
         arrays, the packed state into the new state; a J <= 0 or a
         non-finite state stops the loop (the executor raises)."""
         if run.stop:
             return
         t0 = monotonic_ns()
+        if bbar:
+            ca = run.cell_average
+            AVERAGE_DILATATION(ca[0], run.no_index, True, run.x, run.V, run.L, ca[1], ca[2],
+                               ca[3])
         if run.finite:
             F = run.F
             F_out = run.F_new

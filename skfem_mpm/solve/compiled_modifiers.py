@@ -1,4 +1,4 @@
-"""The grid modifiers of a run on the compiled paths (damping, walls).
+"""The grid modifiers of a run on the compiled paths (damping, walls, footings).
 
 Each modifier of the scene (``State.force_modifiers``,
 ``State.velocity_modifiers``: :class:`skfem_mpm.effects.GridModifier`)
@@ -7,8 +7,12 @@ that gives a compiled form (``grid_rule(grid)``) is applied by the kernels of
 its own NumPy method. The order is the scene's, as on the reference
 executor. The compiled executor calls :meth:`CompiledModifiers.modify_force`
 and :meth:`~CompiledModifiers.modify_velocity`; the compiled step loop
-takes the same rules packed (:meth:`~CompiledModifiers.packed`) and hands
-the reactions of its last step back (:meth:`~CompiledModifiers.take_reactions`).
+takes the same rules packed (:meth:`~CompiledModifiers.packed`), starts
+each call from the modifiers' states (:meth:`~CompiledModifiers.load_states`)
+and hands the states and reactions of the steps it took back
+(:meth:`~CompiledModifiers.take_steps`). A rule's state (a footing's clock)
+lives in its modifier between calls: each call of a kernel here starts
+from it and gives it back, so the executor and the loop take turns.
 """
 import numpy as np
 
@@ -40,16 +44,23 @@ class CompiledModifiers:
         return next((m for m, rule in zip(self.modifiers, self.rules) if rule is None), None)
 
     def packed(self):
-        """(codes, parameters, offsets, dofs, reactions) of every rule
-        (kernels.grid_modifiers.pack_rules); call when :attr:`compiled`."""
+        """(codes, parameters, offsets, dofs, reactions, data_offsets, data,
+        states) of every rule (kernels.grid_modifiers.pack_rules); call when
+        :attr:`compiled`."""
         return pack_rules(self.rules, self.dim)
 
-    def take_reactions(self, reactions):
-        """Each reacting rule's row of ``reactions`` (R, dim) becomes its
-        modifier's ``reaction`` (a new array)."""
-        for modifier, rule, row in zip(self.modifiers, self.rules, reactions):
+    def load_states(self, states):
+        """Each modifier's ``rule_state()`` into its row of ``states`` (R, RULE_STATE)."""
+        for modifier, row in zip(self.modifiers, states):
+            row[:] = modifier.rule_state()
+
+    def take_steps(self, states, reactions):
+        """Hand the steps a compiled loop took back: ``states`` (k, R,
+        RULE_STATE) and ``reactions`` (k, R, dim), one row per step taken
+        (each reacting rule's ``take_rule_steps``)."""
+        for r, (modifier, rule) in enumerate(zip(self.modifiers, self.rules)):
             if rule.reacts:
-                modifier.reaction = row.copy()
+                modifier.take_rule_steps(states[:, r], reactions[:, r])
 
     def modify_force(self, force, velocity, mass, dt):
         """The grid force (a new array) changed by every modifier in order."""
@@ -58,11 +69,12 @@ class CompiledModifiers:
             if one is None:
                 force = modifier.modify_force(force, velocity, mass, dt)
                 continue
-            codes, parameters, offsets, dofs, reactions = one
+            codes, parameters, offsets, dofs, reactions, data_offsets, data, states = one
+            states[0] = modifier.rule_state()
             modify_forces(codes, parameters, offsets, dofs, force, velocity, mass, float(dt),
-                          reactions)
+                          reactions, data_offsets, data, states)
             if rule.reacts:
-                modifier.reaction = reactions[0].copy()
+                modifier.take_rule_steps(states.copy(), reactions.copy())
         return force
 
     def modify_velocity(self, velocity, mass):
@@ -72,6 +84,8 @@ class CompiledModifiers:
             if one is None:
                 velocity = modifier.modify_velocity(velocity, mass)
                 continue
-            codes, parameters, offsets, dofs, _ = one
-            modify_velocities(codes, parameters, offsets, dofs, velocity, mass)
+            codes, parameters, offsets, dofs, _, data_offsets, data, states = one
+            states[0] = modifier.rule_state()
+            modify_velocities(codes, parameters, offsets, dofs, velocity, mass, data_offsets,
+                              data, states)
         return velocity

@@ -125,11 +125,12 @@ def _warm_up_grid_rules(ndofs, dim):
     """The grid modifiers' kernels (kernels.grid_modifiers), with no rule."""
     from ..kernels.grid_modifiers import modify_forces, modify_velocities, pack_rules
 
-    codes, parameters, offsets, dofs, reactions = pack_rules([], dim)
+    codes, parameters, offsets, dofs, reactions, data_offsets, data, states = pack_rules([], dim)
     zeros = np.zeros((ndofs, dim))
     modify_forces(codes, parameters, offsets, dofs, zeros, zeros.copy(), np.ones(ndofs), 0.1,
-                  reactions)
-    modify_velocities(codes, parameters, offsets, dofs, zeros, np.ones(ndofs))
+                  reactions, data_offsets, data, states)
+    modify_velocities(codes, parameters, offsets, dofs, zeros, np.ones(ndofs), data_offsets,
+                      data, states)
 
 
 def _warm_up_reconstruction(grid, method):
@@ -170,3 +171,11 @@ def _warm_up_point_laws(k, dim, materials):
                         np.zeros(0, dtype=np.int64), True, one, 0.0, finite, one.copy(), F,
                         np.ones(1), np.ones(1), state, one.copy(), F.copy(), np.ones(1),
                         state.copy(), np.full(get_num_threads(), -1, dtype=np.int64))
+        if material.cell_average:  # B-bar's pass before the point law
+            from ..kernels.bbar import average_dilatation
+            from ..kernels.records import grid_record
+
+            x = np.array([[b[0] for b in k.grid.bounds]])
+            average_dilatation(grid_record(k.grid)[0], np.zeros(0, dtype=np.int64), True, x,
+                               np.ones(1), one.copy(), np.zeros(k.grid.ncells),
+                               np.zeros(k.grid.ncells), np.zeros(1, dtype=np.int64))
