@@ -46,12 +46,13 @@ import numba
 import numpy as np
 
 from ..kernels import (by_symbol, cholesky, constitutive, fast_dof, gauss_rule, grid_modifiers,
-                       kronecker, mpm, scatter, spline_1d, staging, tiny_mass, tls, traction,
-                       weights)
+                       kronecker, mpm, scatter, spline_1d, staging, step_size, tiny_mass, tls,
+                       traction, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
 from ..kernels.records import grid_record
+from ..kernels.step_size import guard_limit
 from ..kernels.scatter import g2p2g_kernel, p2g_kernel
 from ..materials.state import state_layout
 from ..kernels.serial import for_threads
@@ -59,7 +60,8 @@ from . import schemes
 from .compiled import side_traction
 from .compiled_loop_tables import ForceTable, PrescribedTable, TractionTable, reference_forces
 from .stencil_system import StencilSystem, stencil_residual
-from .timestep import COVERED, effective_mass_ratio, fast_dof_limit
+from .timestep import (COVERED, STABILITY_LIMIT, effective_mass_ratio, fast_dof_limit,
+                       stiffness_root)
 
 __all__ = ["ENABLED", "StepLoop", "loop_applies"]
 
@@ -87,6 +89,8 @@ _GRID_KERNELS = {
     "COMBINE_STAGES": staging.combine_stages,
     # a material's compiled point law (not fused linear elasticity)
     "MATERIAL_UPDATE": constitutive.material_update,
+    # its compiled point wave speed (an adaptive step)
+    "MAX_WAVE_SPEED": constitutive.max_wave_speed,
     # reconstruction (compiled_loop_reconstruct)
     "GAUSS_RULE_1D": gauss_rule.gauss_rule_1d,
     "NOT_A_KNOT_SPLINE": spline_1d.not_a_knot_spline,
@@ -143,7 +147,12 @@ def loop_applies(state, executor):
          "a body force with reconstruction"),
         (_without_rule(executor) is not None,
          f"a grid modifier without a compiled rule ({_without_rule(executor)!r})"),
-        (state.adaptive, "an adaptive time step"),
+        (state.adaptive and state.bodies[0][0].point_wave_speed is None,
+         "an adaptive time step with a material without a compiled wave speed "
+         "(point_wave_speed None)"),
+        (state.adaptive and recon is not None and state.grid.dim >= 2,
+         f"an adaptive time step with reconstruction in {state.grid.dim}D (its factor on "
+         f"dt_crit is re-estimated every RECONSTRUCTION_EVERY steps)"),
         (state.grid.dim not in (1, 2, 3), f"{state.grid.dim}D"),
         (state.grid.dim == 3 and m.mass != "lumped", f"{m.mass} mass in 3D"),
     )
@@ -246,7 +255,10 @@ def _prelude(dim, parallel, window, variant):
              "",
              "from skfem_mpm.kernels.by_symbol import call, call_at",
              "from skfem_mpm.kernels.clock import monotonic_ns",
-             "from skfem_mpm.kernels.mpm import work_increment as WORK_INCREMENT"]
+             "from skfem_mpm.kernels.mpm import work_increment as WORK_INCREMENT",
+             "from skfem_mpm.kernels.step_size import (adaptive_step, critical_step, "
+             "guard_limit, reached_end,",
+             "                                         time_after_step)"]
     # the names only: the degree-1 kernels' parameters, the same at every degree
     for label, kernel in _transfer_kernels(dim, 1, parallel, window).items():
         lines += _at_address(label, kernel.py_func, f"{variant}:{label}")
@@ -299,7 +311,7 @@ def loop_module(dim, parallel, window):
     depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass,
                                                      fast_dof, staging, gauss_rule, spline_1d,
                                                      tls, cholesky, weights, traction, constitutive,
-                                                     grid_modifiers, by_symbol))
+                                                     grid_modifiers, by_symbol, step_size))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -350,12 +362,14 @@ class StepLoop:
             nbx=int(nbx), nby=int(nby), degree=int(grid.degree),
             flags=np.full((k.nthreads, 3), -1, dtype=np.int64), lam=float(lam), mu=float(mu),
             dt=float(state.dt), t=float(state.t), step=int(state.step),
-            n_steps=int(state.n_steps), t_end=float(state.scene.t_end), vfactor=1.0,
+            n_steps=-1 if state.adaptive else int(state.n_steps),
+            t_end=float(state.scene.t_end), vfactor=1.0,
             store_acc=cd, velocities_done=False, gravity_work=gravity_work, work=0.0,
             work_sum=np.zeros(dim), stop=0, handover=False,
             phase_ns=np.zeros(len(self.PHASES), dtype=np.int64), nthreads=int(k.nthreads),
             p2g_at=0, g2p2g_at=0, g2p_at=0, rates_at=0)
         fields.update(executor.grid_arrays())  # mass, momentum, force, ..., v_old
+        fields.update(self._step_size_fields(state, material, k.nthreads))
         fields.update(self._stage_arrays(n if self.scheme == "rk4" else 1, dim, fields))
         fields.update(self._law_arrays(material, executor, n, dim, k.nthreads))
         recon = executor.recon
@@ -388,6 +402,23 @@ class StepLoop:
         self._point_at_transfers(dim, grid.degree, window)
         self._loaded = None  # the particles whose arrays the run holds
         self._steps_per_call = 1  # parallel: grows to CALL_SECONDS of steps
+
+    def _step_size_fields(self, state, material, nthreads):
+        """The fields of an adaptive step (compiled_loop_ops.FIELDS: the
+        material's point wave speed and the constants of
+        kernels.step_size's rule, State.next_step_size's); placeholders
+        for a fixed dt."""
+        m, grid = state.method, state.grid
+        self.adaptive = bool(state.adaptive)
+        guard = 0.0 if m.mass in ("lumped", "hybrid") else m.frequency_guard
+        return dict(
+            adaptive=self.adaptive,
+            wave_at=int(material.point_wave_speed.address()) if self.adaptive else 0,
+            cfl=float(m.cfl), stability_limit=float(STABILITY_LIMIT.get(m.scheme, 2.0)),
+            stiffness_root=stiffness_root(grid, m.mass), wave_speed=float(state.wave_speed_now),
+            dt_crit=float(state.dt_crit), block_max=np.empty(nthreads),
+            guard_q=float(guard * fast_dof_limit(grid.degree, m.scheme)) if guard > 0 else 0.0,
+            taken_step=np.zeros(3))
 
     def _law_arrays(self, material, executor, n, dim, nthreads):
         """The point law's data of the run (compiled_loop_ops.FIELDS; fused
@@ -542,8 +573,8 @@ class StepLoop:
         limit = 0.0
         weights, ratios, moving = np.ones(nd), np.ones(nd), np.ones(nd)
         if guard > 0:
-            limit = guard * fast_dof_limit(grid.degree, method.scheme) / \
-                (state.dt * state.wave_speed_now) ** 2
+            limit = guard_limit(guard * fast_dof_limit(grid.degree, method.scheme), state.dt,
+                                state.wave_speed_now)
             weights, ratios, moving = state.fast_dof_guard_arrays()
         mask = state.constraints.mask
         groups = {}
@@ -652,6 +683,7 @@ class StepLoop:
             self.module.load_law_state(self.run_state, F.copy(), np.ones(self._arrays[3].shape),
                                        packed.copy())
         self.module.set_work(self.run_state, 0.0)
+        self.module.taken_step(self.run_state)
         self.module.reset_step_records(self.run_state)
         self._loop(self.run_state, 0)
         self.module.current(self.run_state)
@@ -705,6 +737,8 @@ class StepLoop:
         self._loaded = state.particles
         state.t, state.step = t, step
         state.external_work = work
+        if self.adaptive:  # the step size of the last step taken (State.next_step_size's)
+            state.dt, state.dt_crit, state.wave_speed_now = mod.taken_step(run).tolist()
         if self.scheme == "cd":
             state.particle_acceleration = acc.copy()
         phase_ns, small_max, handover = mod.records(run)

@@ -100,6 +100,14 @@ FIELDS = (
     # the step
     "dt", "t", "step", "n_steps", "t_end", "vfactor", "store_acc", "velocities_done",
     "gravity_work", "work", "work_sum", "stop", "handover", "phase_ns",
+    # an adaptive step (finite strain, a point law; else placeholders):
+    # adaptive or not, the address of the material's compiled point wave
+    # speed, cfl, the scheme's stability limit s, sqrt(sum_d Lambda /
+    # h_d^2), the coming step's wave speed and dt_crit, the kernel's block
+    # maxima, the fast-dof guard's q (consistent mass: cm.limit = q / (dt
+    # c)^2), and (dt, dt_crit, c) of the last step taken
+    "adaptive", "wave_at", "cfl", "stability_limit", "stiffness_root", "wave_speed", "dt_crit",
+    "block_max", "guard_q", "taken_step",
     # consistent or hybrid mass: a MassSystem (None: lumped mass)
     "cm", "nthreads",
     # the native entry points of the run's degree's transfer kernels (call_at)
@@ -252,6 +260,12 @@ def reset_step_records(run):
     run.handover = False
     run.small_max = 0
     run.phase_ns[:] = 0
+
+
+@njit(cache=True)
+def taken_step(run):
+    """(dt, dt_crit, wave speed) of the last adaptive step taken."""
+    return run.taken_step
 
 
 @njit(cache=True)
@@ -609,9 +623,39 @@ def _update_stress(run, state, grid, velocity=None):
     return impl
 
 
+@overload_method(RunType, "begin_step")
+def _begin_step(run):
+    if not _point_law(run):  # linear elasticity: never adaptive
+        return lambda run: run.step >= run.n_steps
+    consistent = _consistent(run)
+
+    def impl(run):
+        """Whether the run is done (State.done); an adaptive run sets the
+        coming step's dt from the current wave speed as
+        State.next_step_size does (kernels.step_size: the one copy of the
+        rule; no reconstruction factor: loop_applies keeps a 2D
+        reconstruction with an adaptive step on the executor)."""
+        if not run.adaptive:
+            return run.step >= run.n_steps
+        if reached_end(run.t, run.t_end):
+            return True
+        c = MAX_WAVE_SPEED(run.wave_at, run.law_params, run.F, run.m, run.V0, run.mstate,
+                           run.block_max)
+        run.wave_speed = c
+        run.dt_crit = critical_step(run.stability_limit, c, run.stiffness_root)
+        run.dt = adaptive_step(run.cfl, run.dt_crit, run.t, run.t_end)
+        if consistent:
+            if run.cm.guard:
+                run.cm.limit = guard_limit(run.guard_q, run.dt, c)
+        return False
+    return impl
+
+
 @njit(cache=True)
 def _advance(run):
-    """The new state becomes current; t += dt (the end time exactly at the last step)."""
+    """The new state becomes current; t += dt (the end time exactly at the
+    last step: State.time_at of a fixed dt, computed alike; adaptive:
+    kernels.step_size.time_after_step, State.t_next's rule)."""
     run.x, run.x_new = run.x_new, run.x
     run.v, run.v_new = run.v_new, run.v
     run.u, run.u_new = run.u_new, run.u
@@ -620,7 +664,13 @@ def _advance(run):
     run.F, run.F_new = run.F_new, run.F
     run.mstate, run.mstate_new = run.mstate_new, run.mstate
     run.step += 1
-    run.t = run.step * run.dt if run.step < run.n_steps else run.t_end
+    if run.adaptive:
+        run.t = time_after_step(run.t, run.dt, run.t_end)
+        run.taken_step[0] = run.dt
+        run.taken_step[1] = run.dt_crit
+        run.taken_step[2] = run.wave_speed
+    else:
+        run.t = run.step * run.dt if run.step < run.n_steps else run.t_end
 
 
 @overload_method(RunType, "gravity_power")
@@ -816,6 +866,8 @@ def _valid_state(x, v, stress, V, axes):
 def run_musl(run, n):
     """Up to n MUSL steps; returns the number taken (fewer when one stopped)."""
     for k in range(n):
+        if run.begin_step():  # the end (adaptive: the step's dt set)
+            return k
         schemes.step_musl(run, run)
         if run.stop:
             return k
@@ -828,6 +880,8 @@ def run_musl(run, n):
 def run_usl(run, n):
     """Up to n USL steps; returns the number taken."""
     for k in range(n):
+        if run.begin_step():  # the end (adaptive: the step's dt set)
+            return k
         schemes.step_usl(run, run)
         if run.stop:
             return k
@@ -840,6 +894,8 @@ def run_usl(run, n):
 def run_cd(run, n):
     """Up to n central-difference steps; returns the number taken."""
     for k in range(n):
+        if run.begin_step():  # the end (adaptive: the step's dt set)
+            return k
         schemes.step_cd(run, run)
         if run.stop:
             return k
@@ -852,6 +908,8 @@ def run_cd(run, n):
 def run_rk4(run, n):
     """Up to n classical Runge-Kutta steps; returns the number taken."""
     for k in range(n):
+        if run.begin_step():  # the end (adaptive: the step's dt set)
+            return k
         schemes.step_rk4(run, run)
         if run.stop:
             return k

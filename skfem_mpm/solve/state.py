@@ -6,6 +6,8 @@ import numpy as np
 
 from ..errors import InvalidState
 from ..kernels import resolve_backend
+from ..kernels.step_size import adaptive_step, finished_after_step, reached_end, time_after_step
+from ..materials.compiled import max_point_wave_speed
 from ..spline import SplineGrid
 from .grid_system import Constraints, dof_adjacency
 from .runge_kutta import check_staged
@@ -159,10 +161,13 @@ class State:
 
     def wave_speed(self):
         """The largest wave speed of the bodies: a finite-strain material's
-        bound where it has one (the step it sets holds for the whole run)."""
+        bound where it has one (the step it sets holds for the whole run),
+        else its compiled point wave speed where it declares one (the one
+        the compiled loop computes: :func:`~skfem_mpm.materials.compiled.max_point_wave_speed`),
+        else its ``wave_speed``."""
         p = self.particles
         speeds = [bound if m.finite_strain and bound is not None else
-                  m.wave_speed(p if len(self.bodies) == 1 else p.subset(idx))
+                  _current_wave_speed(m, p if len(self.bodies) == 1 else p.subset(idx))
                   for (m, bound), (_, idx) in zip(self._bounds(), self.bodies)]
         return max(speeds)
 
@@ -203,7 +208,8 @@ class State:
 
     def next_step_size(self):
         """Set ``dt`` for the coming step (finite strain: from the current
-        wave speed; the last step ends exactly at t_end)."""
+        wave speed; the last step ends exactly at t_end); the rule is
+        :mod:`skfem_mpm.kernels.step_size`, which the compiled loop runs too."""
         if not self.adaptive:
             return self.dt
         self.wave_speed_now = self.wave_speed()
@@ -212,9 +218,7 @@ class State:
         if self.step % RECONSTRUCTION_EVERY == 0:
             self._reconstruction_factor = None
         self.dt_crit *= self.reconstruction_factor()
-        remaining = self.scene.t_end - self.t
-        dt = self.method.cfl * self.dt_crit
-        self.dt = remaining if dt >= remaining * (1 - 1e-12) else dt
+        self.dt = adaptive_step(self.method.cfl, self.dt_crit, self.t, self.scene.t_end)
         return self.dt
 
     def advance(self):
@@ -224,7 +228,7 @@ class State:
 
     def t_next(self):
         if self.adaptive:
-            return self.scene.t_end if self.finished_after_step() else self.t + self.dt
+            return time_after_step(self.t, self.dt, self.scene.t_end)
         return self.time_at(self.step)
 
     def time_at(self, step):
@@ -234,12 +238,12 @@ class State:
         return step * self.dt if step < self.n_steps else self.scene.t_end
 
     def finished_after_step(self):
-        return self.t + self.dt >= self.scene.t_end * (1 - 1e-14)
+        return finished_after_step(self.t, self.dt, self.scene.t_end)
 
     @property
     def done(self):
         if self.adaptive:
-            return self.t >= self.scene.t_end * (1 - 1e-14)
+            return reached_end(self.t, self.scene.t_end)
         return self.step >= self.n_steps
 
     # ------------------------------------------------------------- reactions
@@ -286,6 +290,14 @@ class State:
                 strain += material.strain_energy(sub.subset(slice(start, start + block))
                                                  if sub.n > block else sub)
         return kinetic, strain
+
+
+def _current_wave_speed(material, particles):
+    """``material``'s wave speed of ``particles``: its compiled point wave
+    speed where it declares one, else its ``wave_speed``."""
+    if material.point_wave_speed is not None:
+        return max_point_wave_speed(material, particles)
+    return material.wave_speed(particles)
 
 
 MAX_STEPS = 10 ** 9
