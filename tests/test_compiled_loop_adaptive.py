@@ -22,7 +22,8 @@ from skfem_mpm.solve.compiled import CompiledExecutor
 from skfem_mpm.solve.state import prepare
 from skfem_mpm.solve.timestep import critical_time_step
 
-from test_compiled_loop import LAW_CASES, law_scene, looped_and_stepped, without_loop
+from test_compiled_loop import (LAW_CASES, assert_same, law_scene, looped_and_stepped,
+                                without_loop)
 from test_executors import scene_for
 
 
@@ -193,14 +194,39 @@ def test_a_users_point_wave_speed_runs_in_the_loop(monkeypatch):
     assert simulate(own, Method(scheme="usl")).path == "fast"
 
 
-def test_adaptive_2d_reconstruction_stays_with_the_executor():
-    """tls in 2D multiplies dt_crit by a factor re-estimated every
-    RECONSTRUCTION_EVERY steps (power iterations in Python): not in the loop."""
-    case = dict(material="neo-hookean", dim=2, scheme="musl", mass="lumped", degree=2)
-    state = prepare(law_scene(case)[0], Method(reconstruction="tls"))
-    assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == (
-        False, "an adaptive time step with reconstruction in 2D (its factor on dt_crit is "
-               "re-estimated every RECONSTRUCTION_EVERY steps)")
+def test_a_2d_reconstruction_reestimates_its_factor_between_calls(monkeypatch):
+    """tls in 2D multiplies dt_crit by a factor re-estimated (power
+    iterations, Python) at step 0 and every RECONSTRUCTION_EVERY steps:
+    the loop stops before each re-estimate and takes the factor State
+    estimates, once a step, as the executor does (30 steps: one
+    re-estimate after step 0's)."""
+    case = dict(material="neo-hookean", dim=2, scheme="usl", mass="lumped", degree=2, ppc=3)
+    scene, _ = law_scene(case, steps=30)
+    calls = []
+    run = compiled_loop.StepLoop.run
+    monkeypatch.setattr(compiled_loop.StepLoop, "run",
+                        lambda self, state, n: calls.append((state.step, run(self, state, n)))
+                        or calls[-1][1])
+    method = Method(scheme="usl", reconstruction="tls")
+    looped = simulate(scene, method, save_every=7)  # saves not at the re-estimates
+    stepped = without_loop(monkeypatch, scene, method, save_every=7)
+    assert_same(looped, stepped)
+    assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] > 25
+    assert (looped.dt, looped.dt_crit) == (stepped.dt, stepped.dt_crit)
+    assert (25, 3) in calls  # steps 21-24, then 25-27 from the new estimate
+    assert all(step // 25 == (step + taken - 1) // 25 for step, taken in calls if taken)
+
+
+def test_the_reconstruction_factor_is_estimated_once_a_step():
+    """A step whose size is asked twice (the loop's call, then the
+    executor's step when the loop could not take it) keeps one estimate of
+    the factor: the same dt, from the same power-iteration vectors."""
+    case = dict(material="neo-hookean", dim=2, scheme="usl", mass="lumped", degree=2, ppc=3)
+    state = prepare(law_scene(case)[0], Method(scheme="usl", reconstruction="tls"))
+    first = state.next_step_size(), state.dt_crit
+    vectors = state._reconstruction_vectors
+    assert (state.next_step_size(), state.dt_crit) == first
+    assert state._reconstruction_vectors is vectors
 
 
 @pytest.mark.slow(reason="another compiled loop variant (prescribed velocities with a point law)")

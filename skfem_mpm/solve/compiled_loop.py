@@ -60,8 +60,8 @@ from . import schemes
 from .compiled import side_traction
 from .compiled_loop_tables import ForceTable, PrescribedTable, TractionTable, reference_forces
 from .stencil_system import StencilSystem, stencil_residual
-from .timestep import (COVERED, STABILITY_LIMIT, effective_mass_ratio, fast_dof_limit,
-                       stiffness_root)
+from .timestep import (COVERED, RECONSTRUCTION_EVERY, STABILITY_LIMIT, effective_mass_ratio,
+                       fast_dof_limit, stiffness_root)
 
 __all__ = ["ENABLED", "StepLoop", "loop_applies"]
 
@@ -150,9 +150,6 @@ def loop_applies(state, executor):
         (state.adaptive and state.bodies[0][0].point_wave_speed is None,
          "an adaptive time step with a material without a compiled wave speed "
          "(point_wave_speed None)"),
-        (state.adaptive and recon is not None and state.grid.dim >= 2,
-         f"an adaptive time step with reconstruction in {state.grid.dim}D (its factor on "
-         f"dt_crit is re-estimated every RECONSTRUCTION_EVERY steps)"),
         (state.grid.dim not in (1, 2, 3), f"{state.grid.dim}D"),
         (state.grid.dim == 3 and m.mass != "lumped", f"{m.mass} mass in 3D"),
     )
@@ -410,6 +407,8 @@ class StepLoop:
         for a fixed dt."""
         m, grid = state.method, state.grid
         self.adaptive = bool(state.adaptive)
+        # a 2D reconstruction's factor on dt_crit, re-estimated in Python
+        self.refactored = self.adaptive and m.reconstruction != "none" and grid.dim >= 2
         guard = 0.0 if m.mass in ("lumped", "hybrid") else m.frequency_guard
         return dict(
             adaptive=self.adaptive,
@@ -418,7 +417,7 @@ class StepLoop:
             stiffness_root=stiffness_root(grid, m.mass), wave_speed=float(state.wave_speed_now),
             dt_crit=float(state.dt_crit), block_max=np.empty(nthreads),
             guard_q=float(guard * fast_dof_limit(grid.degree, m.scheme)) if guard > 0 else 0.0,
-            taken_step=np.zeros(3))
+            taken_step=np.zeros(3), recon_factor=1.0)
 
     def _law_arrays(self, material, executor, n, dim, nthreads):
         """The point law's data of the run (compiled_loop_ops.FIELDS; fused
@@ -684,6 +683,7 @@ class StepLoop:
                                        packed.copy())
         self.module.set_work(self.run_state, 0.0)
         self.module.taken_step(self.run_state)
+        self.module.set_reconstruction_factor(self.run_state, 1.0)
         self.module.reset_step_records(self.run_state)
         self._loop(self.run_state, 0)
         self.module.current(self.run_state)
@@ -710,6 +710,9 @@ class StepLoop:
         mod, run = self.module, self.run_state
         for table in self.tables:  # the steps their tables hold (a body force: a chunk)
             n = table.cover(state, n)
+        if self.refactored:  # up to the next re-estimate, which Python makes
+            n = min(n, RECONSTRUCTION_EVERY - state.step % RECONSTRUCTION_EVERY)
+            mod.set_reconstruction_factor(run, float(state.step_reconstruction_factor()))
         if n == 0:  # an effect's function raised: the executor takes the step
             return 0
         consistent = self.cm is not None

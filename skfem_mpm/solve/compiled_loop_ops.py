@@ -105,9 +105,11 @@ FIELDS = (
     # speed, cfl, the scheme's stability limit s, sqrt(sum_d Lambda /
     # h_d^2), the coming step's wave speed and dt_crit, the kernel's block
     # maxima, the fast-dof guard's q (consistent mass: cm.limit = q / (dt
-    # c)^2), and (dt, dt_crit, c) of the last step taken
+    # c)^2), (dt, dt_crit, c) of the last step taken, and a 2D
+    # reconstruction's factor on dt_crit (State.step_reconstruction_factor,
+    # set before each call: the call stops before its next re-estimate)
     "adaptive", "wave_at", "cfl", "stability_limit", "stiffness_root", "wave_speed", "dt_crit",
-    "block_max", "guard_q", "taken_step",
+    "block_max", "guard_q", "taken_step", "recon_factor",
     # consistent or hybrid mass: a MassSystem (None: lumped mass)
     "cm", "nthreads",
     # the native entry points of the run's degree's transfer kernels (call_at)
@@ -260,6 +262,11 @@ def reset_step_records(run):
     run.handover = False
     run.small_max = 0
     run.phase_ns[:] = 0
+
+
+@njit(cache=True)
+def set_reconstruction_factor(run, factor):
+    run.recon_factor = factor
 
 
 @njit(cache=True)
@@ -633,8 +640,7 @@ def _begin_step(run):
         """Whether the run is done (State.done); an adaptive run sets the
         coming step's dt from the current wave speed as
         State.next_step_size does (kernels.step_size: the one copy of the
-        rule; no reconstruction factor: loop_applies keeps a 2D
-        reconstruction with an adaptive step on the executor)."""
+        rule; times a 2D reconstruction's factor, 1 otherwise)."""
         if not run.adaptive:
             return run.step >= run.n_steps
         if reached_end(run.t, run.t_end):
@@ -642,7 +648,8 @@ def _begin_step(run):
         c = MAX_WAVE_SPEED(run.wave_at, run.law_params, run.F, run.m, run.V0, run.mstate,
                            run.block_max)
         run.wave_speed = c
-        run.dt_crit = critical_step(run.stability_limit, c, run.stiffness_root)
+        run.dt_crit = critical_step(run.stability_limit, c, run.stiffness_root) * \
+            run.recon_factor
         run.dt = adaptive_step(run.cfl, run.dt_crit, run.t, run.t_end)
         if consistent:
             if run.cm.guard:

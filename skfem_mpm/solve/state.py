@@ -61,6 +61,7 @@ class State:
         self._adjacency = None
         self._adaptive = None
         self._fast_dof_weights = None
+        self._factor_step = None  # the step of the last re-estimate of the reconstruction factor
         solver = method.mass_solver
         if solver == "auto":
             solver = "direct" if self.grid.ndofs < 20000 else "cg"
@@ -206,6 +207,16 @@ class State:
                                           self._reconstruction_vectors)
         return self._reconstruction_factor
 
+    def step_reconstruction_factor(self):
+        """The reconstruction factor of the coming step of an adaptive run:
+        re-estimated at each step that is a multiple of RECONSTRUCTION_EVERY
+        (once: a second call at the same step, the compiled loop's and then
+        the executor's, gives the same), else the last estimate."""
+        if self.step % RECONSTRUCTION_EVERY == 0 and self._factor_step != self.step:
+            self._reconstruction_factor = None
+            self._factor_step = self.step
+        return self.reconstruction_factor()
+
     def next_step_size(self):
         """Set ``dt`` for the coming step (finite strain: from the current
         wave speed; the last step ends exactly at t_end); the rule is
@@ -215,9 +226,7 @@ class State:
         self.wave_speed_now = self.wave_speed()
         self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, self.method.mass,
                                           self.method.scheme)
-        if self.step % RECONSTRUCTION_EVERY == 0:
-            self._reconstruction_factor = None
-        self.dt_crit *= self.reconstruction_factor()
+        self.dt_crit *= self.step_reconstruction_factor()
         self.dt = adaptive_step(self.method.cfl, self.dt_crit, self.t, self.scene.t_end)
         return self.dt
 
