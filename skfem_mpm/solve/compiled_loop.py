@@ -23,6 +23,17 @@ executor's constitutive kernel inside the loop; the loop hands the new F
 to ``state.particles`` as the executor does, and loads them again after
 the executor has taken a step.
 
+Time step: fixed, or adaptive (finite strain without a bound and no
+``Method(dt=...)``) for a material with a compiled point wave speed: the
+loop sets each step's dt from the current F as ``State.next_step_size``
+does, by the same compiled rule (:mod:`skfem_mpm.kernels.step_size`), and
+hands the last step's dt, dt_crit and wave speed back to the state. The
+loop stops at the end time, and with a 2D reconstruction before each
+re-estimate of its factor on dt_crit (``State.step_reconstruction_factor``,
+Python); an effect tabulated in time (a body force, a side traction,
+prescribed velocities) is evaluated at a step's time only once the loop
+has reached it, so such a run returns every step.
+
 Threads: the loop calls the kernels the executor calls: below
 :data:`skfem_mpm.kernels.serial.SERIAL_BELOW` particles their serial copies
 (the same source compiled without ``parallel``; the same blocks, so the

@@ -51,7 +51,12 @@ grid velocities (``run.prescribed``: None, or the data of
 :mod:`skfem_mpm.solve.compiled_loop_prescribed`), grid modifiers with a
 compiled rule (local damping, frictional walls: ``run.force_rules``,
 ``run.velocity_rules``, None or the packed rules of
-:mod:`skfem_mpm.solve.compiled_loop_modifiers`). A step that would need
+:mod:`skfem_mpm.solve.compiled_loop_modifiers`); a fixed dt, or with a
+point law an adaptive one (``run.adaptive``: before each step
+``begin_step`` takes the particles' largest wave speed from the current F
+by the material's compiled point wave speed, ``run.wave_at``, and sets dt
+by :mod:`skfem_mpm.kernels.step_size`, the rule ``State.next_step_size``
+runs). A step that would need
 anything else stops the loop before it writes the current state
 (``run.stop``): a non-finite value or material state, J <= 0, a volume
 <= 0 or a particle outside the grid (2), a tiny-mass merge the lumped kernel
