@@ -32,7 +32,9 @@ loop stops at the end time, and with a 2D reconstruction before each
 re-estimate of its factor on dt_crit (``State.step_reconstruction_factor``,
 Python); an effect tabulated in time (a body force, a side traction,
 prescribed velocities) is evaluated at a step's time only once the loop
-has reached it, so such a run returns every step.
+has reached it: a call of ``StepLoop.run`` then evaluates the next row and
+calls the loop again for each step (prescribed velocities, which read dt,
+return to the time loop of ``simulate`` every step).
 
 Threads: the loop calls the kernels the executor calls: below
 :data:`skfem_mpm.kernels.serial.SERIAL_BELOW` particles their serial copies
@@ -399,6 +401,9 @@ class StepLoop:
         self.side, self.traction = side, fields["traction"]
         tau = None if side is None else TractionTable(self.module, side, self.traction, state)
         self.tables = [t for t in (self.forces, self.prescribed, tau) if t is not None]
+        # adaptive steps under tables of t alone: one call of run() goes on row by row
+        self.row_by_row = bool(self.adaptive and self.tables and not self.refactored and
+                               not any(table.reads_dt for table in self.tables))
         self.force_rules = fields["force_rules"] = self._rules(executor.force_modifiers)
         fields["velocity_rules"] = self._rules(executor.velocity_modifiers)
         # consistent or hybrid mass: the run's mass system (None: lumped)
@@ -638,6 +643,30 @@ class StepLoop:
         self._groups = G
         return self.module.new_mass_system(*(fields[n] for n in self.module.MASS_FIELDS))
 
+    def _row_by_row(self, state, n):
+        """Up to n more adaptive steps under tables of t alone (a body
+        force, a side traction; not prescribed velocities, which read dt):
+        each next row evaluated at the time the loop reached, without
+        handing the particles back between (the forces read only the
+        reference configuration); returns the steps taken."""
+        mod, run = self.module, self.run_state
+        taken = 0
+        while taken < n:
+            t, step, stopped = mod.clock(run)
+            state.t, state.step = t, step  # the tables' time (run() sets both after)
+            if stopped or state.done:
+                break
+            rows = n - taken
+            for table in self.tables:
+                rows = table.cover(state, rows)
+            if rows == 0:  # an effect's function raised: the executor takes the step
+                break
+            done = self._loop(run, rows)
+            taken += done
+            if done < rows:
+                break
+        return taken
+
     WARM_KINDS = ("acceleration", "velocity")
     # the phases of run.phase_ns (compiled_loop_ops)
     PHASES = ("p2g", "solve", "g2p", "mass_matrix", "reconstruct", "constitutive", "effects")
@@ -694,6 +723,7 @@ class StepLoop:
                                        packed.copy())
         self.module.set_work(self.run_state, 0.0)
         self.module.taken_step(self.run_state)
+        self.module.clock(self.run_state)
         self.module.set_reconstruction_factor(self.run_state, 1.0)
         self.module.reset_step_records(self.run_state)
         self._loop(self.run_state, 0)
@@ -719,6 +749,7 @@ class StepLoop:
         if p.n != self._arrays[0].shape[0]:  # particles were removed
             return 0
         mod, run = self.module, self.run_state
+        wanted = n
         for table in self.tables:  # the steps their tables hold (a body force: a chunk)
             n = table.cover(state, n)
         if self.refactored:  # up to the next re-estimate, which Python makes
@@ -740,6 +771,8 @@ class StepLoop:
         mod.reset_step_records(run)
         start = time.perf_counter()
         taken = self._loop(run, n)
+        if taken == n and self.row_by_row:
+            taken += self._row_by_row(state, wanted - taken)
         if taken:
             per_step = (time.perf_counter() - start) / taken
             self._steps_per_call = max(1, int(self.CALL_SECONDS / max(per_step, 1e-9)))

@@ -275,6 +275,12 @@ def set_reconstruction_factor(run, factor):
 
 
 @njit(cache=True)
+def clock(run):
+    """The run's time and step, and whether its last call stopped or handed over."""
+    return run.t, run.step, run.stop != 0 or run.handover
+
+
+@njit(cache=True)
 def taken_step(run):
     """(dt, dt_crit, wave speed) of the last adaptive step taken."""
     return run.taken_step
