@@ -17,13 +17,19 @@ n_state = 0 (nothing is copied). The law is a C callback of the signature
 :data:`skfem_mpm.materials.compiled.POINT_SIGNATURE`, passed by its address
 (so this kernel is compiled and cached once for all materials). Returns the first particle with
 det <= 0 (-1 for none); the NumPy reference is each material's ``update``.
+
+The current wave speed of a finite-strain material (the adaptive time
+step): ``max_wave_speed`` is max_i c(params, F_i, m_i, V0_i, state_i) over
+the particles, c the material's compiled point wave speed, a C callback of
+the signature :data:`skfem_mpm.materials.compiled.WAVE_SPEED_SIGNATURE`
+passed by its address (NaN when any particle's is NaN).
 """
 import numpy as np
 from llvmlite import ir
 from numba import njit, prange, types
 from numba.extending import intrinsic
 
-__all__ = ["material_update"]
+__all__ = ["material_update", "max_wave_speed"]
 
 
 @intrinsic
@@ -109,3 +115,56 @@ def material_update(law, params, index, every, L, dt, finite, stress, F, V, V0, 
             if not J > 0.0 and bad < 0:
                 bad = i
         first_bad[t] = bad
+
+
+@intrinsic
+def _call_wave_speed(typingctx, address, params, F, dim, m, V0, state):
+    """The wave speed of the C callback at ``address`` (an integer) for one
+    particle (WAVE_SPEED_SIGNATURE: the arrays' data pointers)."""
+    sig = types.float64(address, params, F, dim, m, V0, state)
+
+    def codegen(context, builder, signature, args):
+        a_address, a_params, a_F, a_dim, a_m, a_V0, a_state = args
+        ty = signature.args
+        double_p = ir.DoubleType().as_pointer()
+        intp = context.get_value_type(types.intp)
+
+        def array(i, value):
+            return context.make_array(ty[i])(context, builder, value)
+
+        fnty = ir.FunctionType(ir.DoubleType(), [double_p, intp, double_p, intp,
+                                                 ir.DoubleType(), ir.DoubleType(), double_p,
+                                                 intp])
+        fn = builder.inttoptr(a_address, fnty.as_pointer())
+        params_, state_ = array(1, a_params), array(6, a_state)
+        return builder.call(fn, [params_.data, builder.extract_value(params_.shape, 0),
+                                 array(2, a_F).data, a_dim, a_m, a_V0, state_.data,
+                                 builder.extract_value(state_.shape, 0)])
+
+    return sig, codegen
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def max_wave_speed(speed, params, F, m, V0, state, block_max):
+    """max_i c_i of the callback ``speed`` over the particles (see the
+    module docstring); ``block_max`` (threads,) receives each thread
+    block's maximum (the maximum is exact: any blocks give the same)."""
+    n = F.shape[0]
+    dim = F.shape[1]
+    nt = block_max.shape[0]
+    for t in prange(nt):
+        best = -np.inf
+        for i in range(t * n // nt, (t + 1) * n // nt):
+            c = _call_wave_speed(speed, params, F[i], dim, m[i], V0[i], state[i])
+            if c > best or c != c:
+                best = c
+            if best != best:
+                break
+        block_max[t] = best
+    top = -np.inf
+    for t in range(nt):
+        if block_max[t] > top or block_max[t] != block_max[t]:
+            top = block_max[t]
+        if top != top:
+            break
+    return top

@@ -3,12 +3,13 @@
 
 Write your own by following the same shape (see examples/custom_material.py);
 give it a compiled ``point_update`` (:func:`point_update`) and the compiled
-executor runs it without leaving compiled code; declare per-particle state
+executor runs it without leaving compiled code (a finite-strain material's
+adaptive steps need a compiled ``point_wave_speed`` too: :func:`point_wave_speed`); declare per-particle state
 (``particles.state[name]``) with ``state_fields`` (:mod:`.state`).
 """
 from .base import Material, det, incremental_deformation, lame_parameters
 from .bbar import BBar
-from .compiled import point_update
+from .compiled import point_update, point_wave_speed
 from .drucker_prager import DruckerPrager
 from .linear_elastic import LinearElastic
 from .mohr_coulomb import MohrCoulomb
@@ -18,4 +19,4 @@ from .von_mises import VonMises
 
 __all__ = ["Material", "LinearElastic", "NeoHookean", "MohrCoulomb", "DruckerPrager",
            "VonMises", "BBar", "lame_parameters", "det",
-           "incremental_deformation", "point_update", "state_layout", "StateLayout"]
+           "incremental_deformation", "point_update", "point_wave_speed", "state_layout", "StateLayout"]

@@ -26,7 +26,13 @@ A material has
     check_dim(dim)          raise for dimensions it does not model
     point_update            the compiled law of one particle, or None (then the
                             compiled executor calls ``update``)
-    point_parameters(dim)   the float64 array of parameters ``point_update`` reads
+    point_wave_speed        the compiled wave speed of one particle, or None: a
+                            finite-strain material without a bound that gives
+                            one has its adaptive steps run by the compiled loop
+                            (else each step returns to Python), and the run's
+                            time step takes it instead of ``wave_speed``
+    point_parameters(dim)   the float64 array of parameters ``point_update`` and
+                            ``point_wave_speed`` read
     cell_average            True: the compiled paths give ``point_update`` the
                             velocity gradient with its dilatation averaged over
                             each grid cell (B-bar: :class:`BBar`), False (default)
@@ -88,6 +94,7 @@ class Material:
     finite_strain = False
     point_update = None
     cell_average = False
+    point_wave_speed = None
 
     def point_parameters(self, dim):
         """The parameters of ``point_update`` (a float64 array)."""

@@ -4,7 +4,7 @@ import numpy as np
 from ..errors import InvalidState
 from ..validation import check_positive
 from .base import Material, check_nu, det, incremental_deformation, lame_parameters
-from .compiled import PointUpdate
+from .compiled import PointUpdate, PointWaveSpeed, max_point_wave_speed
 
 __all__ = ["NeoHookean"]
 
@@ -23,6 +23,7 @@ class NeoHookean(Material):
 
     finite_strain = True
     point_update = PointUpdate("skfem_mpm.materials.laws:neo_hookean")
+    point_wave_speed = PointWaveSpeed("skfem_mpm.materials.laws:neo_hookean_wave_speed")
 
     def __init__(self, E, nu=0.0):
         self.E = check_positive("E", E)
@@ -68,18 +69,10 @@ class NeoHookean(Material):
 
     def wave_speed(self, particles):
         """Largest uniaxial tangent wave speed over principal stretches s:
-        c^2 = (mu (1 + 1/s^2) + lambda (1 - ln J) / s^2) / rho0."""
-        dim = particles.dim
-        lam, mu = self.parameters(dim)
-        F = particles.F
-        if F is None:
-            F = np.broadcast_to(np.eye(dim), (particles.n, dim, dim))
-        J = det(F)
-        C = np.swapaxes(F, 1, 2) @ F
-        stretch = np.sqrt(np.linalg.eigvalsh(C))  # (n, dim)
-        tangent = mu * (1 + 1 / stretch ** 2) + (lam * (1 - np.log(J)))[:, None] / stretch ** 2
-        rho0 = particles.m / particles.V0
-        return float(np.sqrt((tangent.max(axis=1) / rho0).max()))
+        c^2 = (mu (1 + 1/s^2) + lambda (1 - ln J) / s^2) / rho0, by the
+        compiled point wave speed
+        (:func:`skfem_mpm.materials.laws.neo_hookean_wave_speed_law`)."""
+        return max_point_wave_speed(self, particles)
 
     def strain_energy(self, particles):
         dim = particles.dim

@@ -49,6 +49,7 @@ from ..kernels.records import grid_record
 from ..kernels import serial
 from ..kernels.fast_dof import limit_by_effective_mass
 from ..kernels.mpm import Kernels, fast_row_fractions
+from ..kernels.step_size import guard_limit
 from ..kernels.traction import loads_power, side_faces
 from ..materials import LinearElastic
 from ..materials.state import PackedState, state_layout
@@ -344,7 +345,8 @@ class CompiledExecutor(CompiledRungeKutta):
         guard = 0.0 if state.method.mass == "hybrid" else state.method.frequency_guard
         limit = None
         if guard > 0:
-            limit = guard * fast_dof_limit(state.grid.degree, state.method.scheme) / (state.dt * state.wave_speed_now) ** 2
+            limit = guard_limit(guard * fast_dof_limit(state.grid.degree, state.method.scheme),
+                                state.dt, state.wave_speed_now)
             centre = (stencil.shape[1] - 1) // 2
             guarded = np.multiply(K, state.guard_weights(mass, stencil[:, centre]),
                                   out=self.kernels.scratch("guard_K", K.size))

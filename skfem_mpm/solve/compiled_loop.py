@@ -24,6 +24,19 @@ one, its law called at each stage's F); the loop hands the new F
 to ``state.particles`` as the executor does, and loads them again after
 the executor has taken a step.
 
+Time step: fixed, or adaptive (finite strain without a bound and no
+``Method(dt=...)``) for a material with a compiled point wave speed: the
+loop sets each step's dt from the current F as ``State.next_step_size``
+does, by the same compiled rule (:mod:`skfem_mpm.kernels.step_size`), and
+hands the last step's dt, dt_crit and wave speed back to the state. The
+loop stops at the end time, and with a 2D reconstruction before each
+re-estimate of its factor on dt_crit (``State.step_reconstruction_factor``,
+Python); an effect tabulated in time (a body force, a side traction,
+prescribed velocities) is evaluated at a step's time only once the loop
+has reached it: a call of ``StepLoop.run`` then evaluates the next row and
+calls the loop again for each step (prescribed velocities, which read dt,
+return to the time loop of ``simulate`` every step).
+
 Threads: the loop calls the kernels the executor calls: below
 :data:`skfem_mpm.kernels.serial.SERIAL_BELOW` particles their serial copies
 (the same source compiled without ``parallel``; the same blocks, so the
@@ -47,12 +60,13 @@ import numba
 import numpy as np
 
 from ..kernels import (bbar, by_symbol, cholesky, constitutive, fast_dof, gauss_rule,
-                       grid_modifiers, kronecker, mpm, scatter, spline_1d, staging, tiny_mass,
-                       tls, traction, weights)
+                       grid_modifiers, kronecker, mpm, scatter, spline_1d, staging, step_size,
+                       tiny_mass, tls, traction, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
 from ..kernels.records import grid_record
+from ..kernels.step_size import guard_limit
 from ..kernels.scatter import g2p2g_kernel, p2g_kernel
 from ..materials.state import state_layout
 from ..kernels.serial import for_threads
@@ -60,7 +74,8 @@ from . import schemes
 from .compiled import side_traction
 from .compiled_loop_tables import ForceTable, PrescribedTable, TractionTable, reference_forces
 from .stencil_system import StencilSystem, stencil_residual
-from .timestep import COVERED, effective_mass_ratio, fast_dof_limit
+from .timestep import (COVERED, RECONSTRUCTION_EVERY, STABILITY_LIMIT, effective_mass_ratio,
+                       fast_dof_limit, stiffness_root)
 
 __all__ = ["ENABLED", "StepLoop", "loop_applies"]
 
@@ -90,6 +105,8 @@ _GRID_KERNELS = {
     # a material's compiled point law (not fused linear elasticity)
     "MATERIAL_UPDATE": constitutive.material_update,
     "AVERAGE_DILATATION": bbar.average_dilatation,  # B-bar
+    # its compiled point wave speed (an adaptive step)
+    "MAX_WAVE_SPEED": constitutive.max_wave_speed,
     # reconstruction (compiled_loop_reconstruct)
     "GAUSS_RULE_1D": gauss_rule.gauss_rule_1d,
     "NOT_A_KNOT_SPLINE": spline_1d.not_a_knot_spline,
@@ -147,7 +164,9 @@ def loop_applies(state, executor):
          "a body force with reconstruction"),
         (_without_rule(executor) is not None,
          f"a grid modifier without a compiled rule ({_without_rule(executor)!r})"),
-        (state.adaptive, "an adaptive time step"),
+        (state.adaptive and state.bodies[0][0].point_wave_speed is None,
+         "an adaptive time step with a material without a compiled wave speed "
+         "(point_wave_speed None)"),
         (state.grid.dim not in (1, 2, 3), f"{state.grid.dim}D"),
         (state.grid.dim == 3 and m.mass != "lumped", f"{m.mass} mass in 3D"),
     )
@@ -250,7 +269,10 @@ def _prelude(dim, parallel, window, variant):
              "",
              "from skfem_mpm.kernels.by_symbol import call, call_at",
              "from skfem_mpm.kernels.clock import monotonic_ns",
-             "from skfem_mpm.kernels.mpm import work_increment as WORK_INCREMENT"]
+             "from skfem_mpm.kernels.mpm import work_increment as WORK_INCREMENT",
+             "from skfem_mpm.kernels.step_size import (adaptive_step, critical_step, "
+             "guard_limit, reached_end,",
+             "                                         time_after_step)"]
     # the names only: the degree-1 kernels' parameters, the same at every degree
     for label, kernel in _transfer_kernels(dim, 1, parallel, window).items():
         lines += _at_address(label, kernel.py_func, f"{variant}:{label}")
@@ -303,7 +325,7 @@ def loop_module(dim, parallel, window):
     depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass,
                                                      fast_dof, staging, gauss_rule, spline_1d,
                                                      tls, cholesky, weights, traction, constitutive,
-                                                     grid_modifiers, bbar, by_symbol))
+                                                     grid_modifiers, bbar, by_symbol, step_size))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -354,12 +376,14 @@ class StepLoop:
             nbx=int(nbx), nby=int(nby), degree=int(grid.degree),
             flags=np.full((k.nthreads, 3), -1, dtype=np.int64), lam=float(lam), mu=float(mu),
             dt=float(state.dt), t=float(state.t), step=int(state.step),
-            n_steps=int(state.n_steps), t_end=float(state.scene.t_end), vfactor=1.0,
+            n_steps=-1 if state.adaptive else int(state.n_steps),
+            t_end=float(state.scene.t_end), vfactor=1.0,
             store_acc=cd, velocities_done=False, gravity_work=gravity_work, work=0.0,
             work_sum=np.zeros(dim), stop=0, handover=False,
             phase_ns=np.zeros(len(self.PHASES), dtype=np.int64), nthreads=int(k.nthreads),
             p2g_at=0, g2p2g_at=0, g2p_at=0, rates_at=0)
         fields.update(executor.grid_arrays())  # mass, momentum, force, ..., v_old
+        fields.update(self._step_size_fields(state, material, k.nthreads))
         fields.update(self._law_arrays(material, executor, n, dim, k.nthreads))
         fields.update(self._stage_arrays(n if self.scheme == "rk4" else 1, dim, fields))
         recon = executor.recon
@@ -381,6 +405,9 @@ class StepLoop:
         self.side, self.traction = side, fields["traction"]
         tau = None if side is None else TractionTable(self.module, side, self.traction, state)
         self.tables = [t for t in (self.forces, self.prescribed, tau) if t is not None]
+        # adaptive steps under tables of t alone: one call of run() goes on row by row
+        self.row_by_row = bool(self.adaptive and self.tables and not self.refactored and
+                               not any(table.reads_dt for table in self.tables))
         self._rule_arrays = {}  # "force" / "velocity": the packed rules' arrays
         self.force_rules = fields["force_rules"] = self._rules(
             "force", executor.force_modifiers, 4 if self.scheme == "rk4" else 1)
@@ -395,6 +422,25 @@ class StepLoop:
         self._point_at_transfers(dim, grid.degree, window)
         self._loaded = None  # the particles whose arrays the run holds
         self._steps_per_call = 1  # parallel: grows to CALL_SECONDS of steps
+
+    def _step_size_fields(self, state, material, nthreads):
+        """The fields of an adaptive step (compiled_loop_ops.FIELDS: the
+        material's point wave speed and the constants of
+        kernels.step_size's rule, State.next_step_size's); placeholders
+        for a fixed dt."""
+        m, grid = state.method, state.grid
+        self.adaptive = bool(state.adaptive)
+        # a 2D reconstruction's factor on dt_crit, re-estimated in Python
+        self.refactored = self.adaptive and m.reconstruction != "none" and grid.dim >= 2
+        guard = 0.0 if m.mass in ("lumped", "hybrid") else m.frequency_guard
+        return dict(
+            adaptive=self.adaptive,
+            wave_at=int(material.point_wave_speed.address()) if self.adaptive else 0,
+            cfl=float(m.cfl), stability_limit=float(STABILITY_LIMIT.get(m.scheme, 2.0)),
+            stiffness_root=stiffness_root(grid, m.mass), wave_speed=float(state.wave_speed_now),
+            dt_crit=float(state.dt_crit), block_max=np.empty(nthreads),
+            guard_q=float(guard * fast_dof_limit(grid.degree, m.scheme)) if guard > 0 else 0.0,
+            taken_step=np.zeros(3), recon_factor=1.0)
 
     def _law_arrays(self, material, executor, n, dim, nthreads):
         """The point law's data of the run (compiled_loop_ops.FIELDS; fused
@@ -593,8 +639,8 @@ class StepLoop:
         limit = 0.0
         weights, ratios, moving = np.ones(nd), np.ones(nd), np.ones(nd)
         if guard > 0:
-            limit = guard * fast_dof_limit(grid.degree, method.scheme) / \
-                (state.dt * state.wave_speed_now) ** 2
+            limit = guard_limit(guard * fast_dof_limit(grid.degree, method.scheme), state.dt,
+                                state.wave_speed_now)
             weights, ratios, moving = state.fast_dof_guard_arrays()
         mask = state.constraints.mask
         groups = {}
@@ -647,6 +693,30 @@ class StepLoop:
             fields[f"reaction_{name}"] = np.zeros(own.shape) if rk4 else own
         self._groups = G
         return self.module.new_mass_system(*(fields[n] for n in self.module.MASS_FIELDS))
+
+    def _row_by_row(self, state, n):
+        """Up to n more adaptive steps under tables of t alone (a body
+        force, a side traction; not prescribed velocities, which read dt):
+        each next row evaluated at the time the loop reached, without
+        handing the particles back between (the forces read only the
+        reference configuration); returns the steps taken."""
+        mod, run = self.module, self.run_state
+        taken = 0
+        while taken < n:
+            t, step, stopped = mod.clock(run)
+            state.t, state.step = t, step  # the tables' time (run() sets both after)
+            if stopped or state.done:
+                break
+            rows = n - taken
+            for table in self.tables:
+                rows = table.cover(state, rows)
+            if rows == 0:  # an effect's function raised: the executor takes the step
+                break
+            done = self._loop(run, rows)
+            taken += done
+            if done < rows:
+                break
+        return taken
 
     WARM_KINDS = ("acceleration", "velocity")
     # the phases of run.phase_ns (compiled_loop_ops)
@@ -703,6 +773,9 @@ class StepLoop:
             self.module.load_law_state(self.run_state, F.copy(), np.ones(self._arrays[3].shape),
                                        packed.copy())
         self.module.set_work(self.run_state, 0.0)
+        self.module.taken_step(self.run_state)
+        self.module.clock(self.run_state)
+        self.module.set_reconstruction_factor(self.run_state, 1.0)
         self.module.reset_step_records(self.run_state)
         self._loop(self.run_state, 0)
         self.module.current(self.run_state)
@@ -728,8 +801,12 @@ class StepLoop:
         if p.n != self._arrays[0].shape[0]:  # particles were removed
             return 0
         mod, run = self.module, self.run_state
+        wanted = n
         for table in self.tables:  # the steps their tables hold (a body force: a chunk)
             n = table.cover(state, n)
+        if self.refactored:  # up to the next re-estimate, which Python makes
+            n = min(n, RECONSTRUCTION_EVERY - state.step % RECONSTRUCTION_EVERY)
+            mod.set_reconstruction_factor(run, float(state.step_reconstruction_factor()))
         if n == 0:  # an effect's function raised: the executor takes the step
             return 0
         if self.force_rules is not None:  # (their log's rows)
@@ -749,6 +826,8 @@ class StepLoop:
         mod.reset_step_records(run)
         start = time.perf_counter()
         taken = self._loop(run, n)
+        if taken == n and self.row_by_row:
+            taken += self._row_by_row(state, wanted - taken)
         if taken:
             per_step = (time.perf_counter() - start) / taken
             self._steps_per_call = max(1, int(self.CALL_SECONDS / max(per_step, 1e-9)))
@@ -760,6 +839,8 @@ class StepLoop:
         self._loaded = state.particles
         state.t, state.step = t, step
         state.external_work = work
+        if self.adaptive:  # the step size of the last step taken (State.next_step_size's)
+            state.dt, state.dt_crit, state.wave_speed_now = mod.taken_step(run).tolist()
         if self.scheme == "cd":
             state.particle_acceleration = acc.copy()
         phase_ns, small_max, handover = mod.records(run)

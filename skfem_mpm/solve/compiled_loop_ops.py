@@ -53,7 +53,12 @@ grid velocities (``run.prescribed``: None, or the data of
 :mod:`skfem_mpm.solve.compiled_loop_prescribed`), grid modifiers with a
 compiled rule (local damping, frictional walls, rigid footings: ``run.force_rules``,
 ``run.velocity_rules``, None or the packed rules of
-:mod:`skfem_mpm.solve.compiled_loop_modifiers`). A step that would need
+:mod:`skfem_mpm.solve.compiled_loop_modifiers`); a fixed dt, or with a
+point law an adaptive one (``run.adaptive``: before each step
+``begin_step`` takes the particles' largest wave speed from the current F
+by the material's compiled point wave speed, ``run.wave_at``, and sets dt
+by :mod:`skfem_mpm.kernels.step_size`, the rule ``State.next_step_size``
+runs). A step that would need
 anything else stops the loop before it writes the current state
 (``run.stop``): a non-finite value or material state, J <= 0, a volume
 <= 0 or a particle outside the grid (2), a tiny-mass merge the lumped kernel
@@ -102,6 +107,16 @@ FIELDS = (
     # the step
     "dt", "t", "step", "n_steps", "t_end", "vfactor", "store_acc", "velocities_done",
     "gravity_work", "work", "work_sum", "stop", "handover", "phase_ns",
+    # an adaptive step (finite strain, a point law; else placeholders):
+    # adaptive or not, the address of the material's compiled point wave
+    # speed, cfl, the scheme's stability limit s, sqrt(sum_d Lambda /
+    # h_d^2), the coming step's wave speed and dt_crit, the kernel's block
+    # maxima, the fast-dof guard's q (consistent mass: cm.limit = q / (dt
+    # c)^2), (dt, dt_crit, c) of the last step taken, and a 2D
+    # reconstruction's factor on dt_crit (State.step_reconstruction_factor,
+    # set before each call: the call stops before its next re-estimate)
+    "adaptive", "wave_at", "cfl", "stability_limit", "stiffness_root", "wave_speed", "dt_crit",
+    "block_max", "guard_q", "taken_step", "recon_factor",
     # consistent or hybrid mass: a MassSystem (None: lumped mass)
     "cm", "nthreads",
     # the native entry points of the run's degree's transfer kernels (call_at)
@@ -265,6 +280,23 @@ def reset_step_records(run):
     run.handover = False
     run.small_max = 0
     run.phase_ns[:] = 0
+
+
+@njit(cache=True)
+def set_reconstruction_factor(run, factor):
+    run.recon_factor = factor
+
+
+@njit(cache=True)
+def clock(run):
+    """The run's time and step, and whether its last call stopped or handed over."""
+    return run.t, run.step, run.stop != 0 or run.handover
+
+
+@njit(cache=True)
+def taken_step(run):
+    """(dt, dt_crit, wave speed) of the last adaptive step taken."""
+    return run.taken_step
 
 
 @njit(cache=True)
@@ -628,9 +660,39 @@ def _update_stress(run, state, grid, velocity=None):
     return impl
 
 
+@overload_method(RunType, "begin_step")
+def _begin_step(run):
+    if not _point_law(run):  # linear elasticity: never adaptive
+        return lambda run: run.step >= run.n_steps
+    consistent = _consistent(run)
+
+    def impl(run):
+        """Whether the run is done (State.done); an adaptive run sets the
+        coming step's dt from the current wave speed as
+        State.next_step_size does (kernels.step_size: the one copy of the
+        rule; times a 2D reconstruction's factor, 1 otherwise)."""
+        if not run.adaptive:
+            return run.step >= run.n_steps
+        if reached_end(run.t, run.t_end):
+            return True
+        c = MAX_WAVE_SPEED(run.wave_at, run.law_params, run.F, run.m, run.V0, run.mstate,
+                           run.block_max)
+        run.wave_speed = c
+        run.dt_crit = critical_step(run.stability_limit, c, run.stiffness_root) * \
+            run.recon_factor
+        run.dt = adaptive_step(run.cfl, run.dt_crit, run.t, run.t_end)
+        if consistent:
+            if run.cm.guard:
+                run.cm.limit = guard_limit(run.guard_q, run.dt, c)
+        return False
+    return impl
+
+
 @njit(cache=True)
 def _advance(run):
-    """The new state becomes current; t += dt (the end time exactly at the last step)."""
+    """The new state becomes current; t += dt (the end time exactly at the
+    last step: State.time_at of a fixed dt, computed alike; adaptive:
+    kernels.step_size.time_after_step, State.t_next's rule)."""
     run.x, run.x_new = run.x_new, run.x
     run.v, run.v_new = run.v_new, run.v
     run.u, run.u_new = run.u_new, run.u
@@ -639,7 +701,13 @@ def _advance(run):
     run.F, run.F_new = run.F_new, run.F
     run.mstate, run.mstate_new = run.mstate_new, run.mstate
     run.step += 1
-    run.t = run.step * run.dt if run.step < run.n_steps else run.t_end
+    if run.adaptive:
+        run.t = time_after_step(run.t, run.dt, run.t_end)
+        run.taken_step[0] = run.dt
+        run.taken_step[1] = run.dt_crit
+        run.taken_step[2] = run.wave_speed
+    else:
+        run.t = run.step * run.dt if run.step < run.n_steps else run.t_end
 
 
 @overload_method(RunType, "gravity_power")
@@ -861,6 +929,8 @@ def _valid_state(x, v, stress, V, axes):
 def run_musl(run, n):
     """Up to n MUSL steps; returns the number taken (fewer when one stopped)."""
     for k in range(n):
+        if run.begin_step():  # the end (adaptive: the step's dt set)
+            return k
         schemes.step_musl(run, run)
         if run.stop:
             return k
@@ -873,6 +943,8 @@ def run_musl(run, n):
 def run_usl(run, n):
     """Up to n USL steps; returns the number taken."""
     for k in range(n):
+        if run.begin_step():  # the end (adaptive: the step's dt set)
+            return k
         schemes.step_usl(run, run)
         if run.stop:
             return k
@@ -885,6 +957,8 @@ def run_usl(run, n):
 def run_cd(run, n):
     """Up to n central-difference steps; returns the number taken."""
     for k in range(n):
+        if run.begin_step():  # the end (adaptive: the step's dt set)
+            return k
         schemes.step_cd(run, run)
         if run.stop:
             return k
@@ -897,6 +971,8 @@ def run_cd(run, n):
 def run_rk4(run, n):
     """Up to n classical Runge-Kutta steps; returns the number taken."""
     for k in range(n):
+        if run.begin_step():  # the end (adaptive: the step's dt set)
+            return k
         schemes.step_rk4(run, run)
         if run.stop:
             return k

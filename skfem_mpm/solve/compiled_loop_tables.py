@@ -8,7 +8,11 @@ the loop reads the tables: :mod:`skfem_mpm.solve.compiled_loop_body_force`,
 Each table covers the steps from ``first`` to ``first + rows``; a loop that
 stopped early is called again on steps the table holds, which it keeps.
 The times are the executor's: a step's t is ``State.time_at`` (the state's
-own t for the current step), an rk4 stage's t + c dt (c = 0, 1/2, 1). An
+own t for the current step), an rk4 stage's t + c dt (c = 0, 1/2, 1). With
+an adaptive step the times of later steps are not known before the loop
+has taken the steps: a table then holds the current step only, and a
+table that reads dt has it set first (``State.next_step_size``, the dt the
+loop computes by the same rule from the same particles). An
 evaluation that raises ends the table before that step: the executor then
 takes the step and raises as it does without the loop.
 """
@@ -46,12 +50,22 @@ class _Table:
             return self.first + self.rows - step
         return 0
 
+    @property
+    def reads_dt(self):
+        """Whether an evaluation reads the step's dt (a stage after the first)."""
+        return len(self.stages) > 1
+
     def cover(self, state, n):
         """The number of steps (<= n) from the state's on that the table
-        holds, evaluating it when it holds none of them."""
+        holds, evaluating it when it holds none of them (adaptive: the
+        current step's row only)."""
         held = self.held(state.step)
         if held:
             return min(n, held)
+        if state.adaptive:
+            n = 1
+            if self.reads_dt:
+                state.next_step_size()
         n = min(n, self.chunk)
         times = _step_times(state, n)
         table = self.empty(n)
@@ -108,6 +122,7 @@ class PrescribedTable(_Table):
     :func:`skfem_mpm.solve.runge_kutta.prescribed_acceleration`)."""
 
     chunk = 1 << 62  # a few numbers per step
+    reads_dt = True  # v(t + dt), (v(t + dt) - v(t)) / dt
 
     def __init__(self, module, state):
         super().__init__(state.method.scheme)

@@ -17,7 +17,7 @@ from .compiled import CompiledExecutor, compiled_executor_applies
 from .compiled_loop import StepLoop, loop_applies
 from .reference import ReferenceExecutor
 from .schemes import SCHEME_STEPS
-from .state import prepare
+from .state import MAX_STEPS, prepare
 from .threads import ThreadPolicy
 
 __all__ = ["simulate"]
@@ -88,8 +88,9 @@ def warm_up(state, fast, loop=None):
 
 
 def _steps_to_next_event(state, save_every, checkpoint):
-    """Steps until the next save, checkpoint or the end of the run."""
-    n = state.n_steps - state.step
+    """Steps until the next save, checkpoint or the end of the run (an
+    adaptive run: its end is a time, where the compiled loop stops)."""
+    n = MAX_STEPS if state.adaptive else state.n_steps - state.step
     for every in (save_every, checkpoint[1] if checkpoint is not None else None):
         if every is not None:
             n = min(n, every - state.step % every)

@@ -6,6 +6,8 @@ import numpy as np
 
 from ..errors import InvalidState
 from ..kernels import resolve_backend
+from ..kernels.step_size import adaptive_step, finished_after_step, reached_end, time_after_step
+from ..materials.compiled import max_point_wave_speed
 from ..spline import SplineGrid
 from .grid_system import Constraints, dof_adjacency
 from .runge_kutta import check_staged
@@ -59,6 +61,7 @@ class State:
         self._adjacency = None
         self._adaptive = None
         self._fast_dof_weights = None
+        self._factor_step = None  # the step of the last re-estimate of the reconstruction factor
         solver = method.mass_solver
         if solver == "auto":
             solver = "direct" if self.grid.ndofs < 20000 else "cg"
@@ -159,10 +162,13 @@ class State:
 
     def wave_speed(self):
         """The largest wave speed of the bodies: a finite-strain material's
-        bound where it has one (the step it sets holds for the whole run)."""
+        bound where it has one (the step it sets holds for the whole run),
+        else its compiled point wave speed where it declares one (the one
+        the compiled loop computes: :func:`~skfem_mpm.materials.compiled.max_point_wave_speed`),
+        else its ``wave_speed``."""
         p = self.particles
         speeds = [bound if m.finite_strain and bound is not None else
-                  m.wave_speed(p if len(self.bodies) == 1 else p.subset(idx))
+                  _current_wave_speed(m, p if len(self.bodies) == 1 else p.subset(idx))
                   for (m, bound), (_, idx) in zip(self._bounds(), self.bodies)]
         return max(speeds)
 
@@ -201,20 +207,27 @@ class State:
                                           self._reconstruction_vectors)
         return self._reconstruction_factor
 
+    def step_reconstruction_factor(self):
+        """The reconstruction factor of the coming step of an adaptive run:
+        re-estimated at each step that is a multiple of RECONSTRUCTION_EVERY
+        (once: a second call at the same step, the compiled loop's and then
+        the executor's, gives the same), else the last estimate."""
+        if self.step % RECONSTRUCTION_EVERY == 0 and self._factor_step != self.step:
+            self._reconstruction_factor = None
+            self._factor_step = self.step
+        return self.reconstruction_factor()
+
     def next_step_size(self):
         """Set ``dt`` for the coming step (finite strain: from the current
-        wave speed; the last step ends exactly at t_end)."""
+        wave speed; the last step ends exactly at t_end); the rule is
+        :mod:`skfem_mpm.kernels.step_size`, which the compiled loop runs too."""
         if not self.adaptive:
             return self.dt
         self.wave_speed_now = self.wave_speed()
         self.dt_crit = critical_time_step(self.grid, self.wave_speed_now, self.method.mass,
                                           self.method.scheme)
-        if self.step % RECONSTRUCTION_EVERY == 0:
-            self._reconstruction_factor = None
-        self.dt_crit *= self.reconstruction_factor()
-        remaining = self.scene.t_end - self.t
-        dt = self.method.cfl * self.dt_crit
-        self.dt = remaining if dt >= remaining * (1 - 1e-12) else dt
+        self.dt_crit *= self.step_reconstruction_factor()
+        self.dt = adaptive_step(self.method.cfl, self.dt_crit, self.t, self.scene.t_end)
         return self.dt
 
     def advance(self):
@@ -224,7 +237,7 @@ class State:
 
     def t_next(self):
         if self.adaptive:
-            return self.scene.t_end if self.finished_after_step() else self.t + self.dt
+            return time_after_step(self.t, self.dt, self.scene.t_end)
         return self.time_at(self.step)
 
     def time_at(self, step):
@@ -234,12 +247,12 @@ class State:
         return step * self.dt if step < self.n_steps else self.scene.t_end
 
     def finished_after_step(self):
-        return self.t + self.dt >= self.scene.t_end * (1 - 1e-14)
+        return finished_after_step(self.t, self.dt, self.scene.t_end)
 
     @property
     def done(self):
         if self.adaptive:
-            return self.t >= self.scene.t_end * (1 - 1e-14)
+            return reached_end(self.t, self.scene.t_end)
         return self.step >= self.n_steps
 
     # ------------------------------------------------------------- reactions
@@ -286,6 +299,14 @@ class State:
                 strain += material.strain_energy(sub.subset(slice(start, start + block))
                                                  if sub.n > block else sub)
         return kinetic, strain
+
+
+def _current_wave_speed(material, particles):
+    """``material``'s wave speed of ``particles``: its compiled point wave
+    speed where it declares one, else its ``wave_speed``."""
+    if material.point_wave_speed is not None:
+        return max_point_wave_speed(material, particles)
+    return material.wave_speed(particles)
 
 
 MAX_STEPS = 10 ** 9

@@ -29,6 +29,7 @@ state intact.
 import numpy as np
 
 from ..errors import InvalidState
+from ..kernels.step_size import guard_limit
 from ..materials.state import split_update
 from ..quadrature import _csr, _csr_pattern, transfer_matrices
 from ..reconstruct import RECONSTRUCTORS, integration_rule
@@ -274,7 +275,8 @@ def step_system(state, data, kind="acceleration"):
         fast_rows = None
         guard = state.method.frequency_guard
         if consistent is not None and guard > 0:
-            limit = guard * fast_dof_limit(state.grid.degree, state.method.scheme) / (state.dt * state.wave_speed_now) ** 2
+            limit = guard_limit(guard * fast_dof_limit(state.grid.degree, state.method.scheme),
+                                state.dt, state.wave_speed_now)
 
             def fast_rows(mass_diagonal):
                 # sum over points of mass |grad N_i|^2, scaled per dof

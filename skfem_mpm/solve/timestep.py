@@ -39,10 +39,11 @@ from scipy.linalg import eigh
 from skfem import BilinearForm, asm
 from skfem.helpers import dot, grad
 
+from ..kernels.step_size import critical_step
 from .compiled_reconstruct import CompiledReconstruction, unsupported
 
 __all__ = ["spectral_radius", "interior_rayleigh_quotient", "critical_time_step", "STABILITY_LIMIT",
-           "stable_time_step",
+           "stable_time_step", "stiffness_root",
            "fast_dof_limit", "full_grid_quotients", "full_grid_mass_ratios", "fast_dof_weights",
            "covered_weights", "EFFECTIVE_MASS_RULE", "effective_mass_ratio",
            "guarded_stiffness", "lumping_fraction", "ReconstructedOperator", "power_iteration",
@@ -302,10 +303,16 @@ def critical_time_step(grid, wave_speed, mass="lumped", scheme="cd"):
     2 particles per cell, velocities with 1e-3 noise, 2000 MUSL steps):
     hybrid stable up to 1.8 dt_crit(lumped), J <= 0 at 2.0 (lumped: 2.5
     and 3.0; consistent fails at 0.9 dt_crit(lumped))."""
+    return float(critical_step(STABILITY_LIMIT.get(scheme, 2.0), float(wave_speed),
+                               stiffness_root(grid, mass)))
+
+
+def stiffness_root(grid, mass="lumped"):
+    """sqrt(sum_d Lambda(p, mass) / h_d^2), the grid's factor in
+    :func:`critical_time_step` (``mass="hybrid"``: the lumped Lambda)."""
     lam = spectral_radius(grid.degree, "lumped" if mass == "hybrid" else mass)
     h = np.asarray(grid.h, dtype=np.float64)
-    limit = STABILITY_LIMIT.get(scheme, 2.0)
-    return float(limit / (wave_speed * np.sqrt(np.sum(lam / h ** 2))))
+    return float(np.sqrt(np.sum(lam / h ** 2)))
 
 
 def stable_time_step(method, dt_crit, what=""):
