@@ -46,48 +46,38 @@ def _coords(k, nbx, nby):
     return k % nbx, (k // nbx) % nby, k // (nbx * nby)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def _add(value, j, r, i, kept_index, constrained, c, mass, p, nbx, nby, dim, fit, extra_dof,
-         extra_value, n_extra, fixed_dof, fixed_value, n_fixed):
-    """Add ``value`` to entry (i, j) of reduced row r (i = its dof): a kept
-    free column into the stencil slot of its offset or else the row's extra
-    entries, a constrained one into its fixed entries (columns without mass
-    hold 0: skipped). Returns False when a list is full."""
-    if kept_index[j] >= 0:
-        ai, bi, ci = _coords(i, nbx, nby)
-        aj, bj, cj = _coords(j, nbx, nby)
-        da, db, dc = aj - ai, bj - bi, cj - ci
-        if -p <= da <= p and -p <= db <= p and -p <= dc <= p:
-            width = 2 * p + 1
-            slot = da + p
-            if dim >= 2:
-                slot += (db + p) * width
-            if dim == 3:
-                slot += (dc + p) * width * width
-            fit[r, slot] += value
+@njit(cache=True, inline="always")
+def _slot(da, db, dc, p, dim):
+    """The stencil slot of the index offsets (da, db, dc), or -1 outside
+    the stencil."""
+    if da < -p or da > p or db < -p or db > p or dc < -p or dc > p:
+        return -1
+    width = 2 * p + 1
+    slot = da + p
+    if dim >= 2:
+        slot += (db + p) * width
+    if dim == 3:
+        slot += (dc + p) * width * width
+    return slot
+
+
+@njit(cache=True, error_model="numpy")
+def _listed(value, j, r, dof, value_of, count):
+    """Add ``value`` to the entry of column j in row r's list (dof[r],
+    value_of[r], count[r] entries used: the extra entries or the
+    constrained columns); False when the list is full. (Called
+    for these rarer entries only: a call with array arguments costs about
+    as much as a hundred additions.)"""
+    n = count[r]
+    for e in range(n):
+        if dof[r, e] == j:
+            value_of[r, e] += value
             return True
-        n = n_extra[r]
-        for e in range(n):
-            if extra_dof[r, e] == j:
-                extra_value[r, e] += value
-                return True
-        if n == extra_dof.shape[1]:
-            return False
-        extra_dof[r, n] = j
-        extra_value[r, n] = value
-        n_extra[r] = n + 1
-        return True
-    if constrained[j, c] and mass[j] > 0.0:
-        n = n_fixed[r]
-        for e in range(n):
-            if fixed_dof[r, e] == j:
-                fixed_value[r, e] += value
-                return True
-        if n == fixed_dof.shape[1]:
-            return False
-        fixed_dof[r, n] = j
-        fixed_value[r, n] = value
-        n_fixed[r] = n + 1
+    if n == dof.shape[1]:
+        return False
+    dof[r, n] = j
+    value_of[r, n] = value
+    count[r] = n + 1
     return True
 
 
@@ -147,6 +137,16 @@ def merged_system(A, cols, F, fcols, rows, index, constrained, c, mass, small, e
         inv_diag[r] = 1.0 / m_r[r]
     out = fit[:n * ns].reshape((n, ns))
     out[:] = 0.0
+    width = 2 * p + 1
+    slot_a = np.empty(ns, dtype=np.int64)  # each slot's index offsets
+    slot_b = np.zeros(ns, dtype=np.int64)
+    slot_c = np.zeros(ns, dtype=np.int64)
+    for s in range(ns):
+        slot_a[s] = s % width - p
+        if dim >= 2:
+            slot_b[s] = (s // width) % width - p
+        if dim == 3:
+            slot_c[s] = s // (width * width) - p
     lists = EXTRA * ns
     extra_dof = np.empty((n, lists), dtype=np.int64)
     extra_value = np.empty((n, lists))
@@ -156,11 +156,14 @@ def merged_system(A, cols, F, fcols, rows, index, constrained, c, mass, small, e
     n_fixed = np.zeros(n, dtype=np.int64)
     for r in range(n):
         i = kept_rows[r]
+        ai, bi, ci = _coords(i, nbx, nby)
         for q in range(-1, count[r + 1] - count[r]):
             if q < 0:
                 k, w = i, 1.0
             else:
                 k, w = spread_dof[count[r] + q], spread_weight[count[r] + q]
+            ak, bk, ck = _coords(k, nbx, nby)
+            ak, bk, ck = ak - ai, bk - bi, ck - ci  # k's offsets from i
             fr = index[k]
             for part in range(2):
                 for s in range(ns):
@@ -171,16 +174,29 @@ def merged_system(A, cols, F, fcols, rows, index, constrained, c, mass, small, e
                     if v == 0.0:
                         continue
                     v = w * v
-                    if small[l]:
-                        for e in range(entries[l]):
-                            if not _add(v * row_weight[l, e], row_dof[l, e], r, i, kept_index,
-                                        constrained, c, mass, p, nbx, nby, dim, out, extra_dof,
-                                        extra_value, n_extra, fixed_dof, fixed_value, n_fixed):
+                    spread = small[l]  # onto its kept dofs
+                    for e in range(entries[l] if spread else 1):
+                        # entry (i, j) += value: a kept free column into the
+                        # stencil slot of its offset from i or else the row's
+                        # extra entries, a constrained one into its fixed
+                        # entries (columns without mass hold 0: skipped)
+                        if spread:
+                            j = row_dof[l, e]
+                            value = v * row_weight[l, e]
+                            aj, bj, cj = _coords(j, nbx, nby)
+                            slot = _slot(aj - ai, bj - bi, cj - ci, p, dim)
+                        else:
+                            j = l
+                            value = v
+                            slot = _slot(ak + slot_a[s], bk + slot_b[s], ck + slot_c[s], p, dim)
+                        if kept_index[j] >= 0:
+                            if slot >= 0:
+                                out[r, slot] += value
+                            elif not _listed(value, j, r, extra_dof, extra_value, n_extra):
                                 return -1
-                    elif not _add(v, l, r, i, kept_index, constrained, c, mass, p, nbx, nby, dim,
-                                  out, extra_dof, extra_value, n_extra, fixed_dof, fixed_value,
-                                  n_fixed):
-                        return -1
+                        elif constrained[j, c] and mass[j] > 0.0:
+                            if not _listed(value, j, r, fixed_dof, fixed_value, n_fixed):
+                                return -1
     # packed rows: the stencil's nonzero entries in slot order, then the extra ones
     W = 1
     WF = 1
@@ -197,7 +213,6 @@ def merged_system(A, cols, F, fcols, rows, index, constrained, c, mass, small, e
     packed_cols = colsr[:n * W].reshape((n, W))
     fixed = Fr[:n * WF].reshape((n, WF))
     fixed_cols = fcolsr[:n * WF].reshape((n, WF))
-    width = 2 * p + 1
     for r in range(n):
         i = kept_rows[r]
         ai, bi, ci = _coords(i, nbx, nby)
