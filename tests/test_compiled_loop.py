@@ -266,6 +266,55 @@ def test_consistent_mass_gives_the_executors_bits_everywhere(monkeypatch, case):
     check_mass_case(monkeypatch, case, fringe=case["degree"] != 3)
 
 
+# Tiny masses with consistent (and hybrid) mass: the loop solves the merged
+# system of kernels.merged_mass, as the executor's StencilSystem does, on
+# every step. Free surfaces cut cells (scene_for's unaligned bodies, the
+# colliding disks), so tiny-mass dofs occur from the first step; the cases
+# reuse loop variants the cases above compile (prescribed velocities: the
+# constraint values' fixed columns of the merged rows).
+TINY_CASES = [
+    dict(scheme="usl", mass="consistent", degree=2, dim=2, effect="gravity"),
+    dict(scheme="musl", mass="hybrid", degree=2, dim=2, effect="gravity"),
+    dict(scheme="cd", mass="consistent", degree=2, dim=2, effect="prescribed"),
+]
+
+
+@pytest.mark.parametrize("case", TINY_CASES, ids=lambda c: "-".join(map(str, c.values())))
+def test_tiny_masses_with_consistent_mass_stay_in_the_loop(monkeypatch, case):
+    scene = scene_for(dict(case, material="linear", aligned=False), steps=23)
+    method = Method(scheme=case["scheme"], mass=case["mass"])
+    looped, _ = looped_and_stepped(monkeypatch, scene, method)
+    assert looped.counts["small_dofs_max"] > 0
+    assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] == 23
+    if case["effect"] == "prescribed":
+        assert looped.reactions[-1]["Prescribed('bottom', component=0)"][0] != 0.0
+
+
+def test_tiny_masses_of_the_traction_bar_stay_in_the_loop(monkeypatch):
+    """S3 (1D, cubic, spline reconstruction, consistent mass, rk4: the
+    variant test_rk4 compiles): the free end's last function is seen only
+    at the tail of its support, a tiny-mass dof at every step."""
+    from skfem_mpm.benchmarks import get_benchmark
+
+    scene = get_benchmark("traction-bar", "small").scene(8, 3, 2, t_end=0.03)
+    method = Method(scheme="rk4", mass="consistent", reconstruction="spline")
+    looped, _ = looped_and_stepped(monkeypatch, scene, method)
+    assert looped.counts["small_dofs_max"] > 0
+    assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] >= 10
+
+
+def test_colliding_disks_with_consistent_mass_run_in_the_loop(monkeypatch):
+    """D3 with consistent mass: the disks' edges cut cells, so every step
+    has tiny-mass dofs; every step runs in the loop, with the executor's
+    bits."""
+    from skfem_mpm.benchmarks import get_benchmark
+
+    scene = get_benchmark("colliding-disks").scene(t_end=0.15)
+    looped, _ = looped_and_stepped(monkeypatch, scene, Method(mass="consistent"))
+    assert looped.counts["small_dofs_max"] > 0
+    assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] >= 20
+
+
 def test_consistent_mass_with_parallel_kernels(monkeypatch):
     case = MASS_CASES[0]
     with monkeypatch.context() as m:
@@ -511,11 +560,14 @@ def test_point_laws_with_parallel_kernels(monkeypatch):
 
 def test_point_laws_with_the_executor_between_loop_calls(monkeypatch):
     """A 2D body with hybrid mass that collapses gets tiny-mass dofs after
-    a dozen steps: those steps stop the loop and the executor takes them, from
-    the F and state the loop handed back; the loop then goes on from the
-    executor's. The same bits as the executor alone."""
+    a dozen steps; with no room for the merged system
+    (StencilSystem.MERGE_BUFFER 0) those steps stop the loop and the
+    executor takes them with its general grid system, from the F and state
+    the loop handed back; the loop then goes on from the executor's. The
+    same bits as the executor alone."""
     case = dict(material="mohr-coulomb-large", dim=2, scheme="musl", mass="hybrid", degree=2,
                 aligned=True, shear=0.5, cohesion=0.02)
+    monkeypatch.setattr(StencilSystem, "MERGE_BUFFER", 0)
     looped, _ = check_law_case(monkeypatch, case)
     assert 0 < looped.counts["compiled_loop_steps"] < looped.counts["steps"]
 

@@ -108,3 +108,67 @@ def test_heaviest_first_is_the_stable_descending_argsort():
             dofs = np.sort(rng.choice(mass.size, size=n, replace=False)).astype(np.int64)
             expected = dofs[np.argsort(-mass[dofs], kind="stable")]
             np.testing.assert_array_equal(_heaviest_first(dofs, mass), expected)
+
+
+def _consistent_case(dim, degree, seed):
+    """(kernels, stencil, lumped mass, constraints, fast-row fractions) of
+    randomly seeded particles whose free surface cuts cells (tiny masses),
+    fixed and prescribed sides, random fast-row lumping."""
+    rng = np.random.default_rng(seed)
+    if dim == 1:
+        grid = SplineGrid.line(0.0, 1.0, 10, degree)
+        region, effects = ((0.0, 0.61),), [Fixed("left")]
+    elif dim == 2:
+        grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (8, 7), degree)
+        region = lambda X: ((X - 0.45) ** 2).sum(axis=1) < 0.33 ** 2  # noqa: E731
+        effects = [Fixed("left"), Fixed("bottom", component=1)]
+    else:
+        grid = SplineGrid.box((0.0, 1.0), (0.0, 1.0), (0.0, 1.0), (4, 4, 3), degree)
+        region = lambda X: ((X - 0.45) ** 2).sum(axis=1) < 0.4 ** 2  # noqa: E731
+        effects = [Fixed("xmin"), Fixed("zmin", component=2)]
+    p = Particles.seed(grid, 3 if dim < 3 else 2, 1.0, region=region, layout="random",
+                       seed=seed)
+    k = Kernels(grid)
+    mass = k.p2g(p, None)[0].copy()
+    stencil = k.consistent_stencil(p)[0].copy()
+    fast = rng.uniform(0.0, 0.5, mass.size) * (rng.random(mass.size) < 0.3) * (mass > 0)
+    return k, stencil, mass, Constraints(grid, effects), fast
+
+
+CONSISTENT_MERGE = [(d, p, s) for d in (1, 2) for p in (1, 2, 3) for s in (0, 1)] + [
+    pytest.param(3, p, 0, marks=pytest.mark.slow(reason="3D consistent stencil kernels"))
+    for p in (1, 2)]
+
+
+@pytest.mark.parametrize("dim,degree,seed", CONSISTENT_MERGE)
+def test_merged_consistent_mass_equals_the_reference_merge(dim, degree, seed):
+    """StencilSystem with tiny masses (the merged system of
+    kernels.merged_mass, its CG to rtol 1e-13) solves GridSystem's merged
+    equations T^T M' T x_r = T^T rhs (sparse LU), fast rows lumped,
+    constrained dofs (some prescribed, nonzero) moved to the right-hand
+    side: the same solution and the same count of merged dofs."""
+    from skfem_mpm.solve.stencil_system import StencilSystem
+
+    k, stencil, mass, constraints, fast = _consistent_case(dim, degree, seed)
+    rng = np.random.default_rng(seed + 10)
+    rhs = rng.normal(size=(mass.size, dim))
+    values = rng.normal(size=(mass.size, dim)) * constraints.mask * (mass > 0)[:, None]
+    system = StencilSystem(k, stencil, mass, constraints, fast, {}, small_mass=1e-3)
+    reference = GridSystem(mass, constraints, k.stencil_csr(stencil), dof_adjacency(k.grid),
+                           1e-3, "direct", fast_rows=lambda diagonal: fast)
+    assert system.mergeable
+    assert system.small_dofs == reference.small_dofs
+    x = system.solve(rhs, values, "velocity")
+    expected = reference.solve(rhs, values, "velocity")
+    assert np.abs(x - expected).max() <= 1e-11 * np.abs(expected).max()
+
+
+def test_the_consistent_merge_cases_have_tiny_masses():
+    """Each default case above of degree 2 or 3 merges dofs (else it would
+    test the plain stencil CG)."""
+    from skfem_mpm.solve.stencil_system import StencilSystem
+
+    for dim, degree, seed in [c for c in CONSISTENT_MERGE if not hasattr(c, "marks")]:
+        k, stencil, mass, constraints, fast = _consistent_case(dim, degree, seed)
+        system = StencilSystem(k, stencil, mass, constraints, fast, {}, small_mass=1e-3)
+        assert system.small_dofs > 0 or degree == 1, (dim, degree, seed)

@@ -28,7 +28,8 @@ span index offsets -p..p on each axis.
 import numpy as np
 from numba import njit
 
-__all__ = ["merged_lumped_solve_axes", "TIE", "MAX_ENTRIES"]
+__all__ = ["merged_lumped_solve_axes", "merging_rows", "neighbour_maxima", "TIE",
+           "MAX_ENTRIES"]
 
 TIE = 1e-9          # as grid_system._Reduction.TIE
 MAX_ENTRIES = 32    # (kept dof, weight) pairs of one small dof's row
@@ -87,6 +88,70 @@ def _neighbour_max(mass, k, nbx, nby, nbz, p):
 
 
 @njit(cache=True, error_model="numpy")
+def neighbour_maxima(mass, nbx, nby, nbz, p, out):
+    """out_k = max of m_j over the dofs j sharing a cell with k (k
+    included) for dofs with mass, 0 for the others."""
+    for k in range(mass.shape[0]):
+        out[k] = _neighbour_max(mass, k, nbx, nby, nbz, p) if mass[k] > 0.0 else 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def merging_rows(mass, neighbour_max, constrained, c, nbx, nby, nbz, p, tol, small, entries,
+                 row_dof, row_weight):
+    """The merging matrix T of velocity component c (module docstring):
+    small[k] whether dof k is small (free in component c: not
+    ``constrained[k, c]``), and for each small dof its row of T,
+    (row_dof[k, e], row_weight[k, e]) for e < entries[k], in kept dofs
+    (which may be constrained: a small dof then moves with them).
+    ``neighbour_max`` as :func:`neighbour_maxima` gives it. Returns the
+    number of small dofs, or -1 when a row outgrew MAX_ENTRIES (the rows
+    are then not valid)."""
+    nd = mass.shape[0]
+    count = 0
+    for k in range(nd):
+        small[k] = mass[k] > 0.0 and not constrained[k, c] and \
+            mass[k] < tol * neighbour_max[k]
+        if small[k]:
+            count += 1
+    smalls = np.flatnonzero(small)
+    order = _heaviest_first(smalls, mass)
+    for s in order:  # heaviest first: masters are resolved before
+        a0, a1, b0, b1, c0, c1 = _box(s, nbx, nby, nbz, p)
+        top = (1.0 - TIE) * neighbour_max[s]
+        masters = 0
+        for cc in range(c0, c1):
+            for bb in range(b0, b1):
+                row = (cc * nby + bb) * nbx
+                for aa in range(a0, a1):
+                    if mass[row + aa] >= top:
+                        masters += 1
+        share = 1.0 / masters
+        n = 0
+        for cc in range(c0, c1):
+            for bb in range(b0, b1):
+                row = (cc * nby + bb) * nbx
+                for aa in range(a0, a1):
+                    j = row + aa
+                    if mass[j] < top:
+                        continue
+                    if small[j]:
+                        for e in range(entries[j]):
+                            if n == MAX_ENTRIES:
+                                return -1
+                            row_dof[s, n] = row_dof[j, e]
+                            row_weight[s, n] = share * row_weight[j, e]
+                            n += 1
+                    else:
+                        if n == MAX_ENTRIES:
+                            return -1
+                        row_dof[s, n] = j
+                        row_weight[s, n] = share
+                        n += 1
+        entries[s] = n
+    return count
+
+
+@njit(cache=True, error_model="numpy")
 def merged_lumped_solve_axes(mass, rhs, gravity, constrained, values, has_values, nbx, nby,
                              nbz, p, tol, out):
     """out = the merged lumped solve of every component (module docstring)
@@ -95,8 +160,7 @@ def merged_lumped_solve_axes(mass, rhs, gravity, constrained, values, has_values
     (``out`` is then not valid)."""
     nd, dim = rhs.shape
     neighbour_max = np.empty(nd)
-    for k in range(nd):
-        neighbour_max[k] = _neighbour_max(mass, k, nbx, nby, nbz, p) if mass[k] > 0.0 else 0.0
+    neighbour_maxima(mass, nbx, nby, nbz, p, neighbour_max)
     small = np.zeros(nd, dtype=np.bool_)
     entries = np.zeros(nd, dtype=np.int64)
     row_dof = np.empty((nd, MAX_ENTRIES), dtype=np.int64)
@@ -105,48 +169,12 @@ def merged_lumped_solve_axes(mass, rhs, gravity, constrained, values, has_values
     m_r = np.empty(nd)
     most = 0
     for c in range(dim):
-        count = 0
-        for k in range(nd):
-            small[k] = mass[k] > 0.0 and not constrained[k, c] and \
-                mass[k] < tol * neighbour_max[k]
-            if small[k]:
-                count += 1
+        count = merging_rows(mass, neighbour_max, constrained, c, nbx, nby, nbz, p, tol, small,
+                             entries, row_dof, row_weight)
+        if count < 0:
+            return -1
         most = max(most, count)
         smalls = np.flatnonzero(small)
-        order = _heaviest_first(smalls, mass)
-        for s in order:  # heaviest first: masters are resolved before
-            a0, a1, b0, b1, c0, c1 = _box(s, nbx, nby, nbz, p)
-            top = (1.0 - TIE) * neighbour_max[s]
-            masters = 0
-            for cc in range(c0, c1):
-                for bb in range(b0, b1):
-                    row = (cc * nby + bb) * nbx
-                    for aa in range(a0, a1):
-                        if mass[row + aa] >= top:
-                            masters += 1
-            share = 1.0 / masters
-            n = 0
-            for cc in range(c0, c1):
-                for bb in range(b0, b1):
-                    row = (cc * nby + bb) * nbx
-                    for aa in range(a0, a1):
-                        j = row + aa
-                        if mass[j] < top:
-                            continue
-                        if small[j]:
-                            for e in range(entries[j]):
-                                if n == MAX_ENTRIES:
-                                    return -1
-                                row_dof[s, n] = row_dof[j, e]
-                                row_weight[s, n] = share * row_weight[j, e]
-                                n += 1
-                        else:
-                            if n == MAX_ENTRIES:
-                                return -1
-                            row_dof[s, n] = j
-                            row_weight[s, n] = share
-                            n += 1
-            entries[s] = n
         # restrict: T^T rhs and T^T m on the kept dofs
         for k in range(nd):
             b_r[k] = rhs[k, c]

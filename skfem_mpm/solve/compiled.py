@@ -337,10 +337,11 @@ class CompiledExecutor(CompiledRungeKutta):
         return self._acc, self._L
 
     def _consistent_system(self, state, mass, stencil, K, small):
-        """The step's consistent-mass system: compiled stencil CG, or the
-        general grid system (sparse LU with ``mass_solver="direct"``, and
-        whenever tiny-mass dofs must be merged); ``small`` counts the
-        tiny-mass dofs. No fast-dof guard for hybrid mass (it guards a
+        """The step's consistent-mass system: compiled stencil CG (with
+        tiny-mass dofs, ``small`` > 0, on the merged system), or the general
+        grid system (sparse LU with ``mass_solver="direct"``, and when a
+        merged row outgrows the compiled merge's lists); ``small`` counts
+        the tiny-mass dofs. No fast-dof guard for hybrid mass (it guards a
         consistent-mass acceleration)."""
         guard = 0.0 if state.method.mass == "hybrid" else state.method.frequency_guard
         limit = None
@@ -358,13 +359,16 @@ class CompiledExecutor(CompiledRungeKutta):
             K = guarded
         fast_rows = None if limit is None else (
             lambda diag: lumping_fraction(K / (limit * np.maximum(diag, 1e-300))))
-        if self._use_cg(state) and not small:
+        if self._use_cg(state):
             fast = self.kernels.scratch("fast_rows", mass.size)
             if limit is not None:  # fast_rows of the dofs with mass, in one kernel
                 self.kernels.kernel(fast_row_fractions)(K, stencil, mass, limit, fast)
             else:
                 fast[:] = 0.0
-            return StencilSystem(self.kernels, stencil, mass, state.constraints, fast, state.warm)
+            system = StencilSystem(self.kernels, stencil, mass, state.constraints, fast,
+                                   state.warm, small_mass=state.method.small_mass if small else 0.0)
+            if system.mergeable:
+                return system
         M = self.kernels.stencil_csr(stencil)
         solver = "cg" if state.method.mass_solver == "cg" else "direct"
         return GridSystem(mass, state.constraints, M, state.adjacency, state.method.small_mass,

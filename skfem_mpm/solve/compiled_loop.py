@@ -12,9 +12,10 @@ blocks, so a run gives the same bits on either path.
 
 :func:`loop_applies` names what the loop covers; a run outside it steps
 through the executor in Python. A step the loop cannot finish (a
-non-finite value, J <= 0, a particle outside the grid, tiny-mass dofs)
-stops it before the current state is written; the executor then takes that
-step and raises, removes or merges as its docstrings say.
+non-finite value, J <= 0, a particle outside the grid, a tiny-mass merge
+whose rows outgrow the compiled merge's lists) stops it before the current
+state is written; the executor then takes that step and raises, removes or
+merges as its docstrings say.
 
 Materials: one body, linear elastic (fused into the transfer kernels) or,
 with MUSL, USL and CD, a material with a compiled point law, updated by the
@@ -60,8 +61,8 @@ import numba
 import numpy as np
 
 from ..kernels import (bbar, by_symbol, cholesky, constitutive, fast_dof, gauss_rule,
-                       grid_modifiers, kronecker, mpm, scatter, spline_1d, staging, step_size,
-                       tiny_mass, tls, traction, weights)
+                       grid_modifiers, kronecker, merged_mass, mpm, scatter, spline_1d, staging,
+                       step_size, tiny_mass, tls, traction, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
@@ -132,6 +133,12 @@ _GRID_KERNELS = {
     "EXPAND_PROBLEM": mpm.expand_problem,
     "ELL_PCG": mpm.ell_pcg,
     "FIT_KRONECKER": kronecker.fit_kronecker,
+    # the tiny-mass merge of consistent mass (compiled_loop_mass)
+    "NEIGHBOUR_MAXIMA": tiny_mass.neighbour_maxima,
+    "MERGING_ROWS": tiny_mass.merging_rows,
+    "MERGED_SYSTEM": merged_mass.merged_system,
+    "MERGED_PROBLEM": merged_mass.merged_problem,
+    "MERGED_EXPAND": merged_mass.merged_expand,
 }
 
 
@@ -322,10 +329,10 @@ def loop_module(dim, parallel, window):
         "\n\n" + "\n\n".join(templates)
     # the operations' callees are not tracked by numba's cache: their
     # sources go into the file's name (kernels.generated.load hashes it)
-    depends = "".join(inspect.getsource(m) for m in (schemes, mpm, scatter, kronecker, tiny_mass,
-                                                     fast_dof, staging, gauss_rule, spline_1d,
-                                                     tls, cholesky, weights, traction, constitutive,
-                                                     grid_modifiers, bbar, by_symbol, step_size))
+    depends = "".join(inspect.getsource(m) for m in (
+        schemes, mpm, scatter, kronecker, tiny_mass, merged_mass, fast_dof, staging, gauss_rule,
+        spline_1d, tls, cholesky, weights, traction, constitutive, grid_modifiers, bbar,
+        by_symbol, step_size))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -651,6 +658,7 @@ class StepLoop:
         for g, comps in enumerate(groups.values()):
             group_comps[g, :len(comps)] = comps
         nc = 2 * dim  # the most columns of a CG run: two problems
+        merged_size = int(cls.MERGE_BUFFER * nd * ns)  # as StencilSystem's
         zeros, empty = np.zeros, np.empty
         fields = dict(
             stencil=zeros((nd, ns)), stiffness=zeros(nd),
@@ -686,7 +694,18 @@ class StepLoop:
             fringe_on=zeros(G, dtype=np.bool_), iterations=0,
             warm=zeros((2, nd, dim)), has_warm=zeros(2, dtype=np.bool_),
             warm_good=zeros((2, nd, dim)), has_good=zeros(2, dtype=np.bool_),
-            hybrid=hybrid)
+            hybrid=hybrid,
+            # the tiny-mass merge: only the rows of small dofs and the
+            # merged rows are written (np.zeros leaves the rest unmapped)
+            merged=zeros(G, dtype=np.bool_), merge_small=zeros((G, nd), dtype=np.bool_),
+            entries=zeros((G, nd), dtype=np.int64),
+            row_dof=zeros((G, nd, tiny_mass.MAX_ENTRIES), dtype=np.int64),
+            row_weight=zeros((G, nd, tiny_mass.MAX_ENTRIES)), neighbour_max=zeros(nd),
+            kept_rows=zeros((G, nd), dtype=np.int64), kept_index=zeros((G, nd), dtype=np.int64),
+            merged_A=zeros((G, merged_size)), merged_cols=zeros((G, merged_size), dtype=np.int32),
+            merged_F=zeros((G, merged_size)), merged_fcols=zeros((G, merged_size), dtype=np.int32),
+            merged_inv_diag=zeros((G, nd)), merged_fit=zeros(nd * ns),
+            merged_sizes=zeros((G, 3), dtype=np.int64))
         rk4 = method.scheme == "rk4"
         for name in ("stencil", "fast"):
             own = fields[name]

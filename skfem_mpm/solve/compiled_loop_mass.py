@@ -21,13 +21,21 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
                     (:func:`skfem_mpm.kernels.kronecker.fit_kronecker`, as
                     KroneckerData.of_system: banded Cholesky factors of the
                     rows' axis marginals on the free dofs' index box, whose
-                    numbering is kept while the free-dof set stays)
+                    numbering is kept while the free-dof set stays);
+                    with tiny-mass dofs (``small_tol`` > 0) a group with
+                    small dofs is merged (StencilSystem's merge: the rows
+                    of T, :func:`skfem_mpm.kernels.tiny_mass.merging_rows`,
+                    and the system T^T M' T on its kept free dofs,
+                    :mod:`skfem_mpm.kernels.merged_mass`), the
+                    preconditioner fitted to that system's stencil part
     mass_solve      M x = rhs on the free dofs (constrained dofs their
                     prescribed values, or 0; massless dofs 0: the fixed
                     columns' known values moved to the right-hand side
                     when any is nonzero), one or two right-hand sides in
                     one CG run (ell_pcg), warm started from the last
-                    solution of the same kind (0 acceleration, 1 velocity)
+                    solution of the same kind (0 acceleration, 1 velocity);
+                    a merged group restricts the right-hand sides and
+                    prolongs the solution to its small dofs (x = T x_r)
 
 The fringe correction of the preconditioner (SuperLU factors of the
 free-dof set's edge) is not compiled: a group of at least
@@ -75,6 +83,16 @@ MASS_FIELDS = (
     "warm", "has_warm", "warm_good", "has_good",
     # hybrid mass: the acceleration is solved with the lumped mass
     "hybrid",
+    # the tiny-mass merge per group (kernels.tiny_mass, kernels.merged_mass):
+    # merged this step?, the rows of T (small dofs, entries, dofs,
+    # weights), the neighbours' largest masses, the kept free dofs and dof
+    # -> kept row, the merged rows (packed: entries, columns; constrained
+    # columns: entries, dofs; flat, StencilSystem.MERGE_BUFFER dofs x
+    # stencil), 1 / T^T m,
+    # the stencil-slot rows the preconditioner is fitted to, (rows, W, WF)
+    "merged", "merge_small", "entries", "row_dof", "row_weight", "neighbour_max", "kept_rows",
+    "kept_index", "merged_A", "merged_cols", "merged_F", "merged_fcols", "merged_inv_diag",
+    "merged_fit", "merged_sizes",
     # the stencil and lumping fractions of the last step's reactions: the
     # step's own, or with rk4 copies of its first stage's
     "reaction_stencil", "reaction_fast",
@@ -199,10 +217,13 @@ def _kronecker_box(cm, g, rows, nbx, dim):
 
 
 @njit(cache=True)
-def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns):
+def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
     """The step's fast-row fractions, free-dof groups, ELL rows and
     preconditioner (see the module); with ``fixed_columns`` (prescribed
-    velocities) also the rows' fixed-column part."""
+    velocities) also the rows' fixed-column part; with ``small_tol`` > 0
+    (tiny-mass dofs) the merge of each group. Returns False when a merged
+    row outgrew the kernels' lists (the executor's general grid system
+    takes the step)."""
     stencil = cm.stencil
     nd, ns = stencil.shape
     centre = (ns - 1) // 2
@@ -219,8 +240,20 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns):
         FAST_ROW_FRACTIONS(cm.guarded, stencil, mass, cm.limit, cm.fast)
     else:
         cm.fast[:] = 0.0
+    nbz = nd // (nbx * nby)
+    if small_tol > 0.0:
+        NEIGHBOUR_MAXIMA(mass, nbx, nby, nbz, p, cm.neighbour_max)
     for g in range(cm.group_size.shape[0]):
         c0 = cm.group_comps[g, 0]
+        merged = False
+        if small_tol > 0.0:
+            count = MERGING_ROWS(mass, cm.neighbour_max, mask, c0, nbx, nby, nbz, p, small_tol,
+                                 cm.merge_small[g], cm.entries[g], cm.row_dof[g],
+                                 cm.row_weight[g])
+            if count < 0:
+                return False
+            merged = count > 0
+        cm.merged[g] = merged
         n = 0
         for k in range(nd):
             if not mask[k, c0] and mass[k] > 0.0:
@@ -232,16 +265,31 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns):
         cm.n_rows[g] = n
         rows = cm.rows[g, :n]
         COMPACT_SYSTEM(stencil, p, nbx, nby, dim, rows, cm.index[g], cm.fast, cm.A[g, :n],
-                       cm.cols[g, :n], cm.F[g, :n], cm.fcols[g, :n], True, fixed_columns)
-        for r in range(n):
-            cm.inv_diag[g, r] = 1.0 / mass[rows[r]]
+                       cm.cols[g, :n], cm.F[g, :n], cm.fcols[g, :n], True,
+                       fixed_columns or merged)
+        fit = cm.A[g, :n]
+        if merged:  # T^T M' T on the kept free dofs
+            n = MERGED_SYSTEM(cm.A[g, :n], cm.cols[g, :n], cm.F[g, :n], cm.fcols[g, :n], rows,
+                              cm.index[g], mask, c0, mass, cm.merge_small[g], cm.entries[g],
+                              cm.row_dof[g], cm.row_weight[g], p, nbx, nby, dim, cm.kept_rows[g],
+                              cm.kept_index[g], cm.merged_inv_diag[g], cm.merged_fit,
+                              cm.merged_A[g], cm.merged_cols[g], cm.merged_F[g],
+                              cm.merged_fcols[g], cm.merged_sizes[g])
+            if n < 0:
+                return False
+            rows = cm.kept_rows[g, :n]
+            fit = cm.merged_fit[:n * ns].reshape((n, ns))
+        else:
+            for r in range(n):
+                cm.inv_diag[g, r] = 1.0 / mass[rows[r]]
         if n == 0:
             continue
         _kronecker_box(cm, g, rows, nbx, dim)
         ny = cm.box_shape[g, 2]
         nx = cm.box_shape[g, 3]
-        FIT_KRONECKER(cm.A[g, :n], cm.box_coords[g, :n], cm.Lx[g, :nx], cm.Ly[g, :ny],
+        FIT_KRONECKER(fit, cm.box_coords[g, :n], cm.Lx[g, :nx], cm.Ly[g, :ny],
                       cm.no_axis, cm.inv_scale[g, :n], cm.fit_bands, cm.fit_sums)
+    return True
 
 
 @njit(cache=True)
@@ -275,48 +323,89 @@ def mass_solve(cm, nt, count, rhs0, kind0, values0, has0, out0, rhs1, kind1, val
     elif count == 2:
         out1[:] = 0.0
     for g in range(cm.group_size.shape[0]):
-        n = cm.n_rows[g]
-        if n == 0:
+        merged = cm.merged[g]
+        n = cm.merged_sizes[g, 0] if merged else cm.n_rows[g]
+        if n == 0 and not merged:
             continue
         ncomp = cm.group_size[g]
         comps = cm.group_comps[g, :ncomp]
         nc = count * ncomp
-        rows = cm.rows[g, :n]
-        F = cm.F[g, :n]
-        fcols = cm.fcols[g, :n]
         b = cm.b[:n * nc].reshape((n, nc))
         x = cm.x[:n * nc].reshape((n, nc))
-        COMPACT_PROBLEM(rows, rhs0, values0, has0,
-                        cm.warm[kind0] if cm.has_warm[kind0] else rhs0,
-                        cm.has_warm[kind0], comps, 0, F, fcols, b, x)
-        if count == 2:
-            COMPACT_PROBLEM(rows, rhs1, values1, has1,
-                            cm.warm[kind1] if cm.has_warm[kind1] else rhs1, cm.has_warm[kind1],
-                            comps, ncomp, F, fcols, b, x)
-        problem = np.empty(nc, dtype=np.int64)
-        for j in range(nc):
-            problem[j] = j // ncomp
-        ny = cm.box_shape[g, 2]
-        nx = cm.box_shape[g, 3]
-        kron = (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n],
-                cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)))
-        limit = cm.max_iterations if cm.max_iterations > 0 else 10 * n + 100
-        work = cm.work[:6 * n * nc].reshape((6, n, nc))
-        its = ELL_PCG(cm.A[g, :n], cm.cols[g, :n], cm.inv_diag[g, :n], kron, None, b, x,
-                      problem, cm.rtol, limit, nt, work)
-        if its < 0:
+        if merged:  # the merged system (see prepare_mass)
+            W = cm.merged_sizes[g, 1]
+            WF = cm.merged_sizes[g, 2]
+            rows = cm.kept_rows[g, :n]
+            A = cm.merged_A[g, :n * W].reshape((n, W))
+            cols = cm.merged_cols[g, :n * W].reshape((n, W))
+            F = cm.merged_F[g, :n * WF].reshape((n, WF))
+            fcols = cm.merged_fcols[g, :n * WF].reshape((n, WF))
+            inv_diag = cm.merged_inv_diag[g, :n]
+            small = cm.merge_small[g]
+            MERGED_PROBLEM(rows, cm.kept_index[g], small, cm.entries[g], cm.row_dof[g],
+                           cm.row_weight[g], rhs0, values0, has0,
+                           cm.warm[kind0] if cm.has_warm[kind0] else rhs0, cm.has_warm[kind0],
+                           comps, 0, F, fcols, b, x)
+            if count == 2:
+                MERGED_PROBLEM(rows, cm.kept_index[g], small, cm.entries[g], cm.row_dof[g],
+                               cm.row_weight[g], rhs1, values1, has1,
+                               cm.warm[kind1] if cm.has_warm[kind1] else rhs1,
+                               cm.has_warm[kind1], comps, ncomp, F, fcols, b, x)
+        else:
+            rows = cm.rows[g, :n]
+            A = cm.A[g, :n]
+            cols = cm.cols[g, :n]
+            F = cm.F[g, :n]
+            fcols = cm.fcols[g, :n]
+            inv_diag = cm.inv_diag[g, :n]
+            COMPACT_PROBLEM(rows, rhs0, values0, has0,
+                            cm.warm[kind0] if cm.has_warm[kind0] else rhs0,
+                            cm.has_warm[kind0], comps, 0, F, fcols, b, x)
+            if count == 2:
+                COMPACT_PROBLEM(rows, rhs1, values1, has1,
+                                cm.warm[kind1] if cm.has_warm[kind1] else rhs1,
+                                cm.has_warm[kind1], comps, ncomp, F, fcols, b, x)
+        if n > 0 and not _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x):
             return False
-        cm.iterations += its
-        if cm.fringe_layers > 0 and its >= cm.fringe_from and n >= cm.fringe_min_rows:
-            cm.fringe_on[g] = True
-        EXPAND_PROBLEM(rows, x, comps, 0, out0)
-        if count == 2:
-            EXPAND_PROBLEM(rows, x, comps, ncomp, out1)
+        if merged:
+            MERGED_EXPAND(rows, cm.merge_small[g], cm.entries[g], cm.row_dof[g],
+                          cm.row_weight[g], x, comps, 0, out0)
+            if count == 2:
+                MERGED_EXPAND(rows, cm.merge_small[g], cm.entries[g], cm.row_dof[g],
+                              cm.row_weight[g], x, comps, ncomp, out1)
+        else:
+            EXPAND_PROBLEM(rows, x, comps, 0, out0)
+            if count == 2:
+                EXPAND_PROBLEM(rows, x, comps, ncomp, out1)
     copy_into(cm.warm[kind0], out0)
     cm.has_warm[kind0] = True
     if count == 2:
         copy_into(cm.warm[kind1], out1)
         cm.has_warm[kind1] = True
+    return True
+
+
+@njit(cache=True)
+def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x):
+    """Group g's CG run on its n rows A, cols (ell_pcg with the group's
+    Kronecker preconditioner; inv_diag the lumped one's): False when it
+    stopped above its tolerance; turns the fringe correction on as
+    StencilSystem does."""
+    problem = np.empty(nc, dtype=np.int64)
+    for j in range(nc):
+        problem[j] = j // ncomp
+    ny = cm.box_shape[g, 2]
+    nx = cm.box_shape[g, 3]
+    kron = (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n],
+            cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)))
+    limit = cm.max_iterations if cm.max_iterations > 0 else 10 * n + 100
+    work = cm.work[:6 * n * nc].reshape((6, n, nc))
+    its = ELL_PCG(A, cols, inv_diag, kron, None, b, x, problem, cm.rtol, limit, nt, work)
+    if its < 0:
+        return False
+    cm.iterations += its
+    if cm.fringe_layers > 0 and its >= cm.fringe_from and n >= cm.fringe_min_rows:
+        cm.fringe_on[g] = True
     return True
 
 

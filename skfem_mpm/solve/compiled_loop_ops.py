@@ -62,7 +62,8 @@ runs). A step that would need
 anything else stops the loop before it writes the current state
 (``run.stop``): a non-finite value or material state, J <= 0, a volume
 <= 0 or a particle outside the grid (2), a tiny-mass merge the lumped kernel
-cannot do (1), tiny-mass dofs with consistent mass (4), a CG run above
+cannot do (1), a tiny-mass merge of consistent mass whose rows outgrow the
+compiled merge's lists (4), a CG run above
 its tolerance (3), a fitted density 0 at a Gauss point (5). The Python
 step then takes that step and says what happened. ``run.handover``: the
 step was taken, and the next ones need the executor (the fringe
@@ -397,9 +398,6 @@ def _scatter(run, particles, column):
         t1 = monotonic_ns()
         run.phase_ns[0] += t1 - t0
         if consistent:
-            if run.small_count > 0:  # the general grid system merges them
-                run.stop = 4
-                return run
             call(assemble_mass, run.cm, points[0], points[3], run.degree, run.nbx, run.nby,
                  run.x.shape[1])
             run.phase_ns[3] += monotonic_ns() - t1
@@ -431,6 +429,8 @@ def _mass_solve(run, count, rhs0, kind0, out0, rhs1, kind1, out1):
         ``kind`` 0 acceleration, 1 velocity, 2 velocity at t + dt: the
         constraint values (run.constraint_values) and the warm start
         (0 acceleration, else velocity)."""
+        if run.stop:
+            return
         values0, has0 = run.constraint_values(rhs0, kind0)
         values1, has1 = run.constraint_values(rhs1, kind1)
         if not call(mass_solve, run.cm, run.nthreads, count, rhs0, min(kind0, 1), values0, has0,
@@ -459,8 +459,10 @@ def _prepare_grid(run):
     def impl(run):
         """Consistent mass: gravity as the force m g, then the step's system."""
         run.gravity_into_force()
-        call(prepare_mass, run.cm, run.mass, run.mask, run.degree, run.nbx, run.nby,
-             run.x.shape[1], prescribed)
+        if not call(prepare_mass, run.cm, run.mass, run.mask, run.degree, run.nbx, run.nby,
+                    run.x.shape[1], prescribed,
+                    run.small_tol if run.small_count > 0 else 0.0):
+            run.stop = 4  # a merged row outgrew the lists: the general grid system
     return impl
 
 

@@ -13,9 +13,11 @@ import numpy as np
 from ..errors import InvalidState
 from ..kernels.fringe import FringeFactor, FringePattern
 from ..kernels.kronecker import KroneckerData
+from ..kernels.merged_mass import EXTRA, merged_expand, merged_problem, merged_system
 from ..kernels.mpm import (compact_problem, compact_system, ell_pcg, expand_problem,
                            stencil_rows_product)
 from ..kernels.serial import for_threads
+from ..kernels.tiny_mass import MAX_ENTRIES, merging_rows, neighbour_maxima
 from ..validation import check_choice
 from .grid_system import shift_guess
 
@@ -28,8 +30,7 @@ PRECONDITIONERS = ("kronecker+fringe", "kronecker", "lumped")
 class StencilSystem:
     """Consistent-mass solves on the grid's fixed stencil, compiled.
 
-    Same equations as :class:`~skfem_mpm.solve.grid_system.GridSystem`
-    without tiny-mass merging (a step with tiny masses uses that class):
+    Same equations as :class:`~skfem_mpm.solve.grid_system.GridSystem`:
     the fast-dof rows are lumped, constrained and massless dofs keep their
     known values (moved to the right-hand side), and conjugate gradients
     preconditioned with the lumped mass, warm started from the previous
@@ -43,14 +44,30 @@ class StencilSystem:
     on ``FRINGE_LAYERS`` layers of the free-dof set's edge (2D) once the
     Kronecker step alone has needed ``FRINGE_FROM`` iterations (0 layers:
     never), or the inverse lumped mass (``"lumped"``).
+
+    Tiny masses (``small_mass`` > 0, the relative threshold of
+    ``Method(small_mass=...)``): each constraint pattern with small dofs
+    solves the merged system T^T M' T of :mod:`skfem_mpm.kernels.merged_mass`
+    on its kept free dofs (the merge of :mod:`skfem_mpm.kernels.tiny_mass`,
+    GridSystem's rule), with the Kronecker preconditioner fitted to its
+    stencil part and no fringe correction; ``mergeable`` is False when a
+    merged row outgrew the kernels' lists (the caller then takes
+    GridSystem's sparse solve).
     """
 
     preconditioner = "kronecker"
+    # the merged system's buffers (its packed rows, its constrained
+    # columns) hold MERGE_BUFFER x dofs x stencil entries each: room for
+    # rows EXTRA stencils longer than the stencil (kernels.merged_mass); a
+    # merge that needs more takes GridSystem's sparse solve. The compiled
+    # loop sizes its buffers by it too, so both paths decide alike.
+    MERGE_BUFFER = 1 + EXTRA
     FRINGE_LAYERS = 3
     max_iterations = None  # per CG run; None: 10 x the free dofs + 100
     iteration_log = None  # a list: each CG run appends its iterations (benchmarks)
 
-    def __init__(self, kernels, stencil, lumped, constraints, fast, warm, rtol=1e-13):
+    def __init__(self, kernels, stencil, lumped, constraints, fast, warm, rtol=1e-13,
+                 small_mass=0.0):
         self.k = kernels
         self.geometry = kernels.stencil_geometry
         self.stencil = stencil
@@ -80,11 +97,75 @@ class StencilSystem:
                 groups[pattern][0].append(c)
             reaction_rows = np.flatnonzero(np.logical_or.reduce(list(mask.T)))  # 20x any(axis=1)
             kept = self.memo["groups"] = (key, groups, reaction_rows)
-        self.groups = {pattern: [comps, rows, index, None]
+        # [components, free rows, dof -> row, the built system, the merge or None]
+        self.groups = {pattern: [comps, rows, index, None, None]
                        for pattern, (comps, rows, index) in kept[1].items()}
         self.reaction_rows = kept[2]
         self._stale_fringe = {}
         self.iterations = 0
+        self.mergeable = small_mass <= 0 or self._merge(small_mass)
+
+    def _merge(self, tol):
+        """The tiny-mass merge of each group (the rows of T, kernels.tiny_mass)
+        and, for a group with small dofs, its merged system; False when a
+        merged row outgrew the kernels' lists."""
+        k, p = self.k, self.geometry[0]
+        nbx, nby, nbz = k.axes_shape
+        nd = self.lumped.size
+        neighbour_max = k.scratch("neighbour_max", nd)
+        k.kernel(neighbour_maxima)(self.lumped, nbx, nby, nbz, p, neighbour_max)
+        for g, group in enumerate(self.groups.values()):
+            merge = _Merge(k, g, nd)
+            count = k.kernel(merging_rows)(self.lumped, neighbour_max, self.constraints.mask,
+                                           group[0][0], nbx, nby, nbz, p, tol, merge.small,
+                                           merge.entries, merge.row_dof, merge.row_weight)
+            if count < 0:
+                return False
+            if count == 0:
+                continue
+            self.small_dofs = max(self.small_dofs, count)
+            group[4] = merge
+            if not self._merged_system(g, group):
+                return False
+        return True
+
+    def _merged_system(self, g, group):
+        """Group g's merged system (kernels.merged_mass) from its free rows
+        with their fixed columns; False when a row outgrew the lists."""
+        comps, rows, index, _, merge = group
+        k = self.k
+        nd, ns = self.stencil.shape
+        A, F = k.scratch(f"A{g}", (rows.size, ns)), k.scratch(f"F{g}", (rows.size, ns))
+        cols = k.scratch(f"cols{g}", (rows.size, ns), np.int32)
+        fcols = k.scratch(f"fcols{g}", (rows.size, ns), np.int32)
+        k.kernel(compact_system)(self.stencil, *self.geometry, rows, index, self.fast, A, cols, F,
+                                 fcols, True, True)
+        self.memo[f"cols{g}"] = rows.tobytes()
+        size = int(self.MERGE_BUFFER * nd * ns)
+        Ar, Fr = k.scratch(f"merged_A{g}", size), k.scratch(f"merged_F{g}", size)
+        colsr = k.scratch(f"merged_cols{g}", size, np.int32)
+        fcolsr = k.scratch(f"merged_fcols{g}", size, np.int32)
+        inv_diag = k.scratch(f"merged_inv_diag{g}", nd)
+        fit = k.scratch("merged_fit", nd * ns)
+        sizes = k.scratch("merged_sizes", 3, np.int64)
+        n = k.kernel(merged_system)(A, cols, F, fcols, rows, index, self.constraints.mask,
+                                    comps[0], self.lumped, merge.small, merge.entries,
+                                    merge.row_dof, merge.row_weight, *self.geometry,
+                                    merge.kept_rows, merge.kept_index, inv_diag, fit, Ar, colsr,
+                                    Fr, fcolsr, sizes)
+        if n < 0:
+            return False
+        n, W, WF = (int(v) for v in sizes)
+        merge.kept = merge.kept_rows[:n]
+        kron = None
+        if self.preconditioner == "kronecker" and n:
+            kron = KroneckerData.of_system(fit[:n * ns].reshape((n, ns)), merge.kept,
+                                           self.geometry, previous=self.memo.get(f"kronecker{g}"))
+            self.memo[f"kronecker{g}"] = kron
+        group[3] = (Ar[:n * W].reshape((n, W)), colsr[:n * W].reshape((n, W)),
+                    Fr[:n * WF].reshape((n, WF)), fcolsr[:n * WF].reshape((n, WF)),
+                    inv_diag[:n], kron, None, True)
+        return True
 
     @property
     def fringe_layers(self):
@@ -98,7 +179,7 @@ class StencilSystem:
     def _compact(self, group, need_fixed=False):
         """The group's free-dof matrix (built once per step and pattern; its
         fixed-column part F only when ``need_fixed``: nonzero fixed values)."""
-        comps, rows, index, built = group
+        comps, rows, index, built, _ = group
         if built is not None and (built[7] or not need_fixed):
             return built
         ns = self.stencil.shape[1]
@@ -202,8 +283,10 @@ class StencilSystem:
             outs.append(out)
         has_values = [bool(values.any()) for _, values, _ in problems]
         for g, group in enumerate(self.groups.values()):
-            comps, rows, index, _ = group
+            comps, rows, index, _, merge = group
             A, cols, F, fcols, inv_diag, kron, fringe, _ = self._compact(group, any(has_values))
+            if merge is not None:  # the kept free dofs of the merged system
+                rows = merge.kept
             comps = np.asarray(comps, dtype=np.int64)
             nc = len(problems) * comps.size
             b = self.k.scratch(f"b{g}", (rows.size, nc))
@@ -211,6 +294,12 @@ class StencilSystem:
             for i, (rhs, values, kind) in enumerate(problems):
                 prev = self.warm.get(kind)
                 has_prev = prev is not None and prev.shape == rhs.shape
+                if merge is not None:
+                    self.k.kernel(merged_problem)(rows, merge.kept_index, merge.small,
+                                    merge.entries, merge.row_dof, merge.row_weight, rhs, values,
+                                    has_values[i], prev if has_prev else rhs, has_prev, comps,
+                                    i * comps.size, F, fcols, b, x)
+                    continue
                 self.k.kernel(compact_problem)(rows, rhs, values, has_values[i],
                                 prev if has_prev else rhs, has_prev, comps, i * comps.size,
                                 F, fcols, b, x)
@@ -246,7 +335,11 @@ class StencilSystem:
                 if self.iteration_log is not None:
                     self.iteration_log.append(self.iterations - before)
             for i, out in enumerate(outs):
-                self.k.kernel(expand_problem)(rows, x, comps, i * comps.size, out)
+                if merge is not None:
+                    self.k.kernel(merged_expand)(rows, merge.small, merge.entries, merge.row_dof,
+                                                 merge.row_weight, x, comps, i * comps.size, out)
+                else:
+                    self.k.kernel(expand_problem)(rows, x, comps, i * comps.size, out)
         return outs
 
     def remember(self, kind, x):
@@ -261,6 +354,21 @@ class StencilSystem:
         return stencil_residual(self.stencil, self.geometry, self.constraints.mask,
                                 self.inactive, self.fast, x, rhs, self.reaction_rows,
                                 parallel=self.k.parallel)
+
+
+class _Merge:
+    """One group's tiny-mass merge: the rows of T (kernels.tiny_mass.merging_rows)
+    and the kept free dofs of its merged system (kept_rows[:n], kept_index),
+    in the kernels' scratch arrays of group g."""
+
+    def __init__(self, kernels, g, nd):
+        self.small = kernels.scratch(f"small{g}", nd, np.bool_)
+        self.entries = kernels.scratch(f"entries{g}", nd, np.int64)
+        self.row_dof = kernels.scratch(f"row_dof{g}", (nd, MAX_ENTRIES), np.int64)
+        self.row_weight = kernels.scratch(f"row_weight{g}", (nd, MAX_ENTRIES))
+        self.kept_rows = kernels.scratch(f"kept_rows{g}", nd, np.int64)
+        self.kept_index = kernels.scratch(f"kept_index{g}", nd, np.int64)
+        self.kept = self.kept_rows[:0]
 
 
 def stencil_residual(stencil, geometry, mask, inactive, fast, x, rhs, rows=None, parallel=True):
