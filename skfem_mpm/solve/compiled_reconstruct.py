@@ -34,7 +34,7 @@ from ..errors import InvalidState
 from ..kernels.gauss_rule import (body_boxes_2d, cut_cell_particles, gauss_rule_1d,
                                   gauss_rule_cells, locate_cells)
 from ..kernels.kronecker import KroneckerData, axis_mass_bands
-from ..kernels.mls import mls_reconstruct
+from ..kernels.mls import mls_fit
 from ..kernels.mpm import ell_pcg
 from ..kernels.spline_1d import not_a_knot_spline
 from ..kernels.spline_2d import WIDTH, spline_evaluate, spline_ls_system
@@ -287,19 +287,27 @@ class CompiledReconstruction:
         gauss.x, gauss.w, gauss.cell = rule.x[:n], rule.w[:n], rule.cell[:n]
         gauss.particle_points = None
         out = np.concatenate((self._fit(p, values, gauss), values[own]))
-        if hasattr(gauss, "lu"):  # the 2D spline's factorisation: reused on this rule
-            rule.lu = gauss.lu
+        for name in ("lu", "alpha"):  # what the fit keeps for this rule (see _fit)
+            if hasattr(gauss, name):
+                setattr(rule, name, getattr(gauss, name))
         return out
 
     def _fit(self, p, values, rule):
-        """The fit of ``values`` at the points of a rule of Gauss points alone."""
+        """The fit of ``values`` at the points of a rule of Gauss points
+        alone; what depends only on the particles' positions is kept on the
+        rule for the next fit on it (a step's MUSL projection, a power
+        iteration's products): the 2D spline's factorisation (``lu``), the
+        mls points' M_g^-1 e_0 (``alpha``)."""
         out = np.empty((rule.x.shape[0], values.shape[1]))
         if self.name == "tls":
             tls_reconstruct(p.x, p.V, values, rule.pcell, rule.x, rule.w, rule.cell,
                             self.breaks, self.breaks1, out)
             return out
-        if self.name == "mls":
-            mls_reconstruct(p.x, values, rule.x, self.radius, out)
+        if self.name == "mls":  # M_g^-1 e_0 once per rule (the particles' positions)
+            alpha = getattr(rule, "alpha", None)
+            if alpha is None:
+                rule.alpha = np.empty((rule.x.shape[0], self.dim + 1))
+            mls_fit(p.x, values, rule.x, self.radius, rule.alpha, out, alpha is None)
             return out
         if self.dim == 2:  # spline: one factorisation per rule (the particles' positions)
             rule.lu = self.spline_ls(p.x, p.V, values, rule.x, out, getattr(rule, "lu", None))
