@@ -27,7 +27,7 @@ from numba import njit
 
 from .stencil import closed_axis_functions, extracted_axis_functions
 
-__all__ = ["WIDTH", "spline_evaluate", "spline_ls_system"]
+__all__ = ["WIDTH", "band_solve", "spline_band", "spline_evaluate", "spline_ls_system"]
 
 P = 3  # cubic
 WIDTH = 2 * P + 1  # stencil offsets -3..3 per axis
@@ -148,3 +148,42 @@ def spline_evaluate(xg, coef, ax, ay, nbx, out):
                 w = wx[a] * wy[b]
                 for col in range(k):
                     out[g, col] += w * coef[row, col]
+
+
+@njit(cache=True, error_model="numpy")
+def spline_band(A, nbx, band):
+    """band (ndofs, 3 nbx + 4): the lower band of the stencil array A of
+    :func:`spline_ls_system`, band[i, d] = (A + P)_(i, i - d) (the storage
+    of :func:`~skfem_mpm.kernels.kronecker.banded_cholesky_into`)."""
+    band[:] = 0.0
+    for i in range(A.shape[0]):
+        ix = i % nbx
+        iy = i // nbx
+        for dy in range(-P, 1):
+            if iy + dy < 0:
+                continue
+            for dx in range(-P, P + 1):
+                if (dy == 0 and dx > 0) or ix + dx < 0 or ix + dx >= nbx:
+                    continue
+                band[i, -(dy * nbx + dx)] = A[i, (dy + P) * WIDTH + dx + P]
+
+
+@njit(cache=True, error_model="numpy")
+def band_solve(L, b):
+    """b (n, k) := (L L^T)^-1 b for the banded lower Cholesky factor L,
+    L[i, d] = L_(i, i - d): forward, then backward substitution."""
+    n = L.shape[0]
+    p = L.shape[1] - 1
+    k = b.shape[1]
+    for i in range(n):
+        for d in range(1, min(p, i) + 1):
+            for c in range(k):
+                b[i, c] -= L[i, d] * b[i - d, c]
+        for c in range(k):
+            b[i, c] /= L[i, 0]
+    for i in range(n - 1, -1, -1):
+        for d in range(1, min(p, n - 1 - i) + 1):
+            for c in range(k):
+                b[i, c] -= L[i + d, d] * b[i + d, c]
+        for c in range(k):
+            b[i, c] /= L[i, 0]
