@@ -16,12 +16,14 @@ from skfem_mpm.kernels import tls as tls_kernel
 from skfem_mpm.kernels.gauss_rule import (body_boxes_2d, gauss_rule_1d, gauss_rule_cells,
                                          locate_cells)
 from skfem_mpm.kernels.mls import mls_reconstruct
+from skfem_mpm.kernels.spline_2d import WIDTH
 from skfem_mpm.kernels.spline_1d import not_a_knot_spline
 from skfem_mpm.kernels.tls import tls_reconstruct
 from skfem_mpm.reconstruct import (integration_rule, reconstruct_mls, reconstruct_spline,
                                    reconstruct_tls)
 from skfem_mpm.solve.compiled import compiled_executor_applies
-from skfem_mpm.solve.compiled_reconstruct import CompiledReconstruction, SplineLeastSquares
+from skfem_mpm.solve.compiled_reconstruct import (BandedCholesky, CompiledReconstruction,
+                                                  SplineLeastSquares)
 from skfem_mpm.solve.state import prepare
 from test_executors import scene_for
 
@@ -209,14 +211,18 @@ def test_compiled_mls_agrees_with_the_reference(name, grid, p, radius):
 def test_compiled_2d_spline_agrees_with_the_reference(name, grid, p, penalty, iterative):
     """The least squares in the cubic space, with the penalty on weak dofs
     (the partly filled layouts) and without (the filled grid): both sides
-    factorise the same matrix A + P by SuperLU (assembled in a different
-    order), so they agree to rounding times its condition number: here
-    1.6e3 filled, up to 3.4e7 partly filled with the default penalty;
-    measured differences <= 3e-15 relative filled and <= 1.1e-18 cond(A + P)
-    (3.8e-11) otherwise; asserted: max(1e-13, 1e-16 cond). The reused
+    factorise the same matrix A + P (assembled in a different order; the
+    reference by SuperLU, the compiled side by a banded Cholesky), so they
+    agree to rounding times its condition number: here
+    1.6e3 filled, up to 2.3e9 partly filled with the default penalty;
+    measured differences <= 7e-15 relative filled and <= 1.7e-18 cond(A + P)
+    (1.1e-11) otherwise; asserted: max(1e-13, 1e-16 cond). The reused
     factorisation gives the same fit. The Kronecker-preconditioned CG of
     large grids (forced here; rtol 1e-13 per column): measured <= 6.3e-13
-    filled, <= 3.6e-11 partly filled; asserted max(1e-11, 1e-16 cond)."""
+    filled, <= 3.6e-11 partly filled; asserted max(1e-11, 1e-16 cond).
+    Below DIRECT_DOFS the compiled banded Cholesky factorises (every layout
+    here: SuperLU only where a pivot is not positive, which would hide a
+    wrong band)."""
     values = np.random.default_rng(13).normal(size=(p.n, 4))
     values[:, 1] = 1.0 + p.x[:, 0] ** 3 - 2.0 * p.x[:, 0] * p.x[:, 1] ** 2  # a cubic column
     rule = kernel_rule(grid, p)
@@ -224,6 +230,7 @@ def test_compiled_2d_spline_agrees_with_the_reference(name, grid, p, penalty, it
     fit = SplineLeastSquares(grid, penalty, iterative=iterative)
     out = np.empty((rule.x.shape[0], 4))
     lu = fit(p.x, p.V, values, rule.x, out)
+    assert iterative or isinstance(lu, BandedCholesky)  # (SuperLU: a pivot not positive)
     matrix = np.zeros((fit.ndofs, fit.ndofs))
     matrix[np.repeat(np.arange(fit.ndofs), np.diff(fit.indptr)), fit.cols] = \
         fit.A.ravel()[fit.slots]
@@ -375,3 +382,25 @@ def test_compiled_fits_fall_back_where_particles_are_nearly_on_a_line():
     out = np.empty_like(expected)
     mls_reconstruct(p.x, values, rule.x, 1.5 * min(grid.h), out)
     assert np.abs(out - expected).max() <= 1e-12 * np.abs(expected).max()
+
+
+def test_the_banded_cholesky_of_the_2d_spline_solves_and_refuses_an_indefinite_matrix():
+    """BandedCholesky on a stencil array of the cubic space: a symmetric,
+    diagonally dominant matrix is solved as the dense solve does; with a
+    negative diagonal entry it gives None (SplineLeastSquares.factor then
+    takes SuperLU)."""
+    grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (4, 3), 2)
+    fit = SplineLeastSquares(grid, iterative=False)
+    rows = np.repeat(np.arange(fit.ndofs), np.diff(fit.indptr))
+    rng = np.random.default_rng(2)
+    dense = np.zeros((fit.ndofs, fit.ndofs))
+    dense[rows, fit.cols] = rng.uniform(0.5, 1.0, rows.size)
+    dense = dense + dense.T + 100.0 * np.eye(fit.ndofs)
+    stencil = np.zeros_like(fit.A)
+    stencil.ravel()[fit.slots] = dense[rows, fit.cols]
+    rhs = rng.normal(size=(fit.ndofs, 2))
+    expected = np.linalg.solve(dense, rhs)
+    got = BandedCholesky(stencil, fit.nbx).solve(rhs)
+    assert np.abs(got - expected).max() <= 1e-13 * np.abs(expected).max()
+    stencil[5, WIDTH * WIDTH // 2] = -3.0
+    assert BandedCholesky(stencil, fit.nbx) is None

@@ -20,19 +20,34 @@ eigenvalue, scaled by trace(M) / (d + 1), is <= MLS_RANK_TOL: fewer than
 d + 1 particles in reach, or them on a line) the value is the weighted mean
 b_0 / M_00 (Shepard), and 0 where no particle is in reach. The eigenvalue
 test is a Cholesky factorisation of M / scale - MLS_RANK_TOL I (it succeeds
-exactly when the smallest eigenvalue exceeds the tolerance); the solve is a
-Cholesky solve of M itself.
+exactly when the smallest eigenvalue exceeds the tolerance).
+
+M is symmetric, so (M^-1 b)_0 = alpha^T b with alpha = M^-1 e_0 (a Cholesky
+solve of M itself), and the value is a weighted sum of the particle values,
+
+    f_h(x_g) = sum_p w_p (alpha . phi_p) f_p,
+
+(Shepard: alpha = e_0 / M_00; no particle in reach: alpha = 0).
+alpha depends on the positions alone: :func:`mls_fit` computes it, or
+takes it from an earlier fit on the same particles and points (a step's
+MUSL projection) and computes only the sums. Rounding differs from the
+reference's (its sums run in another order, it divides by r where this
+multiplies by 1 / r, it solves M a = b per column): the two agree to
+rounding times the condition number of M (test_recon_compiled).
 
 Neighbours: the particles are binned (counting sort, stable) into a
-uniform box grid of side r over their bounding box, so the particles within
-r of x_g lie in the 3^d boxes around the box of x_g.
+uniform box grid of side r / 2 over their bounding box (x fastest), so the
+particles within r of x_g lie in the 5^d boxes around the box of x_g; of
+those, each row of boxes along x (contiguous in the box order) is cut to
+the boxes that the ball of radius r reaches, given the row's distance from
+x_g on the other axes.
 """
 import numpy as np
 from numba import njit
 
 from .cholesky import cholesky
 
-__all__ = ["MLS_RANK_TOL", "mls_reconstruct"]
+__all__ = ["MLS_RANK_TOL", "mls_fit", "mls_reconstruct"]
 
 MLS_RANK_TOL = 1e-6  # the reference's threshold (eigvalsh(M / scale)[0] > 1e-6; a test checks)
 MAX_DIM = 3
@@ -40,20 +55,20 @@ MAX_DIM = 3
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _kernel(s):
-    """W(s): the cubic B-spline kernel with W(0) = 1 (see the module docstring)."""
-    if s <= 0.5:
-        return 1.0 - 6.0 * s * s + 6.0 * s * s * s
-    if s < 1.0:
-        t = 1.0 - s
-        return 2.0 * t * t * t
-    return 0.0
+    """W(s) for 0 <= s < 1: the cubic B-spline kernel with W(0) = 1 (see
+    the module docstring), both pieces computed and one selected (no
+    branch that fails at random)."""
+    t = 1.0 - s
+    near = 1.0 - 6.0 * s * s + 6.0 * s * s * s
+    far = 2.0 * t * t * t
+    return near if s <= 0.5 else far
 
 
 @njit(cache=True, error_model="numpy")
 def _boxes(x, r):
     """(lower, nbox, order, start): the particles in box b (x fastest,
-    b = sum_a i_a prod_(c < a) nbox[c], i_a = floor((x_a - lower_a) / r)) are
-    order[start[b]:start[b + 1]], in index order."""
+    b = sum_a i_a prod_(c < a) nbox[c], i_a = floor((x_a - lower_a) / r), r
+    the boxes' side) are order[start[b]:start[b + 1]], in index order."""
     n, dim = x.shape
     lower = np.empty(dim)
     nbox = np.ones(dim, dtype=np.int64)
@@ -89,84 +104,180 @@ def _boxes(x, r):
 
 
 @njit(cache=True, error_model="numpy")
+def _neighbours(x, r):
+    """(lower, nbox, order, start, xb, most): the boxes of side r / 2 of
+    :func:`_boxes`, the positions in box order xb (n, MAX_DIM; zero beyond
+    the dimension) and the most particles the 5^d boxes around a point can
+    hold."""
+    n, dim = x.shape
+    lower, nbox, order, start = _boxes(x, 0.5 * r)
+    xb = np.zeros((n, MAX_DIM))
+    for i in range(n):
+        for a in range(dim):
+            xb[i, a] = x[order[i], a]
+    fullest = 0
+    for b in range(start.shape[0] - 1):
+        fullest = max(fullest, start[b + 1] - start[b])
+    return lower, nbox, order, start, xb, 5 ** dim * fullest
+
+
+@njit(cache=True, error_model="numpy")
+def _constant_row(M, m, L, scaled, a):
+    """a[:m] = M^-1 e_0 for the moment matrix M (its lower triangle set),
+    or e_0 / M_00 where M is not well posed (see the module docstring)."""
+    for s in range(m):  # symmetric
+        a[s] = 0.0
+        for t in range(s + 1, m):
+            M[s, t] = M[t, s]
+    trace = 0.0
+    for s in range(m):
+        trace += M[s, s]
+    scale = max(trace / m, 1e-300)
+    for s in range(m):
+        for t in range(m):
+            scaled[s, t] = M[s, t] / scale
+    if cholesky(scaled, m, MLS_RANK_TOL, L) and cholesky(M, m, 0.0, L):
+        for s in range(m):  # L L^T a = e_0
+            acc = 1.0 if s == 0 else 0.0
+            for t in range(s):
+                acc -= L[s, t] * a[t]
+            a[s] = acc / L[s, s]
+        for s in range(m - 1, -1, -1):
+            acc = a[s]
+            for t in range(s + 1, m):
+                acc -= L[t, s] * a[t]
+            a[s] = acc / L[s, s]
+    else:
+        a[0] = 1.0 / M[0, 0]
+
+
+@njit(cache=True, error_model="numpy")
+def mls_fit(x, values, xg, r, alpha, out, with_coefficients):
+    """out[g] (ng, k) = the linear MLS fit of the particle ``values`` (n, k)
+    at the point xg[g] (see the module docstring), ``x`` (n, d) particle
+    positions, ``r`` the kernel radius: with ``with_coefficients`` it
+    computes alpha[g] (ng, d + 1) = M_g^-1 e_0 first, else it takes them
+    from an earlier call on the same particles and points.
+
+    Per point, the particles in reach (sqrt(|x_q - x_g|^2) < r, the
+    reference's test) are gathered row of boxes by row (box order within a
+    row, index order within a box) without a branch on the distance (a
+    branch that fails at random costs more than the test), then tested;
+    the loops are written out here rather than in helpers, which would
+    take the arrays (see :mod:`skfem_mpm.kernels.stencil`: counted
+    references per call)."""
+    dim = x.shape[1]
+    k = values.shape[1]
+    m = dim + 1
+    side = 0.5 * r
+    inv_r = 1.0 / r
+    reach = r * (1.0 + 1e-9)  # the candidates: a margin over rounding
+    reach2 = reach * reach
+    lower, nbox, order, start, xb, most = _neighbours(x, r)
+    lower1 = lower[1] if dim > 1 else 0.0
+    lower2 = lower[2] if dim > 2 else 0.0
+    nbox0 = nbox[0]
+    nbox1 = nbox[1] if dim > 1 else 1
+    nbox2 = nbox[2] if dim > 2 else 1
+    cand = np.empty(most, dtype=np.int64)
+    hits = np.empty(most, dtype=np.int64)
+    phi = np.empty((most, 4))  # (x_q - x_g) / r per axis (0 beyond dim), W
+    M = np.zeros((MAX_DIM + 1, MAX_DIM + 1))
+    L = np.empty((MAX_DIM + 1, MAX_DIM + 1))
+    scaled = np.empty((MAX_DIM + 1, MAX_DIM + 1))
+    a = np.zeros(MAX_DIM + 1)
+    for g in range(xg.shape[0]):
+        y0 = xg[g, 0]
+        y1 = xg[g, 1] if dim > 1 else 0.0
+        y2 = xg[g, 2] if dim > 2 else 0.0
+        lo1 = hi1 = lo2 = hi2 = 0  # the rows: two boxes either side on axes 1, 2
+        if dim > 1:
+            c = int(np.floor((y1 - lower1) / side))
+            lo1, hi1 = max(c - 2, 0), min(c + 2, nbox1 - 1)
+        if dim > 2:
+            c = int(np.floor((y2 - lower2) / side))
+            lo2, hi2 = max(c - 2, 0), min(c + 2, nbox2 - 1)
+        count = 0
+        for j2 in range(lo2, hi2 + 1):
+            e2 = max(lower2 + j2 * side - y2, y2 - (lower2 + (j2 + 1) * side), 0.0) \
+                if dim > 2 else 0.0
+            for j1 in range(lo1, hi1 + 1):
+                e1 = max(lower1 + j1 * side - y1, y1 - (lower1 + (j1 + 1) * side), 0.0) \
+                    if dim > 1 else 0.0
+                gap2 = e1 * e1 + e2 * e2  # the row's distance from x_g
+                if gap2 > reach2:
+                    continue
+                half = np.sqrt(reach2 - gap2)  # the ball's extent along axis 0
+                first = max(int(np.floor((y0 - half - lower[0]) / side)), 0)
+                last = min(int(np.floor((y0 + half - lower[0]) / side)), nbox0 - 1)
+                row = (j2 * nbox1 + j1) * nbox0
+                for i in range(start[row + first], start[row + last + 1] if last >= first
+                               else start[row + first]):
+                    d0 = xb[i, 0] - y0
+                    d1 = xb[i, 1] - y1
+                    d2 = xb[i, 2] - y2
+                    cand[count] = i
+                    count += 1 if d0 * d0 + d1 * d1 + d2 * d2 <= reach2 else 0
+        kept = 0
+        m00 = m10 = m11 = m20 = m21 = m22 = m30 = m31 = m32 = m33 = 0.0
+        for j in range(count):
+            i = cand[j]
+            d0 = xb[i, 0] - y0
+            d1 = xb[i, 1] - y1
+            d2 = xb[i, 2] - y2
+            dist = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            if not dist < r:
+                continue
+            w = _kernel(dist * inv_r)
+            p1 = d0 * inv_r
+            p2 = d1 * inv_r
+            p3 = d2 * inv_r
+            hits[kept] = order[i]
+            phi[kept, 0] = p1
+            phi[kept, 1] = p2
+            phi[kept, 2] = p3
+            phi[kept, 3] = w
+            kept += 1
+            if with_coefficients:  # the lower triangle of M: sum_p (w_p phi_s) phi_t
+                w1 = w * p1
+                w2 = w * p2
+                w3 = w * p3
+                m00 += w
+                m10 += w1
+                m11 += w1 * p1
+                m20 += w2
+                m21 += w2 * p1
+                m22 += w2 * p2
+                m30 += w3
+                m31 += w3 * p1
+                m32 += w3 * p2
+                m33 += w3 * p3
+        if with_coefficients:
+            if m00 > 0.0:
+                M[0, 0], M[1, 0], M[1, 1], M[2, 0], M[2, 1], M[2, 2] = m00, m10, m11, m20, m21, m22
+                M[3, 0], M[3, 1], M[3, 2], M[3, 3] = m30, m31, m32, m33
+                _constant_row(M, m, L, scaled, a)
+            else:  # no particle in reach
+                a[:] = 0.0
+            for q in range(m):
+                alpha[g, q] = a[q]
+        a0 = alpha[g, 0]
+        a1 = alpha[g, 1]
+        a2 = alpha[g, 2] if dim > 1 else 0.0
+        a3 = alpha[g, 3] if dim > 2 else 0.0
+        for col in range(k):
+            out[g, col] = 0.0
+        for j in range(kept):  # out = sum_p w_p (alpha . phi_p) f_p
+            c = phi[j, 3] * (a0 + a1 * phi[j, 0] + a2 * phi[j, 1] + a3 * phi[j, 2])
+            q = hits[j]
+            for col in range(k):
+                out[g, col] += c * values[q, col]
+
+
+@njit(cache=True, error_model="numpy")
 def mls_reconstruct(x, values, xg, r, out):
     """out[g] (ng, k) = the linear MLS fit of the particle ``values`` (n, k)
     at the point xg[g] (see the module docstring); ``x`` (n, d) particle
     positions, ``r`` the kernel radius."""
-    dim = x.shape[1]
-    k = values.shape[1]
-    m = dim + 1
-    lower, nbox, order, start = _boxes(x, r)
-    M = np.empty((m, m))
-    b = np.empty((m, k))
-    L = np.empty((m, m))
-    scaled = np.empty((m, m))
-    phi = np.empty(m)
-    lo = np.zeros(MAX_DIM, dtype=np.int64)
-    hi = np.zeros(MAX_DIM, dtype=np.int64)
-    idx = np.zeros(MAX_DIM, dtype=np.int64)
-    for g in range(xg.shape[0]):
-        M[:] = 0.0
-        b[:] = 0.0
-        ncombos = 1
-        for a in range(dim):
-            c = int(np.floor((xg[g, a] - lower[a]) / r))
-            lo[a] = max(c - 1, 0)
-            hi[a] = min(c + 1, nbox[a] - 1)
-            ncombos *= max(hi[a] - lo[a] + 1, 0)
-        for combo in range(ncombos):
-            rest, box, stride = combo, 0, 1
-            for a in range(dim):
-                span = hi[a] - lo[a] + 1
-                idx[a] = lo[a] + rest % span
-                rest //= span
-                box += idx[a] * stride
-                stride *= nbox[a]
-            for i in range(start[box], start[box + 1]):
-                q = order[i]
-                d2 = 0.0
-                for a in range(dim):
-                    d = x[q, a] - xg[g, a]
-                    d2 += d * d
-                dist = np.sqrt(d2)
-                if not dist < r:
-                    continue
-                w = _kernel(dist / r)
-                if not w > 0.0:
-                    continue
-                phi[0] = 1.0
-                for a in range(dim):
-                    phi[1 + a] = (x[q, a] - xg[g, a]) / r
-                for s in range(m):
-                    ws = w * phi[s]
-                    for t in range(m):
-                        M[s, t] += ws * phi[t]
-                    for col in range(k):
-                        b[s, col] += ws * values[q, col]
-        if not M[0, 0] > 0.0:
-            for col in range(k):
-                out[g, col] = 0.0
-            continue
-        trace = 0.0
-        for s in range(m):
-            trace += M[s, s]
-        scale = max(trace / m, 1e-300)
-        for s in range(m):
-            for t in range(m):
-                scaled[s, t] = M[s, t] / scale
-        if cholesky(scaled, m, MLS_RANK_TOL, L) and cholesky(M, m, 0.0, L):
-            for col in range(k):  # L L^T c = b[:, col]; out = c_0
-                for s in range(m):
-                    acc = b[s, col]
-                    for t in range(s):
-                        acc -= L[s, t] * phi[t]
-                    phi[s] = acc / L[s, s]
-                for s in range(m - 1, -1, -1):
-                    acc = phi[s]
-                    for t in range(s + 1, m):
-                        acc -= L[t, s] * phi[t]
-                    phi[s] = acc / L[s, s]
-                out[g, col] = phi[0]
-        else:
-            for col in range(k):
-                out[g, col] = b[0, col] / M[0, 0]
+    alpha = np.empty((xg.shape[0], x.shape[1] + 1))
+    mls_fit(x, values, xg, r, alpha, out, True)

@@ -25,23 +25,13 @@ products to (i, j) and (j, i)). The sparse factorisation is the caller's
 import numpy as np
 from numba import njit
 
-from .stencil import axis_functions
+from .stencil import closed_axis_functions, extracted_axis_functions
 
-__all__ = ["WIDTH", "spline_evaluate", "spline_ls_system"]
+__all__ = ["WIDTH", "band_solve", "spline_band", "spline_evaluate", "spline_ls_system"]
 
 P = 3  # cubic
 WIDTH = 2 * P + 1  # stencil offsets -3..3 per axis
 CENTRE = P * WIDTH + P
-
-
-@njit(cache=True, error_model="numpy")
-def _functions(x, i, ax, ay, wx, wy):
-    """The cells (ex, ey) of point i and its 4 + 4 axis values into wx, wy."""
-    bx, ux, ihx, Cx = ax
-    by, uy, ihy, Cy = ay
-    ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = axis_functions(x[i, 0], bx, ux, ihx, Cx, P)
-    ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = axis_functions(x[i, 1], by, uy, ihy, Cy, P)
-    return ex, ey
 
 
 @njit(cache=True, error_model="numpy")
@@ -53,10 +43,24 @@ def spline_ls_system(x, V, values, ax, ay, nbx, nby, penalty, with_matrix, A, rh
     if with_matrix:
         A[:] = 0.0
     rhs[:] = 0.0
+    bx, ux, ihx, Cx = ax
+    by, uy, ihy, Cy = ay
+    x0, ncx = bx[0], bx.shape[0] - 1
+    y0, ncy = by[0], by.shape[0] - 1
     wx = np.empty(4)
     wy = np.empty(4)
     for i in range(x.shape[0]):
-        ex, ey = _functions(x, i, ax, ay, wx, wy)
+        # the closed form of scalars, else the extraction (not inlined)
+        closed, ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = closed_axis_functions(
+            x[i, 0], x0, ncx, ux, ihx, P)
+        if not closed:
+            ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = extracted_axis_functions(
+                x[i, 0], bx, ux, ihx, Cx, P)
+        closed, ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = closed_axis_functions(
+            x[i, 1], y0, ncy, uy, ihy, P)
+        if not closed:
+            ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = extracted_axis_functions(
+                x[i, 1], by, uy, ihy, Cy, P)
         for b in range(4):
             for a in range(4):
                 row = (ey + b) * nbx + ex + a
@@ -118,10 +122,24 @@ def spline_ls_system(x, V, values, ax, ay, nbx, nby, penalty, with_matrix, A, rh
 def spline_evaluate(xg, coef, ax, ay, nbx, out):
     """out[g] (ng, k) = sum_i N_i(xg[g]) coef[i] for the cubic grid's axes."""
     k = coef.shape[1]
+    bx, ux, ihx, Cx = ax
+    by, uy, ihy, Cy = ay
+    x0, ncx = bx[0], bx.shape[0] - 1
+    y0, ncy = by[0], by.shape[0] - 1
     wx = np.empty(4)
     wy = np.empty(4)
     for g in range(xg.shape[0]):
-        ex, ey = _functions(xg, g, ax, ay, wx, wy)
+        # the closed form of scalars, else the extraction (not inlined)
+        closed, ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = closed_axis_functions(
+            xg[g, 0], x0, ncx, ux, ihx, P)
+        if not closed:
+            ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = extracted_axis_functions(
+                xg[g, 0], bx, ux, ihx, Cx, P)
+        closed, ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = closed_axis_functions(
+            xg[g, 1], y0, ncy, uy, ihy, P)
+        if not closed:
+            ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = extracted_axis_functions(
+                xg[g, 1], by, uy, ihy, Cy, P)
         for col in range(k):
             out[g, col] = 0.0
         for b in range(4):
@@ -130,3 +148,42 @@ def spline_evaluate(xg, coef, ax, ay, nbx, out):
                 w = wx[a] * wy[b]
                 for col in range(k):
                     out[g, col] += w * coef[row, col]
+
+
+@njit(cache=True, error_model="numpy")
+def spline_band(A, nbx, band):
+    """band (ndofs, 3 nbx + 4): the lower band of the stencil array A of
+    :func:`spline_ls_system`, band[i, d] = (A + P)_(i, i - d) (the storage
+    of :func:`~skfem_mpm.kernels.kronecker.banded_cholesky_into`)."""
+    band[:] = 0.0
+    for i in range(A.shape[0]):
+        ix = i % nbx
+        iy = i // nbx
+        for dy in range(-P, 1):
+            if iy + dy < 0:
+                continue
+            for dx in range(-P, P + 1):
+                if (dy == 0 and dx > 0) or ix + dx < 0 or ix + dx >= nbx:
+                    continue
+                band[i, -(dy * nbx + dx)] = A[i, (dy + P) * WIDTH + dx + P]
+
+
+@njit(cache=True, error_model="numpy")
+def band_solve(L, b):
+    """b (n, k) := (L L^T)^-1 b for the banded lower Cholesky factor L,
+    L[i, d] = L_(i, i - d): forward, then backward substitution."""
+    n = L.shape[0]
+    p = L.shape[1] - 1
+    k = b.shape[1]
+    for i in range(n):
+        for d in range(1, min(p, i) + 1):
+            for c in range(k):
+                b[i, c] -= L[i, d] * b[i - d, c]
+        for c in range(k):
+            b[i, c] /= L[i, 0]
+    for i in range(n - 1, -1, -1):
+        for d in range(1, min(p, n - 1 - i) + 1):
+            for c in range(k):
+                b[i, c] -= L[i + d, d] * b[i + d, c]
+        for c in range(k):
+            b[i, c] /= L[i, 0]

@@ -49,31 +49,30 @@ TLS_BOUND_ABS = 1e-9
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _monomials(x, g, centre, size, phi):
-    """phi = (1, xi, (eta), xi xi, (xi eta, eta eta)) at point x[g]."""
-    dim = x.shape[1]
-    phi[0] = 1.0
-    for a in range(dim):
-        phi[1 + a] = (x[g, a] - centre[a]) / size[a]
-    j = 1 + dim
-    for a in range(dim):
-        for b in range(a, dim):
-            phi[j] = phi[1 + a] * phi[1 + b]
-            j += 1
+def _monomials(x0, x1, centre0, centre1, size0, size1, two):
+    """phi = (1, xi, eta, xi xi, xi eta, eta eta) of the point (x0, x1),
+    xi = (x0 - centre0) / size0, eta = (x1 - centre1) / size1; in 1D (``two``
+    False) (1, xi, xi xi) and three zeros. Scalars only: an inlined function
+    of array arguments makes numba count references to them per call."""
+    xi = (x0 - centre0) / size0
+    if not two:
+        return 1.0, xi, xi * xi, 0.0, 0.0, 0.0
+    eta = (x1 - centre1) / size1
+    return 1.0, xi, eta, xi * xi, xi * eta, eta * eta
 
 
 @njit(cache=True, error_model="numpy")
 def _well_posed(A, n, tol, work):
     """Smallest eigenvalue of the leading n x n block of A scaled to unit
     diagonal > tol, by Cholesky of the scaled block minus tol I (in
-    ``work``)."""
+    ``work``, at least (n + 1) x n)."""
     for i in range(n):
         if not A[i, i] > 0.0:
             return False
+        work[n, i] = 1.0 / np.sqrt(A[i, i])  # (a spare row of work)
     for i in range(n):
-        si = 1.0 / np.sqrt(A[i, i])
-        for j in range(n):
-            work[i, j] = A[i, j] * si * (1.0 / np.sqrt(A[j, j]))
+        for j in range(i + 1):  # the lower triangle: what cholesky reads
+            work[i, j] = A[i, j] * work[n, i] * work[n, j]
     return cholesky(work, n, tol, work)
 
 
@@ -138,9 +137,11 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
     ``wg`` (ng,), ``gcell`` (ng,) the rule; ``breaks0``/``breaks1`` the
     grid's breakpoints per axis (``breaks1`` unused in 1D)."""
     dim = x.shape[1]
+    two = dim == 2
+    last = dim - 1  # the second coordinate's column (1D: read, not used)
     k = values.shape[1]
     nx = breaks0.shape[0] - 1
-    ncells = nx * (breaks1.shape[0] - 1 if dim == 2 else 1)
+    ncells = nx * (breaks1.shape[0] - 1 if two else 1)
     m = 1 + dim + dim * (dim + 1) // 2
     slot = np.full(ncells, -1, dtype=np.int64)
     nact = 0
@@ -150,14 +151,18 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
             nact += 1
     porder, pstart = _bins(pcell, slot, nact)
     gorder, gstart = _bins(gcell, slot, nact)
-    centre = np.empty(dim)
-    size = np.empty(dim)
-    phi = np.empty(m)
+    most = 0  # the most Gauss points of one cell
+    for s in range(nact):
+        most = max(most, gstart[s + 1] - gstart[s])
+    phig = np.zeros((most, 6))  # the monomials at the cell's Gauss points
+    fit = np.empty((most, k))  # a level's fit at them
+    phi = np.zeros(6)
+    centre = np.zeros(2)
+    size = np.ones(2)
     A = np.empty((m, m))
     b = np.empty((m, k))
     G = np.empty(m)
     S = np.empty(k)
-    coef = np.empty((m, k))
     work = np.empty((m + 1, m + 1))
     K = np.empty((m + 1, m + 1))
     R = np.empty((m + 1, k))
@@ -168,24 +173,26 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
     high = np.empty(k)
     pending = np.empty(k, dtype=np.bool_)
     for s in range(nact):  # serial: a few microseconds per cell
+        g0 = gstart[s]
+        ng = gstart[s + 1] - g0
         for a in range(dim):  # the frame: the box spanned by the cell's Gauss points
             lo = np.inf
             hi = -np.inf
-            for i in range(gstart[s], gstart[s + 1]):
-                lo = min(lo, xg[gorder[i], a])
-                hi = max(hi, xg[gorder[i], a])
+            for i in range(ng):
+                lo = min(lo, xg[gorder[g0 + i], a])
+                hi = max(hi, xg[gorder[g0 + i], a])
             centre[a] = 0.5 * (lo + hi)
             size[a] = hi - lo
         A[:] = 0.0
         b[:] = 0.0
         G[:] = 0.0
         S[:] = 0.0
-        coef[:] = 0.0
         fmin[:] = np.inf
         fmax[:] = -np.inf
         for i in range(pstart[s], pstart[s + 1]):
             q = porder[i]
-            _monomials(x, q, centre, size, phi)
+            phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = _monomials(
+                x[q, 0], x[q, last], centre[0], centre[1], size[0], size[1], two)
             for r in range(m):
                 wr = V[q] * phi[r]
                 for t in range(m):
@@ -196,11 +203,12 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
                 S[col] += V[q] * values[q, col]
                 fmin[col] = min(fmin[col], values[q, col])
                 fmax[col] = max(fmax[col], values[q, col])
-        for i in range(gstart[s], gstart[s + 1]):
-            g = gorder[i]
-            _monomials(xg, g, centre, size, phi)
+        for i in range(ng):
+            g = gorder[g0 + i]
+            phig[i, 0], phig[i, 1], phig[i, 2], phig[i, 3], phig[i, 4], phig[i, 5] = \
+                _monomials(xg[g, 0], xg[g, last], centre[0], centre[1], size[0], size[1], two)
             for r in range(m):
-                G[r] += wg[g] * phi[r]
+                G[r] += wg[g] * phig[i, r]
         for col in range(k):
             slack[col] = TLS_BOUND_TOL * (fmax[col] - fmin[col]) + TLS_BOUND_ABS * max(
                 abs(fmin[col]), abs(fmax[col]))
@@ -220,32 +228,26 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
             for col in range(k):
                 R[n, col] = S[col]
             _solve(K, R, n + 1)
-            for col in range(k):  # the bound test, column by column
+            for col in range(k):  # the level's fit at the points, for the bound test
                 low[col] = np.inf
                 high[col] = -np.inf
-            for i in range(gstart[s], gstart[s + 1]):
-                _monomials(xg, gorder[i], centre, size, phi)
+            for i in range(ng):
                 for col in range(k):
                     acc = 0.0
-                    for r in range(m):
-                        acc += phi[r] * (R[r, col] if r < n else 0.0)
+                    for r in range(n):
+                        acc += phig[i, r] * R[r, col]
+                    fit[i, col] = acc
                     low[col] = min(low[col], acc)
                     high[col] = max(high[col], acc)
-            for col in range(k):
+            for col in range(k):  # the columns within their bounds keep this level's fit
                 if pending[col] and low[col] >= fmin[col] - slack[col] \
                         and high[col] <= fmax[col] + slack[col]:
-                    for r in range(n):
-                        coef[r, col] = R[r, col]
+                    for i in range(ng):
+                        out[gorder[g0 + i], col] = fit[i, col]
                     pending[col] = False
                     npending -= 1
         for col in range(k):  # the conserving constant
             if pending[col]:
-                coef[0, col] = S[col] / G[0]
-        for i in range(gstart[s], gstart[s + 1]):
-            g = gorder[i]
-            _monomials(xg, g, centre, size, phi)
-            for col in range(k):
-                acc = 0.0
-                for r in range(m):
-                    acc += phi[r] * coef[r, col]
-                out[g, col] = acc
+                constant = S[col] / G[0]
+                for i in range(ng):
+                    out[gorder[g0 + i], col] = constant
