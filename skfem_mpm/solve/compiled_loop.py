@@ -125,6 +125,7 @@ _GRID_KERNELS = {
     # consistent mass (compiled_loop_mass)
     "CONSISTENT_1D": mpm.consistent_1d,
     "CONSISTENT_2D": mpm.consistent_2d,
+    "CONSISTENT_AXES": mpm.consistent_axes,
     "REDUCE_STENCIL": mpm.reduce_stencil,
     "COMPACT_SYSTEM": mpm.compact_system,
     "FAST_ROW_FRACTIONS": mpm.fast_row_fractions,
@@ -175,7 +176,6 @@ def loop_applies(state, executor):
          "an adaptive time step with a material without a compiled wave speed "
          "(point_wave_speed None)"),
         (state.grid.dim not in (1, 2, 3), f"{state.grid.dim}D"),
-        (state.grid.dim == 3 and m.mass != "lumped", f"{m.mass} mass in 3D"),
     )
     for failed, why in reasons:
         if failed:
@@ -295,8 +295,14 @@ def _prelude(dim, parallel, window, variant):
                 2: "(bx, ux, ihx, Cx), (by, uy, ihy, Cy) = axes\n"
                    "    CONSISTENT_2D(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, copies, "
                    "stiff, touched)",
-                # loop_applies keeps consistent mass in 3D on the executor
-                3: "raise NotImplementedError('consistent mass in the 3D loop')"}[dim]
+                3: "(b0, u0, ih0, C0), (b1, u1, ih1, C1), (b2, u2, ih2, C2) = axes\n"
+                   "    CONSISTENT_AXES(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, "
+                   "p, nbx, nby, copies, stiff, touched)"}[dim]
+    kronecker = ("return (cm.Lx[g], cm.Ly[g], cm.Lz[g], cm.box_index[g, :n], "
+                 "cm.inv_scale[g, :n], cm.box[:nz * ny * nx * nc].reshape((nz, ny, nx, nc)), "
+                 "max(1, min(nt, ny * nx)))" if dim == 3 else
+                 "return (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n], "
+                 "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)))")
     body = f'''
 DIM = {dim}
 
@@ -308,9 +314,18 @@ def SMALL_MASS(mass, tol, small, nbx, nby, p):
 
 
 @njit(cache=True)
-def ASSEMBLE(x, m, axes, p, nbx, copies, stiff, touched):
+def ASSEMBLE(x, m, axes, p, nbx, nby, copies, stiff, touched):
     """Per-thread copies of the consistent mass stencil (kernels.mpm.consistent_{dim}d)."""
     {assemble}
+
+
+@njit(cache=True)
+def KRONECKER_ARGS(cm, g, n, nc, nt):
+    """Group g's Kronecker preconditioner for n rows and nc columns as
+    ell_pcg takes it (KroneckerData.args: apply_kronecker's arguments,
+    3D apply_kronecker_axes')."""
+    nz, ny, nx = cm.box_shape[g, 0], cm.box_shape[g, 1], cm.box_shape[g, 2]
+    {kronecker}
 '''
     return "\n".join(lines) + "\n\n" + body
 
@@ -641,6 +656,7 @@ class StepLoop:
         ns = k._stencil_shape[1]
         nt = k.nthreads
         nbx, nby = (nd, 1) if dim == 1 else tuple(grid.basis_per_axis[:2])
+        nbz = nd // (nbx * nby)
         hybrid = method.mass == "hybrid"
         guard = 0.0 if hybrid else method.frequency_guard
         limit = 0.0
@@ -681,14 +697,16 @@ class StepLoop:
             F=zeros((G, nd, ns)), fcols=zeros((G, nd, ns), dtype=np.int32),
             inv_diag=zeros((G, nd)),
             Lx=zeros((G, nbx, p + 1)), Ly=np.ones((G, nby, p + 1)),
+            Lz=np.ones((G, nbz, p + 1)),
             boxed_rows=zeros((G, nd), dtype=np.int64),
-            n_boxed=np.full(G, -1, dtype=np.int64), box_shape=zeros((G, 4), dtype=np.int64),
+            n_boxed=np.full(G, -1, dtype=np.int64), box_shape=zeros((G, 3), dtype=np.int64),
             box_index=zeros((G, nd), dtype=np.int64),
             box_coords=zeros((G, nd, 3), dtype=np.int64), inv_scale=zeros((G, nd)),
-            fit_bands=zeros((3, max(nbx, nby), p + 1)), fit_sums=zeros((3, max(nbx, nby))),
-            no_axis=np.ones((1, p + 1)),
+            fit_bands=zeros((3, max(nbx, nby, nbz), p + 1)),
+            fit_sums=zeros((3, max(nbx, nby, nbz))),
             b=empty(nd * nc), x=empty(nd * nc), work=empty(6 * nd * nc),
-            box=empty(nbx * nby * nc), rtol=1e-13, max_iterations=int(cls.max_iterations or 0),
+            box=empty(nbx * nby * nbz * nc), rtol=1e-13,
+            max_iterations=int(cls.max_iterations or 0),
             fringe_from=int(cls.FRINGE_FROM), fringe_min_rows=int(cls.FRINGE_MIN_ROWS),
             fringe_layers=int(cls.FRINGE_LAYERS) if dim == 2 else 0,
             fringe_on=zeros(G, dtype=np.bool_), iterations=0,

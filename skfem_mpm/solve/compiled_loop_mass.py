@@ -8,7 +8,8 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
 
     assemble        M (stencil rows) and the fast-dof guard's stiffness
                     weights K_k = sum_p m_p |grad N_k(x_p)|^2 (kernel pair
-                    consistent_{1,2}d + reduce_stencil)
+                    consistent_1d, consistent_2d or, 3D, consistent_axes;
+                    + reduce_stencil)
     prepare         the fast-row lumping fractions theta_k of
                     :func:`skfem_mpm.solve.timestep.lumping_fraction`, with K
                     scaled by :func:`skfem_mpm.solve.timestep.covered_weights`
@@ -21,7 +22,9 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
                     (:func:`skfem_mpm.kernels.kronecker.fit_kronecker`, as
                     KroneckerData.of_system: banded Cholesky factors of the
                     rows' axis marginals on the free dofs' index box, whose
-                    numbering is kept while the free-dof set stays);
+                    numbering is kept while the free-dof set stays; three
+                    factors in 3D, KRONECKER_ARGS of the generated prelude
+                    giving ell_pcg apply_kronecker_axes' arguments);
                     with tiny-mass dofs (``small_tol`` > 0) a group with
                     small dofs is merged (StencilSystem's merge: the rows
                     of T, :func:`skfem_mpm.kernels.tiny_mass.merging_rows`,
@@ -69,12 +72,12 @@ MASS_FIELDS = (
     # groups: their components, the free rows and dof -> row, the ELL rows
     "group_comps", "group_size", "rows", "n_rows", "index", "A", "cols", "F", "fcols",
     "inv_diag",
-    # Kronecker preconditioner per group: factors (1 / L_ii in column 0),
-    # the rows the box was built for, box (a0, b0, ny, nx), box index and
-    # box-local (a, b, c) per row, scaling; fit_kronecker's work space and
-    # the factor of an axis not applied (a (1, p + 1) array)
-    "Lx", "Ly", "boxed_rows", "n_boxed", "box_shape", "box_index", "box_coords", "inv_scale",
-    "fit_bands", "fit_sums", "no_axis",
+    # Kronecker preconditioner per group: factors (1 / L_ii in column 0;
+    # an axis the box spans with one index is not applied), the rows the
+    # box was built for, box shape (nz, ny, nx), box index and box-local
+    # (a, b, c) per row, scaling; fit_kronecker's work space
+    "Lx", "Ly", "Lz", "boxed_rows", "n_boxed", "box_shape", "box_index", "box_coords",
+    "inv_scale", "fit_bands", "fit_sums",
     # conjugate gradients: right-hand sides, solutions, work space (flat)
     "b", "x", "work", "box", "rtol", "max_iterations", "fringe_from", "fringe_min_rows",
     "fringe_layers", "fringe_on", "iterations",
@@ -155,7 +158,7 @@ def keep_stage_mass(cm):
 @njit(cache=True)
 def assemble_mass(cm, x, m, p, nbx, nby, dim):
     """The consistent mass stencil and K of the particles (Kernels.consistent_stencil)."""
-    ASSEMBLE(x, m, cm.axes, p, nbx, cm.copies, cm.stiff_copies, cm.touched)
+    ASSEMBLE(x, m, cm.axes, p, nbx, nby, cm.copies, cm.stiff_copies, cm.touched)
     lo = cm.touched[0, 0]
     hi = cm.touched[0, 1]
     for t in range(1, cm.touched.shape[0]):
@@ -178,9 +181,10 @@ def assemble_mass(cm, x, m, p, nbx, nby, dim):
 
 
 @njit(cache=True)
-def _kronecker_box(cm, g, rows, nbx, dim):
-    """Group g's index box and box numbering (KroneckerData._box), unless
-    they were built for the same rows."""
+def _kronecker_box(cm, g, rows, nbx, nby):
+    """Group g's index box and box numbering (KroneckerData._box: dof k =
+    (c nby + b) nbx + a; 1D and 2D have c = 0), unless they were built for
+    the same rows."""
     n = rows.shape[0]
     if cm.n_boxed[g] == n:
         same = True
@@ -190,30 +194,31 @@ def _kronecker_box(cm, g, rows, nbx, dim):
                 break
         if same:
             return
-    a0 = nbx
-    a1 = 0
-    b0 = 1 << 62
-    b1 = 0
+    a0 = b0 = c0 = 1 << 62
+    a1 = b1 = c1 = 0
     for r in range(n):
         a = rows[r] % nbx
-        b = rows[r] // nbx
+        b = (rows[r] // nbx) % nby
+        c = rows[r] // (nbx * nby)
         a0 = min(a0, a)
         a1 = max(a1, a + 1)
         b0 = min(b0, b)
         b1 = max(b1, b + 1)
+        c0 = min(c0, c)
+        c1 = max(c1, c + 1)
     for r in range(n):
         a = rows[r] % nbx - a0
-        b = rows[r] // nbx - b0
-        cm.box_index[g, r] = b * (a1 - a0) + a
+        b = (rows[r] // nbx) % nby - b0
+        c = rows[r] // (nbx * nby) - c0
+        cm.box_index[g, r] = (c * (b1 - b0) + b) * (a1 - a0) + a
         cm.box_coords[g, r, 0] = a
         cm.box_coords[g, r, 1] = b
-        cm.box_coords[g, r, 2] = 0
+        cm.box_coords[g, r, 2] = c
         cm.boxed_rows[g, r] = rows[r]
     cm.n_boxed[g] = n
-    cm.box_shape[g, 0] = a0
-    cm.box_shape[g, 1] = b0
-    cm.box_shape[g, 2] = b1 - b0
-    cm.box_shape[g, 3] = a1 - a0
+    cm.box_shape[g, 0] = c1 - c0
+    cm.box_shape[g, 1] = b1 - b0
+    cm.box_shape[g, 2] = a1 - a0
 
 
 @njit(cache=True)
@@ -284,11 +289,12 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
                 cm.inv_diag[g, r] = 1.0 / mass[rows[r]]
         if n == 0:
             continue
-        _kronecker_box(cm, g, rows, nbx, dim)
-        ny = cm.box_shape[g, 2]
-        nx = cm.box_shape[g, 3]
-        FIT_KRONECKER(fit, cm.box_coords[g, :n], cm.Lx[g, :nx], cm.Ly[g, :ny],
-                      cm.no_axis, cm.inv_scale[g, :n], cm.fit_bands, cm.fit_sums)
+        _kronecker_box(cm, g, rows, nbx, nby)
+        nz = cm.box_shape[g, 0]
+        ny = cm.box_shape[g, 1]
+        nx = cm.box_shape[g, 2]
+        FIT_KRONECKER(fit, cm.box_coords[g, :n], cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz],
+                      cm.inv_scale[g, :n], cm.fit_bands, cm.fit_sums)
     return True
 
 
@@ -394,10 +400,7 @@ def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x):
     problem = np.empty(nc, dtype=np.int64)
     for j in range(nc):
         problem[j] = j // ncomp
-    ny = cm.box_shape[g, 2]
-    nx = cm.box_shape[g, 3]
-    kron = (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n],
-            cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)))
+    kron = KRONECKER_ARGS(cm, g, n, nc, nt)
     limit = cm.max_iterations if cm.max_iterations > 0 else 10 * n + 100
     work = cm.work[:6 * n * nc].reshape((6, n, nc))
     its = ELL_PCG(A, cols, inv_diag, kron, None, b, x, problem, cm.rtol, limit, nt, work)

@@ -28,9 +28,9 @@ by :func:`run_musl` and its siblings, without Python between the steps.
 What a compiled run covers
 (:func:`skfem_mpm.solve.compiled_loop.loop_applies` says which runs):
 the schemes MUSL, USL, CD and rk4 in 1D, 2D and 3D (the operations and
-kernels are the same source in every dimension); lumped mass, and in 1D
-and 2D consistent and hybrid mass (``run.cm``: None, or the
-consistent-mass system of :mod:`skfem_mpm.solve.compiled_loop_mass`); particle quadrature, the 1D
+kernels are the same source in every dimension); lumped, consistent and
+hybrid mass (``run.cm``: None, or the consistent-mass system of
+:mod:`skfem_mpm.solve.compiled_loop_mass`); particle quadrature, the 1D
 particle-knot spline reconstruction or the published TLS reconstruction
 (default options) in 1D and 2D (``run.rc``: None, or the data of
 :mod:`skfem_mpm.solve.compiled_loop_reconstruct`, a Reconstruction or a
