@@ -10,6 +10,7 @@ restart from a checkpoint.
 """
 import numpy as np
 import pytest
+from tiers import tiered
 
 from skfem_mpm import BodyForce, Fixed, Method, Prescribed, Scene, Traction, simulate
 from skfem_mpm.solve import compiled_loop
@@ -18,7 +19,7 @@ from skfem_mpm.solve.compiled_loop_tables import ForceTable
 from skfem_mpm.solve.state import prepare
 from skfem_mpm.solve.stencil_system import StencilSystem
 
-from test_compiled_loop import (assert_same, box_scene, check_law_case, falling_block,
+from test_compiled_loop import (_case_id, assert_same, box_scene, check_law_case, falling_block,
                                 law_scene, looped_and_stepped, without_loop)
 from test_executors import scene_for
 
@@ -52,7 +53,21 @@ BODY_FORCE_CASES = [
 ]
 
 
-@pytest.mark.parametrize("case", BODY_FORCE_CASES, ids=lambda c: "-".join(map(str, c.values())))
+DEFAULT_BODY_FORCE_CASES = {  # the default tier's cases (tests/tiers.py)
+    "cd-lumped-1-2",
+    "musl-consistent-3-1",
+    "musl-hybrid-2-2-True",
+    "musl-lumped-2-1",
+    "rk4-consistent-2-2-True",
+    "rk4-lumped-2-1",
+    "usl-consistent-2-2-True",
+    "usl-lumped-1-1",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "body force in the loop", BODY_FORCE_CASES, _case_id, DEFAULT_BODY_FORCE_CASES),
+                         ids=_case_id)
 def test_a_body_force_gives_the_executors_bits(monkeypatch, case):
     looped, _ = looped_case(monkeypatch, dict(case, effect="body-force"))
     assert looped.energies["external_work"][-1] != 0.0  # the body force's work is counted
@@ -77,7 +92,23 @@ PRESCRIBED_CASES = [
 ]
 
 
-@pytest.mark.parametrize("case", PRESCRIBED_CASES, ids=lambda c: "-".join(map(str, c.values())))
+DEFAULT_PRESCRIBED_CASES = {  # the default tier's cases (tests/tiers.py)
+    "cd-consistent-2-2-True",
+    "cd-lumped-1-1",
+    "musl-consistent-2-1",
+    "musl-hybrid-2-2-True",
+    "musl-lumped-2-1",
+    "rk4-consistent-1-2-True",
+    "rk4-lumped-2-1",
+    "usl-consistent-3-1",
+    "usl-lumped-1-1",
+    "usl-lumped-3-2",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "prescribed velocities in the loop", PRESCRIBED_CASES, _case_id, DEFAULT_PRESCRIBED_CASES),
+                         ids=_case_id)
 def test_prescribed_velocities_give_the_executors_bits(monkeypatch, case):
     looped, _ = looped_case(monkeypatch, dict(case, effect="prescribed"))
     key = "Prescribed('left', component=0)" if case["dim"] == 1 else \
