@@ -285,6 +285,11 @@ def test_consistent_mass_gives_the_executors_bits_everywhere(monkeypatch, case):
     check_mass_case(monkeypatch, case, fringe=case["degree"] != 3)
 
 
+@pytest.mark.slow(
+    reason="parallel kernels in the loop run in the default tier with lumped linear "
+           "elasticity (test_parallel_kernels_give_the_same_bits); this one compiles the 1D "
+           "parallel transfer kernels, the parallel consistent-mass kernels and another "
+           "parallel run type")
 def test_consistent_mass_with_parallel_kernels(monkeypatch):
     case = MASS_CASES[0]
     with monkeypatch.context() as m:
@@ -568,6 +573,10 @@ def test_the_point_law_cases_cover_every_pair():
         assert {c["dim"] for c in LAW_CASES if c["material"] == material} == {1, 2}
 
 
+@pytest.mark.slow(
+    reason="parallel kernels in the loop run in the default tier with lumped linear "
+           "elasticity (test_parallel_kernels_give_the_same_bits); this one compiles another "
+           "parallel run type")
 def test_point_laws_with_parallel_kernels(monkeypatch):
     """Above SERIAL_BELOW the loop calls the parallel constitutive kernel
     (each thread's block flags its own J <= 0): the executor's bits."""

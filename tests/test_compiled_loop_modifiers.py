@@ -99,7 +99,8 @@ def test_modifiers_give_the_executors_bits(monkeypatch, case):
     assert "effects" in looped.phase_table()
 
 
-@pytest.mark.parametrize("scheme", ("musl", "usl"))
+@pytest.mark.parametrize("scheme", ("musl", pytest.param("usl", marks=pytest.mark.slow(
+    reason="one more 3D run type's loop; the default tier runs musl"))))
 def test_modifiers_in_3d_give_the_executors_bits(monkeypatch, scheme):
     """3D lumped: walls on two sides (with and without friction) and a damping."""
     box = box_scene(scheme, 2, "gravity")
@@ -112,6 +113,10 @@ def test_modifiers_in_3d_give_the_executors_bits(monkeypatch, scheme):
         assert np.abs(looped.reactions[-1][key]).max() > 0.0, key
 
 
+@pytest.mark.slow(
+    reason="parallel kernels in the loop run in the default tier with lumped linear "
+           "elasticity (test_parallel_kernels_give_the_same_bits); this one compiles another "
+           "parallel run type")
 def test_modifiers_with_parallel_kernels(monkeypatch):
     monkeypatch.setattr(serial, "SERIAL_BELOW", 1)
     scene = modified_scene("musl", "lumped", 2, 2, "walls+damping")

@@ -116,7 +116,8 @@ def test_prescribed_velocities_give_the_executors_bits(monkeypatch, case):
     assert looped.reactions[-1][key][0] != 0.0  # the prescribed dofs push the body
 
 
-@pytest.mark.parametrize("scheme", ["musl", "rk4"])
+@pytest.mark.parametrize("scheme", ["musl", pytest.param("rk4", marks=pytest.mark.slow(
+    reason="one more run type's rk4 loop; the default tier runs musl"))])
 def test_a_body_force_prescribed_velocities_and_a_traction_together(monkeypatch, scheme):
     case = dict(scheme=scheme, mass="lumped", degree=2, dim=2, material="linear",
                 effect="prescribed", aligned=True)
@@ -128,7 +129,10 @@ def test_a_body_force_prescribed_velocities_and_a_traction_together(monkeypatch,
     assert looped.counts["compiled_loop_steps"] == 23
 
 
-@pytest.mark.parametrize("scheme,degree", [("musl", 2), ("rk4", 1)])
+@pytest.mark.parametrize("scheme,degree", [
+    ("musl", 2), pytest.param("rk4", 1, marks=pytest.mark.slow(
+        reason="one more 3D run type's rk4 loop; the default tier runs musl (3D rk4: "
+               "test_compiled_loop)"))])
 def test_a_body_force_and_prescribed_velocities_in_3d(monkeypatch, scheme, degree):
     """The same templates in 3D (lumped mass): a body force and a
     prescribed component of a side beside its fixed others."""
@@ -206,7 +210,8 @@ def test_particles_leaving_under_a_body_force(monkeypatch):
     assert np.array_equal(looped.energies["external_work"], stepped.energies["external_work"])
 
 
-@pytest.mark.parametrize("scheme", ["musl", "rk4"])
+@pytest.mark.parametrize("scheme", ["musl", pytest.param("rk4", marks=pytest.mark.slow(
+    reason="one more run type's rk4 loop; the default tier runs musl"))])
 def test_a_restart_evaluates_its_own_tables(monkeypatch, tmp_path, scheme):
     """A run stopped at step 10 (a callback: the executor steps) and
     restarted from its checkpoint: the restart's loop evaluates the body
