@@ -13,6 +13,7 @@ import itertools
 
 import numpy as np
 import pytest
+from tiers import tiered
 
 from skfem_mpm import (Body, DruckerPrager, Fixed, Gravity, LinearElastic, Method, MohrCoulomb,
                        NeoHookean, Particles, Scene, SimulationError, SplineGrid, Traction,
@@ -24,6 +25,11 @@ from skfem_mpm.solve.state import prepare
 from skfem_mpm.solve.stencil_system import StencilSystem, preconditioned_with
 
 from test_executors import CappedStress, CappedStressCompiled, scene_for
+
+
+def _case_id(case):
+    return "-".join(map(str, case.values()))
+
 
 KEYS = ("x", "v", "u", "stress")
 
@@ -243,7 +249,20 @@ def check_mass_case(monkeypatch, case, fringe=True):
     return looped
 
 
-@pytest.mark.parametrize("case", MASS_CASES, ids=lambda c: "-".join(map(str, c.values())))
+DEFAULT_MASS_CASES = {  # the default tier's cases (tests/tiers.py)
+    "cd-consistent-2-2",
+    "cd-consistent-3-1",
+    "musl-consistent-2-1",
+    "musl-hybrid-2-2",
+    "musl-hybrid-3-1",
+    "usl-consistent-1-1",
+    "usl-consistent-2-2",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "consistent mass in the loop", MASS_CASES, _case_id, DEFAULT_MASS_CASES),
+                         ids=_case_id)
 def test_consistent_mass_gives_the_executors_bits(monkeypatch, case):
     looped = check_mass_case(monkeypatch, case)
     steps = looped.counts["compiled_loop_steps"]
@@ -315,6 +334,11 @@ def test_colliding_disks_with_consistent_mass_run_in_the_loop(monkeypatch):
     assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] >= 20
 
 
+@pytest.mark.slow(
+    reason="parallel kernels in the loop run in the default tier with lumped linear "
+           "elasticity (test_parallel_kernels_give_the_same_bits); this one compiles the 1D "
+           "parallel transfer kernels, the parallel consistent-mass kernels and another "
+           "parallel run type")
 def test_consistent_mass_with_parallel_kernels(monkeypatch):
     case = MASS_CASES[0]
     with monkeypatch.context() as m:
@@ -334,7 +358,17 @@ RK4_CASES = [dict(scheme="rk4", mass="lumped", degree=2, dim=1),
              dict(scheme="rk4", mass="consistent", degree=2, dim=2)]
 
 
-@pytest.mark.parametrize("case", RK4_CASES, ids=lambda c: "-".join(map(str, c.values())))
+DEFAULT_RK4_CASES = {  # the default tier's cases (tests/tiers.py)
+    "rk4-consistent-2-2",
+    "rk4-consistent-3-1",
+    "rk4-lumped-1-2",
+    "rk4-lumped-2-1",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "rk4 in the loop", RK4_CASES, _case_id, DEFAULT_RK4_CASES),
+                         ids=_case_id)
 def test_rk4_gives_the_executors_bits(monkeypatch, case):
     looped = check_mass_case(monkeypatch, case)
     assert looped.counts["compiled_loop_steps"] >= 20
@@ -368,8 +402,21 @@ RECONSTRUCTED_CASES = [
 ]
 
 
-@pytest.mark.parametrize("case", RECONSTRUCTED_CASES,
-                         ids=lambda c: "-".join(map(str, c.values())))
+DEFAULT_RECONSTRUCTED_CASES = {  # the default tier's cases (tests/tiers.py)
+    "cd-consistent-2-gravity",
+    "musl-consistent-3-gravity",
+    "musl-hybrid-2-gravity",
+    "musl-lumped-2-gravity",
+    "rk4-consistent-3-gravity",
+    "rk4-lumped-2-gravity",
+    "usl-lumped-3-none",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "spline reconstruction in the loop", RECONSTRUCTED_CASES, _case_id,
+    DEFAULT_RECONSTRUCTED_CASES, paired=("scheme", "mass")),
+                         ids=_case_id)
 def test_spline_reconstruction_gives_the_executors_bits(monkeypatch, case):
     full = dict(case, dim=1, material="linear", reconstruction="spline", aligned=True)
     scene = scene_for(full, steps=23)
@@ -414,7 +461,24 @@ def test_the_tls_cases_cover_every_pair():
     assert {c["aligned"] for c in TLS_CASES if c["dim"] == 2} == {True, False}
 
 
-@pytest.mark.parametrize("case", TLS_CASES, ids=lambda c: "-".join(map(str, c.values())))
+DEFAULT_TLS_CASES = {  # the default tier's cases (tests/tiers.py)
+    "1-cd-consistent-2-gravity-False",
+    "1-musl-hybrid-2-gravity-False",
+    "1-musl-lumped-3-gravity-False",
+    "1-rk4-consistent-3-gravity-False",
+    "1-usl-lumped-3-none-False",
+    "2-cd-lumped-2-gravity-True",
+    "2-musl-consistent-2-gravity-True",
+    "2-musl-hybrid-3-gravity-True",
+    "2-rk4-consistent-2-gravity-True",
+    "2-rk4-lumped-2-gravity-False",
+    "2-usl-consistent-3-none-True",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "tls in the loop", TLS_CASES, _case_id, DEFAULT_TLS_CASES),
+                         ids=_case_id)
 def test_tls_reconstruction_gives_the_executors_bits(monkeypatch, case):
     full = dict(case, material="linear", reconstruction="tls", ppc=3)
     scene = scene_for(full, steps=23)
@@ -533,7 +597,23 @@ def check_law_case(monkeypatch, case, steps=23):
     return looped, stepped
 
 
-@pytest.mark.parametrize("case", LAW_CASES, ids=lambda c: "-".join(map(str, c.values())))
+DEFAULT_LAW_CASES = {  # the default tier's cases (tests/tiers.py)
+    "custom-compiled-1-musl-lumped-2",
+    "drucker-prager-2-usl-consistent-2-True",
+    "mohr-coulomb-2-musl-hybrid-2-True",
+    "mohr-coulomb-2-usl-lumped-2-tls-3",
+    "mohr-coulomb-large-2-cd-lumped-2",
+    "neo-hookean-1-cd-consistent-2",
+    "neo-hookean-1-usl-lumped-3",
+    "neo-hookean-1-rk4-consistent-3",
+    "neo-hookean-2-rk4-lumped-2",
+    "von-mises-2-musl-consistent-1-True",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "point laws in the loop", LAW_CASES, _case_id, DEFAULT_LAW_CASES),
+                         ids=_case_id)
 def test_point_laws_give_the_executors_bits(monkeypatch, case):
     looped, _ = check_law_case(monkeypatch, case)
     assert looped.counts["compiled_loop_steps"] >= 20, looped.counts
@@ -547,6 +627,10 @@ def test_the_point_law_cases_cover_every_pair():
         assert {c["dim"] for c in LAW_CASES if c["material"] == material} == {1, 2}
 
 
+@pytest.mark.slow(
+    reason="parallel kernels in the loop run in the default tier with lumped linear "
+           "elasticity (test_parallel_kernels_give_the_same_bits); this one compiles another "
+           "parallel run type")
 def test_point_laws_with_parallel_kernels(monkeypatch):
     """Above SERIAL_BELOW the loop calls the parallel constitutive kernel
     (each thread's block flags its own J <= 0): the executor's bits."""
@@ -654,7 +738,20 @@ TRACTION_CASES = [
 ]
 
 
-@pytest.mark.parametrize("case", TRACTION_CASES, ids=lambda c: "-".join(map(str, c.values())))
+DEFAULT_TRACTION_CASES = {  # the default tier's cases (tests/tiers.py)
+    "cd-lumped-1-2",
+    "musl-consistent-3-1",
+    "musl-lumped-2-1",
+    "musl-lumped-2-2-tls",
+    "rk4-consistent-3-1",
+    "rk4-lumped-2-2",
+    "usl-consistent-2-2",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "side traction in the loop", TRACTION_CASES, _case_id, DEFAULT_TRACTION_CASES),
+                         ids=_case_id)
 def test_a_side_traction_gives_the_executors_bits(monkeypatch, case):
     full = dict(case, material="linear", effect="traction", aligned=True)
     scene = scene_for(full, steps=23)

@@ -12,6 +12,7 @@ import sys
 
 import numpy as np
 import pytest
+from tiers import tiered
 
 from skfem_mpm import (Body, Damping, Fixed, Footing, Gravity, LinearElastic, Method,
                        Particles, Prescribed, Scene, SplineGrid, Wall, simulate)
@@ -70,7 +71,24 @@ def _id(case):
     return "-".join(map(str, case))
 
 
-@pytest.mark.parametrize("case", CASES, ids=_id)
+DEFAULT_CASES = {  # the default tier's cases (tests/tiers.py)
+    "cd-consistent-2-1-fixed+wall",
+    "cd-lumped-1-1-damping+fixed",
+    "cd-lumped-3-2-walls",
+    "musl-consistent-3-1-walls",
+    "musl-hybrid-2-2-walls+damping",
+    "musl-lumped-2-1-damping+fixed",
+    "musl-lumped-2-2-walls+damping",
+    "rk4-consistent-2-2-fixed+wall",
+    "rk4-lumped-2-1-walls+damping",
+    "usl-consistent-2-1-prescribed+damping",
+    "usl-lumped-2-2-fixed+wall",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "grid modifiers in the loop", CASES, _id, DEFAULT_CASES,
+    options=lambda c: dict(zip(("scheme", "mass", "degree", "dim", "effects"), c))), ids=_id)
 def test_modifiers_give_the_executors_bits(monkeypatch, case):
     scheme, mass, degree, dim, effects = case
     scene = modified_scene(*case)
@@ -82,7 +100,8 @@ def test_modifiers_give_the_executors_bits(monkeypatch, case):
     assert "effects" in looped.phase_table()
 
 
-@pytest.mark.parametrize("scheme", ("musl", "usl"))
+@pytest.mark.parametrize("scheme", ("musl", pytest.param("usl", marks=pytest.mark.slow(
+    reason="one more 3D run type's loop; the default tier runs musl"))))
 def test_modifiers_in_3d_give_the_executors_bits(monkeypatch, scheme):
     """3D lumped: walls on two sides (with and without friction) and a damping."""
     box = box_scene(scheme, 2, "gravity")
@@ -95,6 +114,10 @@ def test_modifiers_in_3d_give_the_executors_bits(monkeypatch, scheme):
         assert np.abs(looped.reactions[-1][key]).max() > 0.0, key
 
 
+@pytest.mark.slow(
+    reason="parallel kernels in the loop run in the default tier with lumped linear "
+           "elasticity (test_parallel_kernels_give_the_same_bits); this one compiles another "
+           "parallel run type")
 def test_modifiers_with_parallel_kernels(monkeypatch):
     monkeypatch.setattr(serial, "SERIAL_BELOW", 1)
     scene = modified_scene("musl", "lumped", 2, 2, "walls+damping")

@@ -10,6 +10,7 @@ restart from a checkpoint.
 """
 import numpy as np
 import pytest
+from tiers import tiered
 
 from skfem_mpm import BodyForce, Fixed, Method, Prescribed, Scene, Traction, simulate
 from skfem_mpm.solve import compiled_loop
@@ -18,7 +19,7 @@ from skfem_mpm.solve.compiled_loop_tables import ForceTable
 from skfem_mpm.solve.state import prepare
 from skfem_mpm.solve.stencil_system import StencilSystem
 
-from test_compiled_loop import (assert_same, box_scene, check_law_case, falling_block,
+from test_compiled_loop import (_case_id, assert_same, box_scene, check_law_case, falling_block,
                                 law_scene, looped_and_stepped, without_loop)
 from test_executors import scene_for
 
@@ -52,7 +53,21 @@ BODY_FORCE_CASES = [
 ]
 
 
-@pytest.mark.parametrize("case", BODY_FORCE_CASES, ids=lambda c: "-".join(map(str, c.values())))
+DEFAULT_BODY_FORCE_CASES = {  # the default tier's cases (tests/tiers.py)
+    "cd-lumped-1-2",
+    "musl-consistent-3-1",
+    "musl-hybrid-2-2-True",
+    "musl-lumped-2-1",
+    "rk4-consistent-2-2-True",
+    "rk4-lumped-2-1",
+    "usl-consistent-2-2-True",
+    "usl-lumped-1-1",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "body force in the loop", BODY_FORCE_CASES, _case_id, DEFAULT_BODY_FORCE_CASES),
+                         ids=_case_id)
 def test_a_body_force_gives_the_executors_bits(monkeypatch, case):
     looped, _ = looped_case(monkeypatch, dict(case, effect="body-force"))
     assert looped.energies["external_work"][-1] != 0.0  # the body force's work is counted
@@ -77,7 +92,23 @@ PRESCRIBED_CASES = [
 ]
 
 
-@pytest.mark.parametrize("case", PRESCRIBED_CASES, ids=lambda c: "-".join(map(str, c.values())))
+DEFAULT_PRESCRIBED_CASES = {  # the default tier's cases (tests/tiers.py)
+    "cd-consistent-2-2-True",
+    "cd-lumped-1-1",
+    "musl-consistent-2-1",
+    "musl-hybrid-2-2-True",
+    "musl-lumped-2-1",
+    "rk4-consistent-1-2-True",
+    "rk4-lumped-2-1",
+    "usl-consistent-3-1",
+    "usl-lumped-1-1",
+    "usl-lumped-3-2",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "prescribed velocities in the loop", PRESCRIBED_CASES, _case_id, DEFAULT_PRESCRIBED_CASES),
+                         ids=_case_id)
 def test_prescribed_velocities_give_the_executors_bits(monkeypatch, case):
     looped, _ = looped_case(monkeypatch, dict(case, effect="prescribed"))
     key = "Prescribed('left', component=0)" if case["dim"] == 1 else \
@@ -85,7 +116,8 @@ def test_prescribed_velocities_give_the_executors_bits(monkeypatch, case):
     assert looped.reactions[-1][key][0] != 0.0  # the prescribed dofs push the body
 
 
-@pytest.mark.parametrize("scheme", ["musl", "rk4"])
+@pytest.mark.parametrize("scheme", ["musl", pytest.param("rk4", marks=pytest.mark.slow(
+    reason="one more run type's rk4 loop; the default tier runs musl"))])
 def test_a_body_force_prescribed_velocities_and_a_traction_together(monkeypatch, scheme):
     case = dict(scheme=scheme, mass="lumped", degree=2, dim=2, material="linear",
                 effect="prescribed", aligned=True)
@@ -97,7 +129,10 @@ def test_a_body_force_prescribed_velocities_and_a_traction_together(monkeypatch,
     assert looped.counts["compiled_loop_steps"] == 23
 
 
-@pytest.mark.parametrize("scheme,degree", [("musl", 2), ("rk4", 1)])
+@pytest.mark.parametrize("scheme,degree", [
+    ("musl", 2), pytest.param("rk4", 1, marks=pytest.mark.slow(
+        reason="one more 3D run type's rk4 loop; the default tier runs musl (3D rk4: "
+               "test_compiled_loop)"))])
 def test_a_body_force_and_prescribed_velocities_in_3d(monkeypatch, scheme, degree):
     """The same templates in 3D (lumped mass): a body force and a
     prescribed component of a side beside its fixed others."""
@@ -177,7 +212,8 @@ def test_particles_leaving_under_a_body_force(monkeypatch):
     assert np.array_equal(looped.energies["external_work"], stepped.energies["external_work"])
 
 
-@pytest.mark.parametrize("scheme", ["musl", "rk4"])
+@pytest.mark.parametrize("scheme", ["musl", pytest.param("rk4", marks=pytest.mark.slow(
+    reason="one more run type's rk4 loop; the default tier runs musl"))])
 def test_a_restart_evaluates_its_own_tables(monkeypatch, tmp_path, scheme):
     """A run stopped at step 10 (a callback: the executor steps) and
     restarted from its checkpoint: the restart's loop evaluates the body

@@ -22,6 +22,7 @@ import itertools
 
 import numpy as np
 import pytest
+from tiers import tiered
 
 from skfem_mpm import (Body, BodyForce, Damping, Fixed, Gravity, LinearElastic, Method,
                        NeoHookean, Particles, Prescribed, Scene, SplineGrid, Traction, simulate)
@@ -228,7 +229,20 @@ HYBRID = [dict(scheme="musl", mass="hybrid", degree=degree, dim=dim, material=ma
           for degree, material, effect in cases]
 
 
-@pytest.mark.parametrize("case", HYBRID, ids=_id)
+DEFAULT_HYBRID = {  # the default tier's cases (tests/tiers.py)
+    "musl-hybrid-1-1-custom-prescribed",
+    "musl-hybrid-2-1-custom-compiled-damping",
+    "musl-hybrid-2-1-linear-body-force",
+    "musl-hybrid-2-1-linear-none",
+    "musl-hybrid-2-2-linear-gravity",
+    "musl-hybrid-3-1-linear-traction",
+    "musl-hybrid-3-2-neo-hookean-damping",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "executors with hybrid mass", HYBRID, _id, DEFAULT_HYBRID),
+                         ids=_id)
 def test_executors_agree_with_hybrid_mass(case):
     check_agreement(case)
 
@@ -253,7 +267,19 @@ RK4 = [dict(scheme="rk4", mass=mass, degree=degree, dim=dim, material=material, 
        for degree, mass, material, effect in cases]
 
 
-@pytest.mark.parametrize("case", RK4, ids=_id)
+DEFAULT_RK4 = {  # the default tier's cases (tests/tiers.py)
+    "rk4-consistent-1-1-custom-staged-none",
+    "rk4-consistent-2-1-neo-hookean-prescribed",
+    "rk4-consistent-2-2-custom-staged-traction",
+    "rk4-lumped-1-1-linear-gravity",
+    "rk4-lumped-1-2-custom-staged-body-force",
+    "rk4-lumped-3-1-custom-staged-damping",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "executors with rk4", RK4, _id, DEFAULT_RK4),
+                         ids=_id)
 def test_executors_agree_with_rk4(case):
     check_agreement(case)
 
@@ -321,7 +347,26 @@ RECONSTRUCTED = [dict(scheme=scheme, mass=mass, degree=degree, dim=1, material=m
         ("musl", "hybrid", 2, "custom", "damping", 3, True))]
 
 
-@pytest.mark.parametrize("case", RECONSTRUCTED, ids=_id)
+DEFAULT_RECONSTRUCTED = {  # the default tier's cases (tests/tiers.py)
+    "usl-lumped-2-2-custom-compiled-body-force-spline-2-False-1e-09",
+    "cd-consistent-2-1-linear-gravity-spline",
+    "cd-lumped-2-2-neo-hookean-traction-mls-2",
+    "cd-lumped-3-1-custom-body-force-tls-4-False",
+    "musl-consistent-2-2-neo-hookean-traction-tls-3-False",
+    "musl-hybrid-3-1-linear-none-spline",
+    "musl-hybrid-3-2-custom-gravity-tls-3-True",
+    "musl-lumped-2-1-linear-gravity-spline",
+    "rk4-consistent-2-1-neo-hookean-prescribed-spline",
+    "rk4-lumped-2-1-custom-staged-damping-mls-2",
+    "rk4-lumped-2-2-custom-staged-prescribed-tls-3-False",
+    "usl-consistent-3-1-neo-hookean-traction-mls-3",
+    "usl-lumped-3-2-custom-compiled-body-force-tls-2-True",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "executors with reconstruction", RECONSTRUCTED, _id, DEFAULT_RECONSTRUCTED),
+                         ids=_id)
 def test_executors_agree_with_reconstruction(case):
     check_agreement(case)
 

@@ -9,6 +9,7 @@ import scipy.sparse as sp
 
 from skfem_mpm import SplineGrid, transfer_matrices
 from skfem_mpm.kernels import mpm
+from skfem_mpm.kernels.serial import for_threads, serial
 from skfem_mpm.kernels.transfer import Transfers
 
 TOL = 1e-13
@@ -389,8 +390,14 @@ def test_stage_combination_is_the_weighted_sum_of_the_rates():
 
 
 # ------------------------------------------------- consistent mass, any dimension
-@pytest.mark.parametrize("p", (1, 2, 3))
-def test_consistent_stencil_of_any_dimension_is_n_transpose_m_n(p):
+# the serial copies (what runs below SERIAL_BELOW call; the same blocks, the
+# same bits): the parallel consistent_axes compiles for about 15 s of CPU and
+# only the slow tier's case compiles it
+@pytest.mark.parametrize("p, parallel", [
+    (1, False), (2, False), (3, False),
+    pytest.param(2, True, marks=pytest.mark.slow(reason="the parallel 3D consistent-mass "
+                                                 "assembly compiles for about 15 s"))])
+def test_consistent_stencil_of_any_dimension_is_n_transpose_m_n(p, parallel):
     """The 3D stencil of Kernels (consistent_axes, reduce_stencil, the 3D
     slot numbering) as a matrix is N^T diag(m) N of the transfer-matrix
     reference, and its stiffness weights sum m |grad N_k|^2; on a 2D grid
@@ -404,7 +411,7 @@ def test_consistent_stencil_of_any_dimension_is_n_transpose_m_n(p):
     x = lo + (hi - lo) * rng.random((n, 3))
     x = x[np.lexsort(x.T[::-1])]
     particles = SimpleNamespace(x=x, m=0.5 + rng.random(n))
-    kernels = mpm.Kernels(grid)
+    kernels = mpm.Kernels(grid, parallel)
     stencil, K = kernels.consistent_stencil(particles)
     ref = tensor_grid(grid.breakpoints, p)
     N, G = reference_matrices(ref, x)
@@ -414,16 +421,17 @@ def test_consistent_stencil_of_any_dimension_is_n_transpose_m_n(p):
     assert np.abs(K - stiff).max() <= TOL * np.abs(stiff).max()
 
     plane = SplineGrid((np.array([0.0, 0.5, 1.0, 1.2, 2.0]), np.linspace(0.0, 0.75, 4)), p)
-    k2 = mpm.Kernels(plane)
+    k2 = mpm.Kernels(plane, parallel)
     flat = SimpleNamespace(x=np.ascontiguousarray(x[:, :2]), m=particles.m)
     S2, K2 = [a.copy() for a in k2.consistent_stencil(flat)]
     touched = k2._stencil_touched
-    mpm.consistent_axes(flat.x, flat.m, *k2.args[0], *k2.args[1], *k2.args[0], p, k2.nbx,
-                        plane.basis_per_axis[1], k2._stencil_copies, k2._stiff_copies, touched)
+    consistent_axes = for_threads(mpm.consistent_axes, parallel)
+    consistent_axes(flat.x, flat.m, *k2.args[0], *k2.args[1], *k2.args[0], p, k2.nbx,
+                    plane.basis_per_axis[1], k2._stencil_copies, k2._stiff_copies, touched)
     S, K = np.zeros_like(S2), np.zeros_like(K2)
-    mpm.reduce_stencil(k2._stencil_copies, k2._stiff_copies, touched,
-                       int(touched[:, 0].min()), int(touched[:, 1].max()),
-                       *k2.stencil_geometry, S, K)
+    for_threads(mpm.reduce_stencil, parallel)(
+        k2._stencil_copies, k2._stiff_copies, touched, int(touched[:, 0].min()),
+        int(touched[:, 1].max()), *k2.stencil_geometry, S, K)
     assert np.abs(S - S2).max() <= 1e-15 * np.abs(S2).max() * 10
     assert np.abs(K - K2).max() <= 1e-15 * np.abs(K2).max() * 10
 
@@ -434,6 +442,9 @@ def test_three_factor_kronecker_on_one_layer_is_the_two_factor_one():
     S^-1 (M_z (x) M_y (x) M_x) S^-1 on a full box (dense check)."""
     from skfem_mpm.kernels.kronecker import apply_kronecker, apply_kronecker_axes
 
+    # the serial copies (the same blocks, the same bits), which the small
+    # runs call: the parallel apply_kronecker_axes compiles for about 10 s
+    apply_kronecker, apply_kronecker_axes = serial(apply_kronecker), serial(apply_kronecker_axes)
     rng = np.random.default_rng(7)
 
     def factor(n):  # a banded Cholesky factor (p = 2) with 1 / L_ii in column 0

@@ -103,6 +103,9 @@ def test_computed_once_then_read_from_the_cache(coarse_cache, monkeypatch):
         mr.model_reference(b)
 
 
+@pytest.mark.slow(
+    reason="a README study (S2 large with its fine FEM reference); the default tier checks "
+           "the reference on S3 large")
 def test_the_study_header_names_the_reference(coarse_cache, tmp_path, capsys):
     """S2 large with an MPM method: the header printed and written says MPM
     runs are compared with the fine FEM of the same model, the rows say so

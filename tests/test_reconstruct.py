@@ -154,6 +154,7 @@ def test_quadratic_spline_reconstruction_is_third_order_on_s1():
     assert_order(errors, 1.0 / np.array(cells), expected=2.7, tol=0.0)
 
 
+@pytest.mark.slow(reason="a convergence study (22 s of runs)")
 def test_quadratic_spline_reconstruction_beats_particle_quadrature_order_on_s3():
     # measured (8 ppc, 16-32-64 cells): grid-knot spline 2.71, 2.38; particles 2.01, 2.00
     cells = [16, 32, 64]

@@ -85,6 +85,7 @@ def test_rk4_with_spline_reconstruction_reaches_fourth_order_in_space():
     assert errors[1] < 2e-6 and orders(errors)[0] > 3.5, errors
 
 
+@pytest.mark.slow(reason="a convergence study (its loop run types compile for it alone)")
 def test_rk4_with_spline_reconstruction_reaches_fourth_order_on_the_traction_bar(monkeypatch):
     """S3 small (free end at a knot, dynamic end traction), cubic + spline,
     consistent mass, 2 particles per cell, default cfl and frequency guard:

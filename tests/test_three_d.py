@@ -108,6 +108,9 @@ def test_vibrating_cube_runs_every_scheme_on_the_reference_executor(mass, scheme
     assert bench.errors(result)["error_rms"] < bound
 
 
+@pytest.mark.slow(
+    reason="a convergence study (3D, it alone compiles the serial 3D consistent-mass kernels "
+           "in the default tier)")
 def test_vibrating_cube_converges_at_second_order():
     """T1 small, quadratic, consistent mass, USL, 2-4-8 cells per axis
     (64-4,096 particles), on the compiled executor (stencil CG with the
