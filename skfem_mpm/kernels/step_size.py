@@ -20,7 +20,9 @@ from numba import njit
 __all__ = ["critical_step", "adaptive_step", "finished_after_step", "time_after_step",
            "reached_end", "guard_limit"]
 
-_JIT = dict(cache=True, inline="always")
+# error_model "numpy": a zero wave speed (an infinite density) gives an
+# infinite dt_crit, as the NumPy rule did, for the callers' checks to name
+_JIT = dict(cache=True, inline="always", error_model="numpy")
 
 
 @njit(**_JIT)
