@@ -29,7 +29,7 @@ from llvmlite import ir
 from numba import njit, prange, types
 from numba.extending import intrinsic
 
-__all__ = ["material_update", "max_wave_speed"]
+__all__ = ["determinant", "material_update", "max_wave_speed"]
 
 
 @intrinsic
@@ -65,7 +65,9 @@ def _call_law(typingctx, address, params, L, F, dim, dt, stress, state, stress_o
 
 
 @njit(cache=True, inline="always")
-def _det(A, dim):
+def determinant(A, dim):
+    """det A of a dim x dim matrix, dim = 1, 2, 3 (3 x 3 by the rule of
+    Sarrus, as :func:`skfem_mpm.materials.base.det`)."""
     if dim == 1:
         return A[0, 0]
     if dim == 2:
@@ -103,12 +105,12 @@ def material_update(law, params, index, every, L, dt, finite, stress, F, V, V0, 
                             s += A[a, c] * F[i, c, b]
                         F_out[i, a, b] = s
                         G[a, b] = s
-                J = _det(G, dim)
+                J = determinant(G, dim)
                 V_out[i] = V0[i] * J
                 _call_law(law, params, L[i], G, dim, dt, stress[i], state[k], stress_out[i],
                           state_out[k])
             else:
-                J = _det(A, dim)
+                J = determinant(A, dim)
                 V_out[i] = V[i] * J
                 _call_law(law, params, L[i], A, dim, dt, stress[i], state[k], stress_out[i],
                           state_out[k])

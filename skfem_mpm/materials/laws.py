@@ -12,6 +12,7 @@ lines: it views the pointers as arrays and calls its law.
 import numpy as np
 from numba import carray, cfunc, njit
 
+from ..kernels.constitutive import determinant
 from .compiled import POINT_SIGNATURE, WAVE_SPEED_SIGNATURE
 
 __all__ = ["linear_elastic_law", "neo_hookean_law", "linear_elastic", "neo_hookean",
@@ -48,20 +49,6 @@ def linear_elastic(params, n_params, L, F, dim, dt, stress, state, n_state, stre
                        carray(F, (dim, dim)), dt, carray(stress, (dim, dim)),
                        carray(state, (n_state,)), carray(stress_out, (dim, dim)),
                        carray(state_out, (n_state,)))
-
-
-@njit(**_LAW)
-def _determinant(F):
-    """det F of a 1x1, 2x2 or 3x3 matrix (3x3 by the rule of Sarrus, as
-    :func:`skfem_mpm.materials.base.det`)."""
-    dim = F.shape[0]
-    if dim == 1:
-        return F[0, 0]
-    if dim == 2:
-        return F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]
-    return (F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
-            - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
-            + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]))
 
 
 @njit(**_LAW)
@@ -123,7 +110,7 @@ def neo_hookean_law(params, L, F, dt, stress, state, stress_out, state_out):
     deformation gradient after the step; params (lambda, mu)."""
     dim = F.shape[0]
     lam, mu = params[0], params[1]
-    J = _determinant(F)
+    J = determinant(F, F.shape[0])
     pressure = lam * np.log(J)
     for i in range(dim):
         for j in range(dim):
@@ -155,7 +142,7 @@ def neo_hookean_wave_speed_law(params, F, m, V0, state):
     largest over the particles (the material's only copy of the formula)."""
     dim = F.shape[0]
     lam, mu = params[0], params[1]
-    J = _determinant(F)
+    J = determinant(F, F.shape[0])
     stretch2 = _right_cauchy_green_eigenvalues(F, J)
     volumetric = lam * (1.0 - np.log(J))
     top = -np.inf

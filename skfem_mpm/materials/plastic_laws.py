@@ -16,7 +16,7 @@ import math
 import numpy as np
 from numba import carray, cfunc, njit
 
-from ..kernels.constitutive import _det
+from ..kernels.constitutive import determinant
 from .compiled import POINT_SIGNATURE
 
 __all__ = ["von_mises_law", "drucker_prager_law", "mohr_coulomb_law", "von_mises",
@@ -271,7 +271,7 @@ def mohr_coulomb_law(params, L, F, dt, stress, state, stress_out, state_out):
     3D: Jacobi eigen-decomposition (eigh3). Disconnected grains
     (params[8] = J_c > 0 and det F > J_c, F the deformation gradient after
     the step): zero stress and sigma_zz, the plastic strain kept."""
-    if params[8] > 0.0 and _det(F, F.shape[0]) > params[8]:
+    if params[8] > 0.0 and determinant(F, F.shape[0]) > params[8]:
         dim = L.shape[0]
         for i in range(dim):
             for j in range(dim):
