@@ -279,13 +279,16 @@ class KroneckerData:
             self.gauss = self.gauss * row_sums[2][c]
 
     def args(self, nc, nt):
-        """The arguments of :func:`apply_kronecker` before r and z (3D: of
-        :func:`apply_kronecker_axes`, with the z factor after Ly)."""
+        """The arguments of :func:`apply_kronecker` before r and z, then an
+        (empty) band factor and False: ``ell_pcg``'s Kronecker arguments
+        (see :mod:`skfem_mpm.kernels.band_factor`); 3D: those of
+        :func:`apply_kronecker_axes`, with the z factor after Ly."""
         box = np.empty(self.shape + (nc,))
         if len(self.shape) == 3:
             return (self.Lx, self.Ly, self.Lz, self.local, self.inv_scale, box,
                     max(1, min(nt, self.shape[1] * self.shape[2])))
-        return self.Lx, self.Ly, self.local, self.inv_scale, box, max(1, min(nt, self.shape[1]))
+        return (self.Lx, self.Ly, self.local, self.inv_scale, box, max(1, min(nt, self.shape[1])),
+                np.empty((0, 1)), False)
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)

@@ -21,6 +21,7 @@ import numpy as np
 from numba import get_num_threads, njit, prange
 from numba.extending import overload
 
+from .band_factor import apply_band_factor
 from .fringe import apply_corrected
 from .kronecker import apply_kronecker, apply_kronecker_axes
 from .scatter import holders
@@ -1067,8 +1068,10 @@ def _dots(r, z, partial):
 def apply_kron(kron, r, z):
     """z = P^-1 r with the Kronecker arguments ``kron``: those of
     :func:`~skfem_mpm.kernels.kronecker.apply_kronecker` (two factors, 1D
-    and 2D) or, a tuple of seven, of ``apply_kronecker_axes`` (three
-    factors, 3D). Compiled code only (chosen by the tuple's type)."""
+    and 2D) followed by a band factor and whether to apply it instead
+    (:func:`~skfem_mpm.kernels.band_factor.apply_band_factor`), or, a
+    tuple of seven, those of ``apply_kronecker_axes`` (three factors, 3D).
+    Compiled code only (chosen by the tuple's type)."""
     raise NotImplementedError("apply_kron is called from compiled code only")
 
 
@@ -1076,7 +1079,13 @@ def apply_kron(kron, r, z):
 def _apply_kron_typed(kron, r, z):
     if len(kron) == 7:
         return lambda kron, r, z: apply_kronecker_axes(*kron, r, z)
-    return lambda kron, r, z: apply_kronecker(*kron, r, z)
+
+    def apply(kron, r, z):
+        if kron[7]:
+            apply_band_factor(kron[6], r, z)
+        else:
+            apply_kronecker(kron[0], kron[1], kron[2], kron[3], kron[4], kron[5], r, z)
+    return apply
 
 
 def narrow_kron(kron, now, n):
@@ -1091,18 +1100,20 @@ def _narrow_kron_typed(kron, now, n):
         return lambda kron, now, n: (kron[0], kron[1], kron[2], kron[3], kron[4],
                                      _narrow(now[5], n), kron[6])
     return lambda kron, now, n: (kron[0], kron[1], kron[2], kron[3], _narrow(now[4], n),
-                                 kron[5])
+                                 kron[5], kron[6], kron[7])
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
 def _precondition(A, cols, r, z, t, inv_diag, kron, fringe):
     """z = P^-1 r: the Kronecker preconditioner with the fringe correction
-    when ``fringe`` is given, the Kronecker one when only ``kron`` is, else
+    when ``fringe`` is given, the Kronecker one (or the band factor its
+    arguments switch on) when only ``kron`` is, else
     the inverse lumped mass (``t`` work space). ``kron`` and ``fringe`` are
     None or argument tuples: numba prunes the branches of None arguments
     before typing, so a run compiles only the preconditioner it uses."""
     if fringe is not None:
-        apply_corrected(A, cols, *kron, *fringe, r, z, t)
+        apply_corrected(A, cols, kron[0], kron[1], kron[2], kron[3], kron[4], kron[5],
+                        *fringe, r, z, t)
     elif kron is not None:
         apply_kron(kron, r, z)
     else:
@@ -1166,7 +1177,8 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
     slow columns cost only their share. The preconditioner: the inverse
     lumped mass ``inv_diag`` when ``kron`` is None, else the Kronecker one of
     :mod:`skfem_mpm.kernels.kronecker` (``kron``: the arguments of
-    ``apply_kronecker`` before r, z), with the fringe correction of
+    ``apply_kronecker`` before r, z, then a band factor and whether it
+    replaces the Kronecker step, see ``apply_kron``), with the fringe correction of
     :mod:`skfem_mpm.kernels.fringe` unless ``fringe`` is None (else
     ``FringeFactor.args``). Each combination compiles separately, and only
     when used (see ``_precondition``).

@@ -60,9 +60,9 @@ import time
 import numba
 import numpy as np
 
-from ..kernels import (bbar, by_symbol, cholesky, constitutive, fast_dof, gauss_rule,
-                       grid_modifiers, kronecker, merged_mass, mpm, scatter, spline_1d, staging,
-                       step_size, tiny_mass, tls, traction, weights)
+from ..kernels import (band_factor, bbar, by_symbol, cholesky, constitutive, fast_dof,
+                       gauss_rule, grid_modifiers, kronecker, merged_mass, mpm, scatter,
+                       spline_1d, staging, step_size, tiny_mass, tls, traction, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
@@ -134,6 +134,8 @@ _GRID_KERNELS = {
     "EXPAND_PROBLEM": mpm.expand_problem,
     "ELL_PCG": mpm.ell_pcg,
     "FIT_KRONECKER": kronecker.fit_kronecker,
+    "ELL_BAND_WIDTH": band_factor.ell_band_width,
+    "FIT_BAND_FACTOR": band_factor.fit_band_factor,
     # the tiny-mass merge of consistent mass (compiled_loop_mass)
     "NEIGHBOUR_MAXIMA": tiny_mass.neighbour_maxima,
     "MERGING_ROWS": tiny_mass.merging_rows,
@@ -301,8 +303,11 @@ def _prelude(dim, parallel, window, variant):
     kronecker = ("return (cm.Lx[g], cm.Ly[g], cm.Lz[g], cm.box_index[g, :n], "
                  "cm.inv_scale[g, :n], cm.box[:nz * ny * nx * nc].reshape((nz, ny, nx, nc)), "
                  "max(1, min(nt, ny * nx)))" if dim == 3 else
-                 "return (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n], "
-                 "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)))")
+                 "w = cm.band_width[g]\n"
+                 "    m = n if w >= 0 else 0  # the band factor's rows (none: Kronecker)\n"
+                 "    band = cm.band[g, :m * (w + 1)].reshape((m, max(w, 0) + 1))\n"
+                 "    return (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n], "
+                 "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)), band, w >= 0)")
     body = f'''
 DIM = {dim}
 
@@ -345,7 +350,7 @@ def loop_module(dim, parallel, window):
     # the operations' callees are not tracked by numba's cache: their
     # sources go into the file's name (kernels.generated.load hashes it)
     depends = "".join(inspect.getsource(m) for m in (
-        schemes, mpm, scatter, kronecker, tiny_mass, merged_mass, fast_dof, staging, gauss_rule,
+        schemes, mpm, scatter, kronecker, band_factor, tiny_mass, merged_mass, fast_dof, staging, gauss_rule,
         spline_1d, tls, cholesky, weights, traction, constitutive, grid_modifiers, bbar,
         by_symbol, step_size))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
@@ -674,6 +679,7 @@ class StepLoop:
         for g, comps in enumerate(groups.values()):
             group_comps[g, :len(comps)] = comps
         nc = 2 * dim  # the most columns of a CG run: two problems
+        band_max = int(cls.BAND_MAX) if dim == 2 else 0
         merged_size = int(cls.MERGE_BUFFER * nd * ns)  # as StencilSystem's
         zeros, empty = np.zeros, np.empty
         fields = dict(
@@ -710,6 +716,10 @@ class StepLoop:
             fringe_from=int(cls.FRINGE_FROM), fringe_min_rows=int(cls.FRINGE_MIN_ROWS),
             fringe_layers=int(cls.FRINGE_LAYERS) if dim == 2 else 0,
             fringe_on=zeros(G, dtype=np.bool_), iterations=0,
+            banded_on=zeros(G, dtype=np.bool_), band_max=band_max,
+            band_from=int(cls.BAND_FROM), band_width=np.full(G, -1, dtype=np.int64),
+            # (np.zeros: only the rows of a group whose factor is on are written)
+            band=zeros((G, nd * (band_max + 1) if band_max > 0 else 1)),
             warm=zeros((2, nd, dim)), has_warm=zeros(2, dtype=np.bool_),
             warm_good=zeros((2, nd, dim)), has_good=zeros(2, dtype=np.bool_),
             hybrid=hybrid,
@@ -769,7 +779,9 @@ class StepLoop:
             prev = state.warm.get(kind)
             if prev is not None and prev.shape == (nd, dim):
                 warm[i], has[i] = prev, True
-        self.module.load_warm(cm, warm, has)
+        banded = np.array([f"banded{g}_on" in state.warm for g in range(self._groups)],
+                          dtype=np.bool_)
+        self.module.load_warm(cm, warm, has, banded)
 
     def _mass_results(self, state, handover):
         """The warm starts of the last step taken into the state (new
@@ -777,10 +789,12 @@ class StepLoop:
         switch, and the reactions of consistent mass (M a - f on the
         constrained rows)."""
         run = self.run_state
-        warm, has, fringe_on, stencil, fast = self.module.mass_records(self.cm)
+        warm, has, fringe_on, stencil, fast, banded = self.module.mass_records(self.cm)
         for i, kind in enumerate(self.WARM_KINDS):
             if has[i]:
                 state.warm[kind] = warm[i].copy()
+        for g in np.flatnonzero(banded):
+            state.warm[f"banded{g}_on"] = np.array([1])
         if handover:
             for g in np.flatnonzero(fringe_on):
                 state.warm[f"fringe{g}_on"] = np.array([1])
@@ -800,7 +814,8 @@ class StepLoop:
         """Compile (or load from numba's cache) everything ``run`` calls."""
         if self.cm is not None:
             nd, dim = self.executor.kernels.ndofs, self._arrays[0].shape[1]
-            self.module.load_warm(self.cm, np.zeros((2, nd, dim)), np.zeros(2, dtype=np.bool_))
+            self.module.load_warm(self.cm, np.zeros((2, nd, dim)), np.zeros(2, dtype=np.bool_),
+                                  np.zeros(self._groups, dtype=np.bool_))
             self.module.mass_records(self.cm)
         for table in self.tables:
             table.compile()

@@ -30,7 +30,10 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
                     of T, :func:`skfem_mpm.kernels.tiny_mass.merging_rows`,
                     and the system T^T M' T on its kept free dofs,
                     :mod:`skfem_mpm.kernels.merged_mass`), the
-                    preconditioner fitted to that system's stencil part
+                    preconditioner fitted to that system's stencil part;
+                    a group whose band factor is on (StencilSystem.BAND_FROM)
+                    and whose system is narrow enough gets the band
+                    factor of its rows instead (kernels.band_factor)
     mass_solve      M x = rhs on the free dofs (constrained dofs their
                     prescribed values, or 0; massless dofs 0: the fixed
                     columns' known values moved to the right-hand side
@@ -78,6 +81,11 @@ MASS_FIELDS = (
     # (a, b, c) per row, scaling; fit_kronecker's work space
     "Lx", "Ly", "Lz", "boxed_rows", "n_boxed", "box_shape", "box_index", "box_coords",
     "inv_scale", "fit_bands", "fit_sums",
+    # the band factor per group (kernels.band_factor): switched on (for the
+    # rest of the run), the largest band it takes (0: never), the
+    # iterations that switch it on, this step's band (-1: the Kronecker
+    # preconditioner), the factor (flat, rows x (band + 1))
+    "banded_on", "band_max", "band_from", "band_width", "band",
     # conjugate gradients: right-hand sides, solutions, work space (flat)
     "b", "x", "work", "box", "rtol", "max_iterations", "fringe_from", "fringe_min_rows",
     "fringe_layers", "fringe_on", "iterations",
@@ -119,8 +127,10 @@ def new_mass_system(*fields):
 
 
 @njit(cache=True)
-def load_warm(cm, warm, has_warm):
-    """Set the warm starts (the executor's, when it took steps between calls)."""
+def load_warm(cm, warm, has_warm, banded_on):
+    """Set the warm starts and the band factor's switches (the executor's,
+    when it took steps between calls)."""
+    copy_into(cm.banded_on, banded_on)
     copy_into(cm.warm, warm)
     copy_into(cm.has_warm, has_warm)
     copy_into(cm.warm_good, warm)
@@ -144,8 +154,9 @@ def commit_mass(cm):
 def mass_records(cm):
     """The warm starts of the last step taken, the groups that turned the
     fringe correction on, the stencil and lumping fractions of the last
-    step's reactions."""
-    return cm.warm_good, cm.has_good, cm.fringe_on, cm.reaction_stencil, cm.reaction_fast
+    step's reactions, the groups whose band factor is on."""
+    return (cm.warm_good, cm.has_good, cm.fringe_on, cm.reaction_stencil, cm.reaction_fast,
+            cm.banded_on)
 
 
 @njit(cache=True)
@@ -287,8 +298,15 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
         else:
             for r in range(n):
                 cm.inv_diag[g, r] = 1.0 / mass[rows[r]]
+        cm.band_width[g] = -1
         if n == 0:
             continue
+        if cm.banded_on[g] and not merged:
+            w = ELL_BAND_WIDTH(cm.cols[g, :n])
+            if w <= cm.band_max and FIT_BAND_FACTOR(cm.A[g, :n], cm.cols[g, :n],
+                                                    cm.band[g, :n * (w + 1)].reshape((n, w + 1))):
+                cm.band_width[g] = w
+                continue
         _kronecker_box(cm, g, rows, nbx, nby)
         nz = cm.box_shape[g, 0]
         ny = cm.box_shape[g, 1]
@@ -407,7 +425,10 @@ def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x):
     if its < 0:
         return False
     cm.iterations += its
-    if cm.fringe_layers > 0 and its >= cm.fringe_from and n >= cm.fringe_min_rows:
+    if cm.band_width[g] < 0 and not cm.merged[g] and cm.band_max > 0 \
+            and its >= cm.band_from and ELL_BAND_WIDTH(cols) <= cm.band_max:
+        cm.banded_on[g] = True
+    elif cm.fringe_layers > 0 and its >= cm.fringe_from and n >= cm.fringe_min_rows:
         cm.fringe_on[g] = True
     return True
 

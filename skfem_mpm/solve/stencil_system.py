@@ -11,6 +11,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from ..errors import InvalidState
+from ..kernels.band_factor import ell_band_width, fit_band_factor
 from ..kernels.fringe import FringeFactor, FringePattern
 from ..kernels.kronecker import KroneckerData
 from ..kernels.merged_mass import EXTRA, merged_expand, merged_problem, merged_system
@@ -43,7 +44,12 @@ class StencilSystem:
     ``"kronecker"``, default), with the fringe correction of :mod:`skfem_mpm.kernels.fringe`
     on ``FRINGE_LAYERS`` layers of the free-dof set's edge (2D) once the
     Kronecker step alone has needed ``FRINGE_FROM`` iterations (0 layers:
-    never), or the inverse lumped mass (``"lumped"``).
+    never), or the inverse lumped mass (``"lumped"``). On a 2D grid a
+    group whose Kronecker-preconditioned CG needed ``BAND_FROM``
+    iterations and whose system is banded within ``BAND_MAX`` switches, for
+    the rest of the run, to the banded Cholesky factor of its system
+    (:mod:`skfem_mpm.kernels.band_factor`), made once per step for all
+    the step's solves (0: never).
 
     Tiny masses (``small_mass`` > 0, the relative threshold of
     ``Method(small_mass=...)``): each constraint pattern with small dofs
@@ -197,7 +203,9 @@ class StencilSystem:
             return built
         inv_diag = 1.0 / self.lumped[rows]
         kron = fringe = None
-        if self.preconditioner == "kronecker" and rows.size:
+        if self.preconditioner == "kronecker" and rows.size and f"banded{g}_on" in self.warm:
+            kron = self._band(g, A, cols)
+        if self.preconditioner == "kronecker" and rows.size and kron is None:
             kron = KroneckerData.of_system(A, rows, self.geometry,
                                            previous=self.memo.get(f"kronecker{g}"))
             self.memo[f"kronecker{g}"] = kron
@@ -231,6 +239,38 @@ class StencilSystem:
     # (solve/compiled_loop.py) runs only without it.
     FRINGE_FROM = 12
     FRINGE_MIN_ROWS = 600
+
+    # The band factor (kernels.band_factor) costs about n w^2 / 2
+    # multiply-adds a step, w the band (2 n_x + 2 for quadratic splines on
+    # a box n_x dofs wide), and makes each solve one CG iteration. On D2
+    # small at 16 x 16 cells (2 x 2 particles per cell, MUSL: two free-dof
+    # groups of 288 rows, w = 34) its factor costs about as much as 10
+    # Kronecker-preconditioned iterations, where those needed 8-10 per solve
+    # (the fast-row lumping breaks their tensor structure); with 3 x 3
+    # particles per cell they need 1.5 and the factor does not pay. A group
+    # switches after a Kronecker CG run of at least BAND_FROM iterations,
+    # on 2D grids only (in 1D the Kronecker factors are A's own band
+    # factor); BAND_MAX bounds w (the factor grows as w^2, the iterations do
+    # not). The switch is warm data (f"banded{g}_on"), so restarts and the
+    # compiled loop follow it.
+    BAND_FROM = 6
+    BAND_MAX = 40
+
+    def _band_width(self):
+        """BAND_MAX on a 2D grid, else 0 (never the band factor)."""
+        return self.BAND_MAX if self.geometry[-1] == 2 else 0
+
+    def _band(self, g, A, cols):
+        """Group g's band factor as ell_pcg's Kronecker arguments take it
+        (:class:`_BandFactor`), or None when its system is wider than the
+        band limit or not positive definite to round-off."""
+        w = int(self.k.kernel(ell_band_width)(cols))
+        if w > self._band_width():
+            return None
+        L = self.k.scratch(f"band{g}", (A.shape[0], w + 1))
+        if not fit_band_factor(A, cols, L):
+            return None
+        return _BandFactor(L)
 
     def _fringe(self, g, rows, A, cols):
         """The fringe correction's factors for group g, or None (the
@@ -326,7 +366,11 @@ class StencilSystem:
                     raise InvalidState(f"consistent-mass CG stopped above its tolerance "
                                        f"{self.rtol:g} after {-its} iterations")
                 self.iterations += its
-                if kron is not None and fringe is None and self.fringe_layers > 0 \
+                if isinstance(kron, KroneckerData) and merge is None and fringe is None \
+                        and its >= self.BAND_FROM and self._band_width() > 0 \
+                        and self.k.kernel(ell_band_width)(cols) <= self._band_width():
+                    self.warm[f"banded{g}_on"] = np.array([1])
+                elif kron is not None and fringe is None and self.fringe_layers > 0 \
                         and its >= self.FRINGE_FROM and rows.size >= self.FRINGE_MIN_ROWS:
                     self.warm[f"fringe{g}_on"] = np.array([1])
                 if fringe is not None:
@@ -354,6 +398,23 @@ class StencilSystem:
         return stencil_residual(self.stencil, self.geometry, self.constraints.mask,
                                 self.inactive, self.fast, x, rhs, self.reaction_rows,
                                 parallel=self.k.parallel)
+
+
+class _BandFactor:
+    """A group's band factor L (kernels.band_factor) in the place of its
+    Kronecker data: ``args`` gives ell_pcg's Kronecker arguments with the
+    band switched on (the Kronecker fields empty)."""
+
+    _EMPTY = np.empty((0, 1))
+    _NONE = np.empty(0)
+    _NO_INDEX = np.empty(0, dtype=np.int64)
+
+    def __init__(self, L):
+        self.L = L
+
+    def args(self, nc, nt):
+        return (self._EMPTY, self._EMPTY, self._NO_INDEX, self._NONE, np.empty((1, 1, nc)), 1,
+                self.L, True)
 
 
 class _Merge:
@@ -388,6 +449,7 @@ def stencil_residual(stencil, geometry, mask, inactive, fast, x, rhs, rows=None,
 
 
 _DEFAULT_FRINGE_LAYERS = StencilSystem.FRINGE_LAYERS
+_DEFAULT_BAND_MAX = StencilSystem.BAND_MAX
 
 
 @contextmanager
@@ -399,9 +461,11 @@ def preconditioned_with(preconditioner):
         the default: the Kronecker product of the axes' mass matrices
         (:mod:`skfem_mpm.kernels.kronecker`), with the fringe correction
         (:mod:`skfem_mpm.kernels.fringe`) once the Kronecker step alone has
-        needed ``StencilSystem.FRINGE_FROM`` iterations;
+        needed ``StencilSystem.FRINGE_FROM`` iterations, or on narrow 2D
+        systems the band factor (:mod:`skfem_mpm.kernels.band_factor`)
+        once it has needed ``StencilSystem.BAND_FROM``;
     ``"kronecker"``
-        the Kronecker preconditioner alone (no fringe layers);
+        the Kronecker preconditioner alone (no fringe layers, no band factor);
     ``"lumped"``
         the inverse lumped mass (a Jacobi step with the row sums).
 
@@ -417,11 +481,13 @@ def preconditioned_with(preconditioner):
     """
     check_choice("preconditioner", preconditioner, PRECONDITIONERS)
     cls = StencilSystem
-    saved = (cls.preconditioner, cls.FRINGE_LAYERS, cls.iteration_log)
+    saved = (cls.preconditioner, cls.FRINGE_LAYERS, cls.BAND_MAX, cls.iteration_log)
     cls.preconditioner = "lumped" if preconditioner == "lumped" else "kronecker"
-    cls.FRINGE_LAYERS = _DEFAULT_FRINGE_LAYERS if preconditioner == "kronecker+fringe" else 0
+    default = preconditioner == "kronecker+fringe"
+    cls.FRINGE_LAYERS = _DEFAULT_FRINGE_LAYERS if default else 0
+    cls.BAND_MAX = _DEFAULT_BAND_MAX if default else 0
     log = cls.iteration_log = []
     try:
         yield log
     finally:
-        cls.preconditioner, cls.FRINGE_LAYERS, cls.iteration_log = saved
+        cls.preconditioner, cls.FRINGE_LAYERS, cls.BAND_MAX, cls.iteration_log = saved

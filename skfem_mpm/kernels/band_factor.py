@@ -1,0 +1,101 @@
+"""The banded Cholesky factor of a narrow free-dof system, as the exact
+preconditioner of its conjugate gradients.
+
+The compact free-dof matrix A of consistent mass (ELL rows of
+:func:`skfem_mpm.kernels.mpm.compact_system`, the free dofs numbered in
+grid order, axis 0 fastest) is banded: row r couples only to rows
+r - w .. r + w, w = max_r (r - min_s cols[r, s]) (about p (n_x + 1) in 2D,
+n_x the free dofs' box width). Its Cholesky factor L stays in that band
+(Golub & Van Loan, *Matrix Computations*, 4th ed., Thm. 4.3.1), costs
+about n w^2 / 2 multiply-adds, and each application of (L L^T)^-1 two
+banded triangular solves of n w each. With P = L L^T = A conjugate
+gradients stop after one iteration (its residual is round-off), so a
+factor made once per step serves every solve of the step (MUSL solves
+twice).
+
+Where the Kronecker preconditioner (:mod:`skfem_mpm.kernels.kronecker`)
+is already close to A (particles on a tensor layout, few lumped rows) it
+is cheaper than the factor; where lumped rows break its tensor structure
+and CG needs many iterations, the factor is cheaper on narrow boxes. The
+consistent-mass systems switch to it from the iteration counts (see
+:class:`skfem_mpm.solve.stencil_system.StencilSystem`), a deterministic
+rule.
+"""
+import numpy as np
+from numba import njit
+
+from .weights import FAST
+
+__all__ = ["ell_band_width", "fit_band_factor", "apply_band_factor"]
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def ell_band_width(cols):
+    """w = max_r (r - cols[r, s]) of the ELL columns ``cols`` (unused slots
+    point at their own row)."""
+    w = 0
+    for r in range(cols.shape[0]):
+        for s in range(cols.shape[1]):
+            w = max(w, r - cols[r, s])
+    return w
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def fit_band_factor(A, cols, C):
+    """C (n, w + 1): the Cholesky factor L of the ELL matrix A (n rows,
+    columns ``cols``, symmetric positive definite, band w) by columns,
+    C[k, d] = L_(k + d, k) for d >= 1 and C[k, 0] = 1 / L_kk. Column k
+    scales by the pivot and updates the columns after it (right-looking,
+    Golub & Van Loan, Alg. 4.3.5 by columns; the inner loops run along
+    contiguous columns). Returns False when a pivot is not positive (A not
+    positive definite to round-off)."""
+    n = A.shape[0]
+    w = C.shape[1] - 1
+    C[:, :] = 0.0
+    for r in range(n):  # the lower band of A by columns (unused slots add 0)
+        for s in range(A.shape[1]):
+            c = cols[r, s]
+            if c <= r:
+                C[c, r - c] += A[r, s]
+    for k in range(n):
+        pivot = C[k, 0]
+        if not pivot > 0.0:
+            return False
+        inv = 1.0 / np.sqrt(pivot)
+        m = min(w, n - 1 - k)
+        col = C[k]
+        for d in range(1, m + 1):
+            col[d] *= inv
+        col[0] = inv
+        for d1 in range(1, m + 1):
+            l1 = col[d1]
+            later = C[k + d1]
+            for d2 in range(d1, m + 1):
+                later[d2 - d1] -= l1 * col[d2]
+    return True
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def apply_band_factor(C, r, z):
+    """z = (L L^T)^-1 r (all columns of r at once), L by columns from
+    :func:`fit_band_factor`: L y = r forward by columns, then L^T z = y
+    backward by rows of L^T (dot products along the columns of L)."""
+    n, nc = r.shape
+    w = C.shape[1] - 1
+    for i in range(n):
+        for c in range(nc):
+            z[i, c] = r[i, c]
+    for k in range(n):
+        m = min(w, n - 1 - k)
+        for c in range(nc):
+            y = z[k, c] * C[k, 0]
+            z[k, c] = y
+            for d in range(1, m + 1):
+                z[k + d, c] -= C[k, d] * y
+    for k in range(n - 1, -1, -1):
+        m = min(w, n - 1 - k)
+        for c in range(nc):
+            s = z[k, c]
+            for d in range(1, m + 1):
+                s -= C[k, d] * z[k + d, c]
+            z[k, c] = s * C[k, 0]
