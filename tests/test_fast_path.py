@@ -457,6 +457,7 @@ def test_fringe_correction_turns_on_where_kronecker_alone_iterates_long(min_rows
             system = StencilSystem(k, stencil.copy(), mass, constraints, _edge_lumping(mass), warm)
             system.FRINGE_FROM = threshold
             system.FRINGE_MIN_ROWS = min_rows
+            system.BAND_MAX = 0  # (the band factor would take this narrow block first)
             system.solve(rhs, zeros, "acceleration")  # cold both times (no warm start kept)
             counts.append(system.iterations)
         assert ("fringe0_on" in warm) == switched
@@ -610,6 +611,9 @@ def test_auto_mass_solver_never_times_a_direct_solve(monkeypatch):
     monkeypatch.setattr(compiled, "GridSystem", no_lu)
     log = []
     monkeypatch.setattr(StencilSystem, "iteration_log", log)
+    # the Kronecker preconditioner alone, whose iterations the old timing
+    # rule saw (the band factor would take this narrow block after them)
+    monkeypatch.setattr(StencilSystem, "BAND_MAX", 0)
     grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), 24, 2)
     parts = Particles.seed(grid, 2, 1.0, region=((0.25, 0.75), (0.25, 0.75)),
                            velocity=lambda X: X - 0.5)

@@ -279,16 +279,24 @@ class KroneckerData:
             self.gauss = self.gauss * row_sums[2][c]
 
     def args(self, nc, nt):
-        """The arguments of :func:`apply_kronecker` before r and z, then an
-        (empty) band factor and False: ``ell_pcg``'s Kronecker arguments
-        (see :mod:`skfem_mpm.kernels.band_factor`); 3D: those of
-        :func:`apply_kronecker_axes`, with the z factor after Ly."""
+        """The arguments of :func:`apply_kronecker` before r and z (3D: of
+        :func:`apply_kronecker_axes`, with the z factor after Ly)."""
         box = np.empty(self.shape + (nc,))
         if len(self.shape) == 3:
             return (self.Lx, self.Ly, self.Lz, self.local, self.inv_scale, box,
                     max(1, min(nt, self.shape[1] * self.shape[2])))
-        return (self.Lx, self.Ly, self.local, self.inv_scale, box, max(1, min(nt, self.shape[1])),
-                np.empty((0, 1)), False)
+        return self.Lx, self.Ly, self.local, self.inv_scale, box, max(1, min(nt, self.shape[1]))
+
+    def pcg_args(self, nc, nt):
+        """``ell_pcg``'s Kronecker arguments: :meth:`args`, in 1D and 2D
+        followed by an empty band factor and False (the band factor of
+        :mod:`skfem_mpm.kernels.band_factor` switched off)."""
+        args = self.args(nc, nt)
+        return args if len(args) == 7 else args + (NO_BAND, False)
+
+
+NO_BAND = np.empty((0, 1))
+"""The band factor of ``ell_pcg``'s 2D Kronecker arguments when it is off."""
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)

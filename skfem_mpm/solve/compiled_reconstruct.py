@@ -152,7 +152,7 @@ class KroneckerCG:
         x = np.zeros((nd, nc)) if x is None else x.copy()
         work = np.empty((6, nd, nc))
         nt = get_num_threads()
-        its = ell_pcg(self.A, fit.ell_cols, self.inv_diag, self.kron.args(nc, nt), None,
+        its = ell_pcg(self.A, fit.ell_cols, self.inv_diag, self.kron.pcg_args(nc, nt), None,
                       np.ascontiguousarray(rhs), x, np.arange(nc), self.rtol, 10 * nd + 100,
                       nt, work)
         if its < 0:

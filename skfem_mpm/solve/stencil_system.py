@@ -346,7 +346,7 @@ class StencilSystem:
             if rows.size:
                 before = self.iterations
                 nt = self.k.nthreads  # the run's fixed blocks (solve/threads.py)
-                pre = kron.args(b.shape[1], nt) if kron is not None else None
+                pre = kron.pcg_args(b.shape[1], nt) if kron is not None else None
                 extra = fringe.args(b.shape[1]) if fringe is not None else None
                 work = self.k.scratch("cg", (6,) + b.shape)
                 limit = self.max_iterations or 10 * rows.size + 100
@@ -402,7 +402,7 @@ class StencilSystem:
 
 class _BandFactor:
     """A group's band factor L (kernels.band_factor) in the place of its
-    Kronecker data: ``args`` gives ell_pcg's Kronecker arguments with the
+    Kronecker data: ``pcg_args`` gives ell_pcg's Kronecker arguments with the
     band switched on (the Kronecker fields empty)."""
 
     _EMPTY = np.empty((0, 1))
@@ -412,7 +412,7 @@ class _BandFactor:
     def __init__(self, L):
         self.L = L
 
-    def args(self, nc, nt):
+    def pcg_args(self, nc, nt):
         return (self._EMPTY, self._EMPTY, self._NO_INDEX, self._NONE, np.empty((1, 1, nc)), 1,
                 self.L, True)
 
