@@ -1017,7 +1017,7 @@ class StripFooting(Benchmark):
         s = np.array([h[1] for h in history]) / self.B
         q = -np.array([h[2][1] for h in history]) / self.footing.width / self.c_u
         near = np.abs(s - self.read_at) <= 0.01
-        bins = np.floor(s / 0.005).astype(np.int64)
+        bins = np.floor(s / 0.005 + 1e-9).astype(np.int64)  # (0.11 / 0.005 < 22 in floats)
         counts = np.bincount(bins)
         sums = np.bincount(bins, weights=q)
         keep = counts > 0

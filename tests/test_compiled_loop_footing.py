@@ -43,10 +43,10 @@ GRIDS = {2: lambda: SplineGrid.rectangle((0.0, 1.0), (0.0, 1.25), (4, 5), 2),
 def test_the_footing_rule_is_the_effects_numpy_method(dim, rough):
     """kernels.grid_modifiers FOOTING against Footing.modify_force and
     modify_velocity on random grid states (empty nodes among them) at
-    clocks in the ramp, after it, with the base in a lower cell and below
+    times in the ramp, after it, with the base in a lower cell and below
     the grid (clamped): forces and velocities to round-off (1e-13), the
-    reaction to 1e-13, the clock and base exactly (one rule among a wall
-    and a damping, in order)."""
+    reaction to 1e-13, the recorded end time and base exactly (one rule
+    among a wall and a damping, in order)."""
     rng = np.random.default_rng(dim + 2 * rough)
     grid = GRIDS[dim]()
     span = (0.0, 0.5) if dim == 2 else ((0.0, 0.5), (0.25, 1.0))
@@ -64,14 +64,13 @@ def test_the_footing_rule_is_the_effects_numpy_method(dim, rough):
     for clock in (0.0, 0.1, 0.45, 0.6, 5.0):
         force, velocity, mass = _random_grid_state(grid, rng)
         dt = 0.05
-        footing._t = clock
         states[1] = footing.rule_state()
         expected = force
         for m in modifiers:
-            expected = m.modify_force(expected, velocity, mass, dt)
+            expected = m.modify_force(expected, velocity, mass, dt, clock, 0.0)
         got = force.copy()
         grid_modifiers.modify_forces(codes, parameters, offsets, dofs, got, velocity, mass, dt,
-                                     reactions, data_offsets, data, states)
+                                     clock, 0.0, reactions, data_offsets, data, states)
         scale = np.abs(force).max()
         assert np.allclose(got, expected, rtol=1e-13, atol=1e-13 * scale), clock
         assert np.allclose(reactions[1], footing.reaction, rtol=1e-13, atol=1e-13 * scale)
@@ -101,6 +100,84 @@ def test_the_footing_rule_does_nothing_to_a_velocity_before_its_first_force_step
     got = velocity.copy()
     grid_modifiers.modify_velocities(*packed[:4], got, mass, *packed[5:])
     assert np.array_equal(got, velocity)
+
+
+@pytest.mark.parametrize("stage", (0.5, 1.0))
+def test_a_stage_sees_its_own_time_and_records_nothing(stage):
+    """An rk4 stage at t + c dt (c = ``stage``): the footing's force is the
+    one of a step's first force evaluation at that time (its base line and
+    target velocity), on the NumPy method and the compiled rule (1e-13);
+    the stage leaves the footing's record, rule state and reaction as the
+    step's first stage left them."""
+    grid = GRIDS[2]()
+    force, velocity, mass = _random_grid_state(grid, np.random.default_rng(7))
+    t, dt = 0.2, 0.05  # inside the ramp: the target changes with the time
+
+    def footing():
+        f = Footing((0.0, 0.5), 1.0, 0.8, ramp=0.3)
+        f.check(grid)
+        f.bind(None, grid)
+        return f
+
+    first = footing()
+    step_force = first.modify_force(force, velocity, mass, dt, t, 0.0)
+    record = (list(first.history), first.rule_state().tolist(), first.reaction.copy())
+    staged = first.modify_force(force, velocity, mass, dt, t, stage)
+    assert (first.history, first.rule_state().tolist()) == record[:2]
+    assert np.array_equal(first.reaction, record[2])
+    alone = footing()
+    expected = alone.modify_force(force, velocity, mass, dt, t + stage * dt, 0.0)
+    scale = np.abs(force).max()
+    assert np.allclose(staged, expected, rtol=1e-13, atol=1e-13 * scale)
+    assert np.abs(staged - step_force).max() > 1e-3 * scale  # (the stage's own base and goal)
+    packed = grid_modifiers.pack_rules([first.grid_rule(grid)], 2)
+    codes, parameters, offsets, dofs, reactions, data_offsets, data, states = packed
+    states[0] = first.rule_state()
+    got = force.copy()
+    grid_modifiers.modify_forces(codes, parameters, offsets, dofs, got, velocity, mass, dt, t,
+                                 stage, reactions, data_offsets, data, states)
+    assert np.allclose(got, staged, rtol=1e-13, atol=1e-13 * scale)
+    assert states[0].tolist() == record[1] and np.all(reactions == 0.0)
+
+
+def rk4_footing_scene():
+    from test_geo_footing import layer_under_footing
+
+    return layer_under_footing((0.0, 0.5), speed=0.05, ramp=0.0, t_end=0.05)
+
+
+def test_rk4_with_a_footing_on_every_path(monkeypatch):
+    """rk4 (an elastic layer, the footing over half of it, 20 steps): the
+    loop ran every step with the executor's bits (particles, reactions,
+    the footing's history: one record per step, at the step's end), the
+    reference executor agrees to 1e-12, and the footing settled v t_end
+    (it once advanced per stage: 4 v t_end)."""
+    method = Method(scheme="rk4", dt=0.0025)
+    runs = {}
+    for path in ("loop", "executor", "reference"):
+        scene, footing = rk4_footing_scene()
+        if path == "loop":
+            result = simulate(scene, method, save_every=7)
+        elif path == "executor":
+            result = without_loop(monkeypatch, scene, method, save_every=7)
+        else:
+            result = simulate(scene, Method(scheme="rk4", dt=0.0025, backend="numpy"),
+                              save_every=7)
+        history = history_array(footing)
+        assert history.shape[0] == result.counts["steps"] == 20, path
+        assert np.allclose(history[:, 0], 0.0025 * np.arange(1, 21), rtol=1e-12)
+        assert footing.settlement == pytest.approx(0.05 * 0.05, rel=1e-12)
+        runs[path] = result, history
+    (looped, h_loop), (stepped, h_step), (ref, h_ref) = (runs[k] for k in
+                                                          ("loop", "executor", "reference"))
+    assert looped.counts["compiled_loop_steps"] == 20 and stepped.path == "fast"
+    assert_same(looped, stepped)
+    assert np.array_equal(h_loop, h_step)
+    for a, b in zip(looped.reactions, stepped.reactions):
+        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    for a, b in ((ref.particles.x, looped.particles.x),
+                 (ref.particles.stress, looped.particles.stress), (h_ref, h_loop)):
+        assert np.abs(a - b).max() <= 1e-12 * np.abs(a).max()
 
 
 # ------------------------------------------------------------------ B-bar

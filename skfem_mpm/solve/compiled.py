@@ -476,7 +476,7 @@ class CompiledExecutor(CompiledRungeKutta):
                 if gravity is not None:
                     force = force + mass[:, None] * gravity[None, :]
                     gravity = None
-                force = self.force_modifiers.modify_force(force, v_old, mass, dt)
+                force = self.force_modifiers.modify_force(force, v_old, mass, dt, state.t, 0.0)
         factor = end_velocity
         v_grid = None
         with state.timer("solve"):

@@ -489,7 +489,7 @@ def _solve_grid(run, state, grid, end_velocity=None):
                 return run.a
             t0 = monotonic_ns()
             run.prepare_grid()
-            run.modify_force()  # damping, walls (compiled_loop_modifiers)
+            run.modify_force(0.0)  # damping, walls, footings (compiled_loop_modifiers)
             run.solve_acceleration()
             run.phase_ns[1] += monotonic_ns() - t0
             return run.a
@@ -503,7 +503,7 @@ def _solve_grid(run, state, grid, end_velocity=None):
             vdt = end_velocity * run.dt
             run.prepare_grid()
             if modified:  # v^n, the modified force, then a (compiled_loop_modifiers)
-                run.modify_force()
+                run.modify_force(0.0)
                 run.solve_acceleration()
             elif run.cm.hybrid:
                 run.lumped_solve(run.force, run.no_gravity, run.a, 0)
@@ -531,7 +531,7 @@ def _solve_grid(run, state, grid, end_velocity=None):
                      a_values, has_values, vdt, run.a, run.v_grid)
         else:
             if modified:  # v^n and the modified force (compiled_loop_modifiers)
-                run.modify_force()
+                run.modify_force(0.0)
             else:
                 run.lumped_solve(run.momentum, run.no_gravity, run.v_old, 1)
             run.lumped_solve(run.force, run.acceleration_gravity, run.a, 0)
@@ -787,8 +787,8 @@ def _stage_rates(run, state, particles, c, reactions=False):
             return slot
         t0 = monotonic_ns()
         run.prepare_grid()
-        if modified:  # v, the modified force, then a (compiled_loop_modifiers)
-            run.modify_force()
+        if modified:  # v, the modified force at the stage's time, then a
+            run.modify_force(c)
             run.solve_acceleration()
         elif not consistent:
             run.lumped_solve(run.momentum, run.no_gravity, run.v_old, 1)

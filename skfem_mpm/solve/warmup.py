@@ -128,7 +128,7 @@ def _warm_up_grid_rules(ndofs, dim):
     codes, parameters, offsets, dofs, reactions, data_offsets, data, states = pack_rules([], dim)
     zeros = np.zeros((ndofs, dim))
     modify_forces(codes, parameters, offsets, dofs, zeros, zeros.copy(), np.ones(ndofs), 0.1,
-                  reactions, data_offsets, data, states)
+                  0.0, 0.0, reactions, data_offsets, data, states)
     modify_velocities(codes, parameters, offsets, dofs, zeros, np.ones(ndofs), data_offsets,
                       data, states)
 
