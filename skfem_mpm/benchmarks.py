@@ -968,7 +968,8 @@ class StripFooting(Benchmark):
     The footing (:class:`Footing`, x in [0, B/2], rough unless ``rough`` is
     0) settles at ``speed`` B/s reached over ``ramp`` s, to ``settlement``
     B. E = ``stiffness`` c_u, nu, rho; g = 0. ``bbar`` 1 wraps the material
-    in :class:`BBar` (cell-averaged volumetric strain rate) against
+    in :class:`BBar` (the volumetric strain rate projected onto the grid's
+    vertex functions) against
     volumetric locking; 0 leaves it out. ``cells`` counts the cells over
     ``width`` B, rounded so that B/2 ends on a knot (16 -> 20 cells over 5 B,
     2 under the half footing; ``cells_across_width`` in the checks).

@@ -181,25 +181,30 @@ def test_rk4_with_a_footing_on_every_path(monkeypatch):
 
 
 # ------------------------------------------------------------------ B-bar
+@pytest.mark.parametrize("average", ("cell", "vertex"))
 @pytest.mark.parametrize("layout", ("random", "uniform"))
-def test_the_compiled_cell_average_is_bbar_averaged(layout):
+def test_the_compiled_cell_average_is_bbar_averaged(layout, average):
     """kernels.bbar.average_dilatation against BBar.averaged: the same bits,
     over every particle and over a body of some of them (uniform layout:
-    particles on cell boundaries too, in the cell on their right)."""
+    particles on cell boundaries too, in the cell on their right), the
+    cells' and the vertices' dilatation functions."""
     grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (3, 4), 2)
     p = Particles.seed(grid, 3, RHO, layout=layout, seed=1)
     if layout == "uniform":  # a column of particles on the knot x = 1/3
         p.x[::7, 0] = 1.0 / 3.0
-    material = BBar(LinearElastic(E, NU), grid)
+    material = BBar(LinearElastic(E, NU), grid, average=average)
     L = np.random.default_rng(0).normal(size=(p.n, 2, 2))
     axes = grid_record(grid)[0]
-    work = (np.empty(grid.ncells), np.empty(grid.ncells), np.empty(p.n, dtype=np.int64))
+    per = 4 if material.vertices else 1
+    work = (np.empty(material.functions), np.empty(material.functions),
+            np.empty((p.n, per), dtype=np.int64), np.empty((p.n, per)))
     got = L.copy()
-    average_dilatation(axes, np.zeros(0, dtype=np.int64), True, p.x, p.V, got, *work)
+    average_dilatation(axes, np.zeros(0, dtype=np.int64), True, material.vertices, p.x, p.V,
+                       got, *work)
     assert np.array_equal(got, material.averaged(p, L))
     index = np.flatnonzero(np.arange(p.n) % 3 != 1)
     got = L.copy()
-    average_dilatation(axes, index, False, p.x, p.V, got, *work)
+    average_dilatation(axes, index, False, material.vertices, p.x, p.V, got, *work)
     assert np.array_equal(got[index], material.averaged(p.subset(index), L[index]))
     rest = np.setdiff1d(np.arange(p.n), index)
     assert np.array_equal(got[rest], L[rest])
@@ -337,25 +342,25 @@ def test_the_strip_footing_runs_in_the_loop_with_the_executors_bits(monkeypatch)
     assert looped.particles.state["plastic_strain"].max() > 0
 
 
-@pytest.mark.slow(reason="the G1 study: four strip-footing runs to 0.15 B (about a minute "
+@pytest.mark.slow(reason="the G1 study: five strip-footing runs to 0.15 B (about two minutes "
                   "in the compiled loop)")
 def test_g1_bearing_capacity_in_the_loop():
-    """N_c = q / c_u at a settlement of 0.1 B against Prandtl's 2 + pi at 2
-    and 4 cells under the half footing (20 and 40 cells over 5 B),
-    quadratic, 2 x 2 particles per cell, with and without B-bar, all in
-    the compiled loop: within 10% of 5.14 (measured with B-bar 4.70 and
-    4.94, without 5.06 and 5.23); with B-bar the curve has its plateau
-    (the pressure at 0.15 B within 5% of that at 0.1 B; measured +3.3%
-    and +0.6%), without it the pressure climbs on (+8% and +7%)."""
+    """N_c = q / c_u at a settlement of 0.1 B against Prandtl's 2 + pi at 2,
+    4 and 8 cells under the half footing (20, 40 and 80 cells over 5 B),
+    quadratic, 2 x 2 particles per cell, with B-bar (its vertex
+    projection) and, at 2 and 4 cells, without, all in the compiled loop:
+    within 10% of 5.14 (measured with B-bar 4.65, 5.08 and 5.21, without
+    5.06 and 5.23); with B-bar the load curve (0.005 B bins) never falls by
+    more than 1% of its largest value from one bin to the next (measured
+    at most 0.1%; with cell averages it fell from 4.6 to 3.0 at 8 cells,
+    N_c 3.31)."""
     prandtl = 2 + np.pi
-    for cells in (20, 40):
-        figures = {}
-        for bbar in (True, False):
+    for cells, kinds in ((20, (True, False)), (40, (True, False)), (80, (True,))):
+        for bbar in kinds:
             bench, result = g1_run(cells, bbar)
             assert result.counts["compiled_loop_steps"] == result.counts["steps"]
-            figures[bbar] = bench.checks(result)
-        for bbar, f in figures.items():
-            assert abs(f["bearing_capacity_factor"] / prandtl - 1) <= 0.10, (cells, bbar)
-        with_bbar, without = figures[True], figures[False]
-        assert with_bbar["pressure_at_end_over_c_u"] <= 1.05 * with_bbar["bearing_capacity_factor"]
-        assert without["pressure_at_end_over_c_u"] >= 1.05 * without["bearing_capacity_factor"]
+            figures = bench.checks(result)
+            assert abs(figures["bearing_capacity_factor"] / prandtl - 1) <= 0.10, (cells, bbar)
+            if bbar:
+                q = np.array([point[1] for point in figures["curve"]])
+                assert np.diff(q).min() >= -0.01 * q.max(), cells

@@ -478,9 +478,10 @@ class StepLoop:
         if self.fused:
             return arrays
         if material.cell_average:  # B-bar (kernels.bbar)
-            cells = material.grid.ncells
-            arrays["cell_average"] = (grid_record(material.grid)[0], np.zeros(cells),
-                                      np.zeros(cells), np.zeros(n, dtype=np.int64))
+            functions, per = material.functions, (1 << dim) if material.vertices else 1
+            arrays["cell_average"] = (grid_record(material.grid)[0], material.vertices,
+                                      np.zeros(functions), np.zeros(functions),
+                                      np.zeros((n, per), dtype=np.int64), np.zeros((n, per)))
         self.finite = bool(executor.finite)
         layout = state_layout(material, dim)
         self.layout = layout if layout else None
