@@ -6,8 +6,9 @@ yield stress sqrt(3) c_u; no weight). Prandtl's limit pressure is
 q_ult = (2 + pi) c_u = 5.14 c_u. The picture is the load-settlement curve,
 footing pressure q / c_u against settlement / B, beside 5.14, with the
 bearing capacity factor N_c read at a settlement of 0.1 B; the curve
-without the anti-locking treatment (B-bar: the volumetric strain averaged
-over each grid cell) is drawn too.
+without the anti-locking treatment (B-bar: each particle's volumetric
+strain rate replaced by a smooth average over its neighbourhood, one value
+per grid vertex) is drawn too.
 
 Half model by symmetry (5 B wide, 5 B deep), quadratic B-splines, 2 x 2
 particles per cell, E = 300 c_u, nu = 0.3, footing speed 0.05 B/s reached
@@ -51,7 +52,7 @@ def draw(figures, others, out):
     fig, ax = plt.subplots(figsize=(7, 4.5))
     curve = np.array(figures["curve"])
     ax.plot(curve[:, 0], curve[:, 1], "-", color="tab:blue", lw=2,
-            label="MPM, quadratic, B-bar (cell-averaged volumetric strain)")
+            label="MPM, quadratic, B-bar (volumetric strain rate on the grid's vertices)")
     if others is not None:
         other = np.array(others["curve"])
         ax.plot(other[:, 0], other[:, 1], "--", color="tab:orange", lw=1.5,

@@ -968,7 +968,8 @@ class StripFooting(Benchmark):
     The footing (:class:`Footing`, x in [0, B/2], rough unless ``rough`` is
     0) settles at ``speed`` B/s reached over ``ramp`` s, to ``settlement``
     B. E = ``stiffness`` c_u, nu, rho; g = 0. ``bbar`` 1 wraps the material
-    in :class:`BBar` (cell-averaged volumetric strain rate) against
+    in :class:`BBar` (the volumetric strain rate projected onto the grid's
+    vertex functions) against
     volumetric locking; 0 leaves it out. ``cells`` counts the cells over
     ``width`` B, rounded so that B/2 ends on a knot (16 -> 20 cells over 5 B,
     2 under the half footing; ``cells_across_width`` in the checks).
@@ -1017,7 +1018,7 @@ class StripFooting(Benchmark):
         s = np.array([h[1] for h in history]) / self.B
         q = -np.array([h[2][1] for h in history]) / self.footing.width / self.c_u
         near = np.abs(s - self.read_at) <= 0.01
-        bins = np.floor(s / 0.005).astype(np.int64)
+        bins = np.floor(s / 0.005 + 1e-9).astype(np.int64)  # (0.11 / 0.005 < 22 in floats)
         counts = np.bincount(bins)
         sums = np.bincount(bins, weights=q)
         keep = counts > 0

@@ -23,10 +23,18 @@ The protocol (what an executor asks of every effect; the defaults of
     constraints(grid)           -> [(component, dofs, velocity(t) or None)]
     velocity_modifiers()        -> [GridModifier: modify_velocity(v, m) -> v]
                                    (MUSL's re-projected grid velocity)
-    force_modifiers()           -> [GridModifier: modify_force(f, v, m, dt) -> f]
+    force_modifiers()           -> [GridModifier: modify_force(f, v, m, dt, t, stage) -> f]
                                    (f, v (dofs, dim): grid force and velocity at
-                                   the start of the step; m (dofs,) the lumped
-                                   nodal mass; dt the step)
+                                   the start of the step, or of an rk4 stage;
+                                   m (dofs,) the lumped nodal mass; dt the step;
+                                   t the time at the start of the step; stage
+                                   the fraction c of the step at which the force
+                                   is evaluated: the time is t + c dt; c = 0 for
+                                   every scheme's step and rk4's first stage,
+                                   c = 1/2, 1/2, 1 for rk4's later stages, which
+                                   leave a modifier's record (reaction, history)
+                                   as the first stage left it: see
+                                   :func:`modified_force`)
     side_traction()             -> (side, traction(x, t)) or None  (fem loads
                                    the grid side with Gauss quadrature)
 
@@ -37,7 +45,7 @@ and the compiled step loop apply instead of the NumPy methods (None: the
 compiled executor calls the NumPy methods each step, and the compiled loop
 does not run the scene). A modifier that exerts a force on the bodies
 keeps its total of the last step in ``reaction``. A rule that keeps a
-state between steps (the footing's clock) starts each compiled call from
+state between steps (the footing's record of its last step) starts each compiled call from
 ``rule_state()`` and hands what its steps did back through
 ``take_rule_steps(states, reactions)`` (its state and reaction after each
 step taken), so that the executor and the compiled loop can take turns.
@@ -52,6 +60,7 @@ be evaluated ahead for the times of coming steps), and the state it keeps
 about particles (``rebind`` after removals, ``checkpoint_arrays`` /
 ``restore`` for restarts).
 """
+import functools
 import inspect
 
 import numpy as np
@@ -139,9 +148,13 @@ class GridModifier:
     ``Effect.velocity_modifiers`` return); the defaults change nothing."""
 
     reaction = None  # (dim,): the total force exerted on the bodies in the last step
+    # what a run writes into the modifier (not part of the scene: a
+    # checkpoint's fingerprint leaves them out, skfem_mpm.fingerprint)
+    run_records = ("reaction",)
 
-    def modify_force(self, force, velocity, mass, dt):
-        """The grid force (dofs, dim) changed (see the module docstring)."""
+    def modify_force(self, force, velocity, mass, dt, t=0.0, stage=0.0):
+        """The grid force (dofs, dim) changed at time t + stage dt (see the
+        module docstring); a stage > 0 leaves the record of the step."""
         return force
 
     def modify_velocity(self, velocity, mass):
@@ -164,6 +177,22 @@ class GridModifier:
         becomes ``reaction``."""
         if len(reactions):
             self.reaction = np.array(reactions[-1], dtype=np.float64)
+
+
+def modified_force(modifier, force, velocity, mass, dt, t, stage):
+    """``modifier.modify_force`` at time t + stage dt (the module's
+    protocol); a modifier whose ``modify_force`` takes four arguments
+    (force, velocity, mass, dt: one that ignores the time) is called
+    with those."""
+    if _takes_time(type(modifier)):
+        return modifier.modify_force(force, velocity, mass, dt, t, stage)
+    return modifier.modify_force(force, velocity, mass, dt)
+
+
+@functools.lru_cache(maxsize=None)
+def _takes_time(cls):
+    """Whether ``cls.modify_force`` takes (self, force, velocity, mass, dt, t, stage)."""
+    return _positional_count(cls.modify_force) >= 7
 
 
 def _numbers(name, value, what):
@@ -538,7 +567,7 @@ class Damping(Effect, GridModifier):
     def force_modifiers(self):
         return [self]
 
-    def modify_force(self, force, velocity, mass=None, dt=None):
+    def modify_force(self, force, velocity, mass=None, dt=None, t=0.0, stage=0.0):
         return force - self.alpha * np.abs(force) * np.sign(velocity)
 
     def grid_rule(self, grid):
@@ -649,8 +678,10 @@ class Wall(Effect, GridModifier):
         out[d] = np.where(contact[:, None], tangent * keep[:, None], v)
         return out
 
-    def modify_force(self, force, velocity, mass, dt):
-        """The grid force with the wall's contact force added (class docstring)."""
+    def modify_force(self, force, velocity, mass, dt, t=0.0, stage=0.0):
+        """The grid force with the wall's contact force added (class
+        docstring); ``reaction`` is the step's (stage 0: an rk4 stage
+        leaves the first stage's)."""
         if self._dofs is None or force.shape[0] != self._ndofs:
             raise ValueError(f"{self!r} was checked against another grid (call "
                              f"Scene(...) with this grid first)")
@@ -671,7 +702,8 @@ class Wall(Effect, GridModifier):
             - np.where(contact, friction, 0.0)[:, None] * direction
         out = force.copy()
         out[d] += contact_force
-        self.reaction = contact_force.sum(axis=0)
+        if stage == 0.0:
+            self.reaction = contact_force.sum(axis=0)
         return out
 
 
@@ -718,12 +750,21 @@ class Footing(Effect, GridModifier):
     ``width``. ``settlement`` (the current s) and ``history`` (a list of
     (t, s, reaction) per step) record the load-settlement curve.
 
-    The footing keeps its own clock (the sum of the steps since the run
-    started): a run restarted from a checkpoint starts it again at s = 0.
-    Its compiled rule (``grid_rule``: kernels.grid_modifiers FOOTING) is
-    the same constraint, chosen anew each step in compiled code, so that
-    the compiled step loop runs a footing scene.
+    The footing moves with the scene's time: a force evaluated at time
+    tau (a step's start t, or an rk4 stage's t + c dt: ``modify_force``'s
+    t and stage) acts along y_b = base - s(tau) toward v_F(tau + dt), so
+    every stage sees the footing where it is at the stage's time. A step's
+    record (``reaction``, ``history``, ``settlement``) is that of its
+    first force evaluation (c = 0), as every reaction of an rk4 step is
+    its first stage's, and advances once per step. A run restarted from a
+    checkpoint at time t goes on from s(t) (its ``history`` holds the
+    steps of that run). Its compiled rule (``grid_rule``:
+    kernels.grid_modifiers FOOTING) is the same constraint, chosen anew
+    each step in compiled code, so that the compiled step loop runs a
+    footing scene.
     """
+
+    run_records = ("reaction", "history")
 
     def __init__(self, span, base, speed, rough=True, ramp=0.0):
         span = _numbers("span", span, "a pair (x0, x1) or a pair of such pairs in 3D")
@@ -743,8 +784,8 @@ class Footing(Effect, GridModifier):
         self.reaction = None
         self._grid = None
         self._active = None
-        self._t = 0.0
-        self._base_now = np.nan  # the base height of the last force step
+        self._t = 0.0  # the time at the end of the last step recorded
+        self._base_now = np.nan  # the base height of the last step recorded
         self.history = []
 
     def __repr__(self):
@@ -768,6 +809,7 @@ class Footing(Effect, GridModifier):
 
     @property
     def settlement(self):
+        """s at the end of the last step (0 before the first)."""
         return self.settlement_at(self._t)
 
     def check(self, grid):
@@ -812,11 +854,12 @@ class Footing(Effect, GridModifier):
                         np.concatenate((breaks, extraction.ravel())))
 
     def rule_state(self):
-        """(its clock, the base height of its last force step)."""
+        """(the time at the end of its last step, the base height it acted
+        on in that step)."""
         return np.array([self._t, self._base_now])
 
     def take_rule_steps(self, states, reactions):
-        """The clock, base, reaction and history of compiled steps."""
+        """The record (end time, base, reaction, history) of compiled steps."""
         for state, reaction in zip(states, reactions):
             t = float(state[0])
             self.history.append((t, self.settlement_at(t), np.array(reaction, dtype=np.float64)))
@@ -825,7 +868,7 @@ class Footing(Effect, GridModifier):
             self.reaction = np.array(reactions[-1], dtype=np.float64)
 
     def bind(self, particles, grid):
-        """A run starts the footing's clock (and its record) again."""
+        """A run starts the footing's record again."""
         self._t = 0.0
         self._base_now = np.nan
         self.history = []
@@ -842,36 +885,38 @@ class Footing(Effect, GridModifier):
     def reactions(self):
         return {} if self.reaction is None else {repr(self): self.reaction.copy()}
 
-    def _base_line(self, mass):
-        """(dofs (columns, p + 1), weights w_j masked by mass, sum w^2 / m
-        per column, mass safe for division) along the current base."""
+    def _base_line(self, mass, time):
+        """(y_b, and along it: dofs (columns, p + 1), weights w_j masked by
+        mass, sum w^2 / m per column, mass safe for division) at ``time``."""
         grid = self._grid
-        y_b = min(max(self.base - self.settlement_at(self._t), grid.bounds[-1][0]),
+        y_b = min(max(self.base - self.settlement_at(time), grid.bounds[-1][0]),
                   grid.bounds[-1][1])
-        self._base_now = y_b
         first, values, _ = grid.axis_functions(grid.dim - 1, np.array([y_b]), backend="numpy")
         rows = int(first[0]) + np.arange(grid.degree + 1)
         dofs = self._columns[:, None] + self._stride * rows[None, :]
         m = mass[dofs]
         weights = np.where(m > 0, values[0][None, :], 0.0)
         m_safe = np.where(m > 0, m, 1.0)
-        return dofs, weights, (weights ** 2 / m_safe).sum(axis=1), m_safe
+        return y_b, (dofs, weights, (weights ** 2 / m_safe).sum(axis=1), m_safe)
 
     def _targets(self, t, dim):
         target = np.zeros(dim)
         target[-1] = self.velocity_at(t)
         return target, (range(dim) if self.rough else (dim - 1,))
 
-    def modify_force(self, force, velocity, mass, dt):
-        """The grid force with the footing's contact force added (class
-        docstring); advances the footing's clock by dt."""
+    def modify_force(self, force, velocity, mass, dt, t=0.0, stage=0.0):
+        """The grid force with the footing's contact force added at time
+        tau = t + stage dt (class docstring); stage 0 (a step, or rk4's
+        first stage) records the step: reaction, rule state (t + dt, y_b)
+        and history (t + dt, s(t + dt), reaction)."""
         if self._grid is None or force.shape[0] != self._ndofs:
             raise ValueError(f"{self!r} was checked against another grid (call "
                              f"Scene(...) with this grid first)")
-        dofs, w, S, m = self._base_line(mass)
-        self._active = (dofs, w, S, m)
+        time = t + stage * dt
+        y_b, active = self._base_line(mass, time)
+        dofs, w, S, m = active
         dim = force.shape[1]
-        target, comps = self._targets(self._t + dt, dim)
+        target, comps = self._targets(time + dt, dim)
         out = force.copy()
         reaction = np.zeros(dim)
         loaded = S > 0
@@ -882,14 +927,16 @@ class Footing(Effect, GridModifier):
             contact = w * lam[:, None]
             np.add.at(out[:, c], dofs.ravel(), contact.ravel())
             reaction[c] = contact.sum()
-        self.reaction = reaction
-        self._t += dt
-        self.history.append((self._t, self.settlement_at(self._t), reaction.copy()))
+        if stage == 0.0:
+            self._active, self._base_now, self._t = active, y_b, time + dt
+            self.reaction = reaction
+            self.history.append((self._t, self.settlement_at(self._t), reaction.copy()))
         return out
 
     def modify_velocity(self, velocity, mass):
-        """MUSL's re-projected velocity: the base line at the footing's
-        velocity, by the same correction (class docstring)."""
+        """MUSL's re-projected velocity: the base line of the step's force
+        at the footing's velocity at the step's end, by the same
+        correction (class docstring)."""
         if self._active is None:
             return velocity
         dofs, w, S, m = self._active

@@ -8,7 +8,8 @@ parts that differ.
 What a digest covers: every array by its dtype, shape and bytes; numbers and
 strings by type and ``repr``; lists, tuples and dicts by their items; other
 objects (materials, effects) by their class's qualified name and their public
-attributes, recursively. A callable (a ``Traction`` tau(t), a ``BodyForce``
+attributes, recursively, except those a class names in ``run_records`` (what a
+run writes into an effect: a wall's reaction, a footing's history). A callable (a ``Traction`` tau(t), a ``BodyForce``
 b(X, t), a ``Prescribed`` velocity, a custom reconstruction) is identified by
 its module, qualified name and default argument values only: **a changed
 function body under the same name is not detected.**
@@ -60,7 +61,8 @@ def _update(h, obj, seen):
         return
     seen.add(id(obj))
     h.update(f"object:{type(obj).__module__}.{type(obj).__qualname__};".encode())
-    public = {k: v for k, v in vars(obj).items() if not k.startswith("_")} \
+    records = getattr(type(obj), "run_records", ())
+    public = {k: v for k, v in vars(obj).items() if not k.startswith("_") and k not in records} \
         if hasattr(obj, "__dict__") else {}
     _update(h, public, seen)
 

@@ -219,7 +219,8 @@ def test_the_rules_are_the_effects_numpy_methods(dim):
         for m in modifiers:
             expected = m.modify_force(expected, velocity, mass, dt)
         got = force.copy()
-        grid_modifiers.modify_forces(*packed[:4], got, velocity, mass, dt, *packed[4:])
+        grid_modifiers.modify_forces(*packed[:4], got, velocity, mass, dt, 0.0, 0.0,
+                                     *packed[4:])
         assert np.allclose(got, expected, rtol=1e-14, atol=1e-14 * np.abs(force).max())
         walls = [m for m in modifiers if isinstance(m, Wall)]
         rows = [r for r, m in enumerate(modifiers) if isinstance(m, Wall)]

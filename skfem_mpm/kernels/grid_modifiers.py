@@ -14,8 +14,9 @@ of :class:`skfem_mpm.effects.GridModifier`): a rule code, its parameters,
 the dofs it acts on, the numbers it reads (``data``: the footing's
 vertical grid axis) and the state it keeps between steps (``state``,
 :data:`RULE_STATE` numbers). :func:`pack_rules` packs the rules of a run in
-their order into flat arrays; :func:`modify_forces` and
-:func:`modify_velocities` apply them in that order, in place:
+their order into flat arrays; :func:`modify_forces` (at time t + stage dt:
+t the step's start, stage the fraction c of an rk4 stage, 0 for a step)
+and :func:`modify_velocities` apply them in that order, in place:
 
     LOCAL_DAMPING    parameters (alpha,), every dof:
                      f_i <- f_i - alpha |f_i| sign(v_i)   (Cundall 1987)
@@ -30,21 +31,25 @@ their order into flat arrays; :func:`modify_forces` and
                      dofs of its columns (the horizontal functions whose
                      Greville abscissa lies under it, in the lowest layer),
                      data the vertical axis (its breakpoints, then its
-                     extraction matrices), state (clock, y_b):
-                     y_b = base - s(clock) (clamped to the axis), w_j the
+                     extraction matrices), state (the end time of the
+                     step recorded, y_b): at tau = t + stage dt,
+                     y_b = base - s(tau) (clamped to the axis), w_j the
                      vertical functions at y_b, dofs c + stride j of each
                      column c; per column and each held component
                      (rough: all, smooth: the vertical one)
-                     lambda = (v_F(clock + dt) - sum_j w_j v*_j) / (dt sum_j w_j^2 / m_j),
+                     lambda = (v_F(tau + dt) - sum_j w_j v*_j) / (dt sum_j w_j^2 / m_j),
                      f_j <- f_j + w_j lambda (dofs without mass: w_j = 0);
-                     clock += dt; the velocity form at the state's y_b and
-                     clock (v* = v, f / m a velocity change)
+                     stage 0 records the step: state (tau + dt, y_b); the
+                     velocity form at the state's y_b and v_F(its time)
+                     (v* = v, f / m a velocity change)
 
 A rule with a reaction (the wall, the footing) writes the total force it
-exerted on the bodies into its row of ``reactions``; a rule without a
-velocity form (damping) leaves the velocity alone. A rule's ``state`` row
-is read and written by its force form (the footing advances its clock and
-records the base it acted on) and read by its velocity form.
+exerted on the bodies into its row of ``reactions`` at stage 0 (a step's
+first force evaluation; an rk4 stage's later ones leave the first
+stage's, as every reaction of an rk4 step); a rule without a velocity
+form (damping) leaves the velocity alone. A rule's ``state`` row is
+written by its force form at stage 0 (the footing records the step's end
+time and the base it acted on) and read by its velocity form.
 """
 from typing import NamedTuple
 
@@ -63,8 +68,9 @@ FOOTING = 3
 _PARAMETERS = {LOCAL_DAMPING: lambda dim: 1, FRICTIONAL_WALL: lambda dim: 1 + dim,
                FOOTING: lambda dim: 8}
 RULE_STATE = 2
-"""Numbers of a rule's state (the footing: its clock and the height of the
-base it acted on in its last force step, NaN before the first)."""
+"""Numbers of a rule's state (the footing: the end time of the last step
+it recorded and the height of the base it acted on in that step, NaN
+before the first)."""
 
 
 class GridRule(NamedTuple):
@@ -268,23 +274,26 @@ def footing_columns(columns, stride, first, w, rough, target, mass, velocity, fo
 
 
 @njit(cache=True, error_model="numpy")
-def footing_force(columns, parameters, data, state, force, velocity, mass, dt, reaction):
-    """The footing's contact force added to ``force`` (see the module);
-    ``reaction`` (dim,) the sum of the contact forces; the state's clock
-    advances by dt and its y_b is the base of this step."""
+def footing_force(columns, parameters, data, state, force, velocity, mass, dt, t, stage,
+                  reaction):
+    """The footing's contact force at time t + stage dt added to ``force``
+    (see the module); ``reaction`` (dim,) the sum of the contact forces;
+    stage 0 records the step in ``state`` (its end time, the base)."""
     speed, ramp = parameters[1], parameters[2]
     ncells = int(parameters[5])
     p = int(parameters[6])
-    t = state[0]
-    y_b = min(max(parameters[0] - footing_settlement(t, speed, ramp), data[0]), data[ncells])
+    time = t + stage * dt
+    y_b = min(max(parameters[0] - footing_settlement(time, speed, ramp), data[0]),
+              data[ncells])
     w = np.empty(p + 1)
     dw = np.empty(p + 1)
     first = footing_base(parameters, data, y_b, w, dw)
     footing_columns(columns, int(parameters[4]), first, w, parameters[3] != 0.0,
-                    footing_velocity_at(t + dt, speed, ramp), mass, velocity, force, dt, True,
+                    footing_velocity_at(time + dt, speed, ramp), mass, velocity, force, dt, True,
                     reaction)
-    state[0] = t + dt
-    state[1] = y_b
+    if stage == 0.0:
+        state[0] = time + dt
+        state[1] = y_b
 
 
 @njit(cache=True, error_model="numpy")
@@ -305,22 +314,24 @@ def footing_velocity(columns, parameters, data, state, velocity, mass):
 
 
 @njit(cache=True, error_model="numpy")
-def modify_forces(codes, parameters, offsets, dofs, force, velocity, mass, dt, reactions,
-                  data_offsets, data, states):
-    """Every rule's force form in order, in place (see the module); the
-    rules with a reaction write theirs into ``reactions[r]``, the footing
-    its state into ``states[r]``."""
+def modify_forces(codes, parameters, offsets, dofs, force, velocity, mass, dt, t, stage,
+                  reactions, data_offsets, data, states):
+    """Every rule's force form at time t + stage dt in order, in place (see
+    the module); at stage 0 the rules with a reaction write theirs into
+    ``reactions[r]`` and the footing its state into ``states[r]``."""
     dim = force.shape[1]
+    spare = np.empty(dim)  # a later rk4 stage's reactions (not recorded)
     for r in range(codes.shape[0]):
+        reaction = reactions[r] if stage == 0.0 else spare
         if codes[r] == LOCAL_DAMPING:
             local_damping(parameters[r, 0], force, velocity)
         elif codes[r] == FRICTIONAL_WALL:
             wall_force(dofs[offsets[r]:offsets[r + 1]], parameters[r, 1:1 + dim],
-                       parameters[r, 0], force, velocity, mass, dt, reactions[r])
+                       parameters[r, 0], force, velocity, mass, dt, reaction)
         elif codes[r] == FOOTING:
             footing_force(dofs[offsets[r]:offsets[r + 1]], parameters[r],
                           data[data_offsets[r]:data_offsets[r + 1]], states[r], force,
-                          velocity, mass, dt, reactions[r])
+                          velocity, mass, dt, t, stage, reaction)
 
 
 @njit(cache=True, error_model="numpy")

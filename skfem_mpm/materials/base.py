@@ -34,8 +34,9 @@ A material has
     point_parameters(dim)   the float64 array of parameters ``point_update`` and
                             ``point_wave_speed`` read
     cell_average            True: the compiled paths give ``point_update`` the
-                            velocity gradient with its dilatation averaged over
-                            each grid cell (B-bar: :class:`BBar`), False (default)
+                            velocity gradient with its dilatation projected
+                            over the particles onto the grid's vertex functions
+                            or cells (B-bar: :class:`BBar`), False (default)
                             the particle's own
 
 Write your own by following the same shape (see examples/custom_material.py).

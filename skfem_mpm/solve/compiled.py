@@ -476,7 +476,7 @@ class CompiledExecutor(CompiledRungeKutta):
                 if gravity is not None:
                     force = force + mass[:, None] * gravity[None, :]
                     gravity = None
-                force = self.force_modifiers.modify_force(force, v_old, mass, dt)
+                force = self.force_modifiers.modify_force(force, v_old, mass, dt, state.t, 0.0)
         factor = end_velocity
         v_grid = None
         with state.timer("solve"):
@@ -607,18 +607,20 @@ class CompiledExecutor(CompiledRungeKutta):
 
     def average_dilatation(self, material, index, p, L):
         """L <- L_bar of the body ``index`` of ``p`` on ``material``'s grid
-        (kernels.bbar.average_dilatation: the cell average of B-bar)."""
+        (kernels.bbar.average_dilatation: B-bar's projected dilatation)."""
         key = id(material.grid)
         if key not in self._cell_axes:
             self._cell_axes[key] = grid_record(material.grid)[0]
         axes = self._cell_axes[key]
-        cells = material.grid.ncells
+        functions = material.functions
         every = isinstance(index, slice)
         count = p.n if every else index.size
-        average_dilatation(axes, self._no_index if every else index, every, p.x, p.V, L,
-                           self.kernels.scratch("bbar_volume", cells),
-                           self.kernels.scratch("bbar_weighted", cells),
-                           self.kernels.scratch("bbar_cell", count, np.int64))
+        per = (1 << p.dim) if material.vertices else 1
+        average_dilatation(axes, self._no_index if every else index, every, material.vertices,
+                           p.x, p.V, L, self.kernels.scratch("bbar_volume", functions),
+                           self.kernels.scratch("bbar_weighted", functions),
+                           self.kernels.scratch("bbar_ids", (count, per), np.int64),
+                           self.kernels.scratch("bbar_values", (count, per)))
 
     def _packed_state(self, material, dim):
         """The material's packed state buffers, or None without state."""

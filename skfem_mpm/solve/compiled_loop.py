@@ -437,7 +437,7 @@ class StepLoop:
                                not any(table.reads_dt for table in self.tables))
         self._rule_arrays = {}  # "force" / "velocity": the packed rules' arrays
         self.force_rules = fields["force_rules"] = self._rules(
-            "force", executor.force_modifiers, 4 if self.scheme == "rk4" else 1)
+            "force", executor.force_modifiers, 1)
         self.velocity_rules = fields["velocity_rules"] = self._rules(
             "velocity", executor.velocity_modifiers, 0, executor.force_modifiers)
         # consistent or hybrid mass: the run's mass system (None: lumped)
@@ -483,9 +483,10 @@ class StepLoop:
         if self.fused:
             return arrays
         if material.cell_average:  # B-bar (kernels.bbar)
-            cells = material.grid.ncells
-            arrays["cell_average"] = (grid_record(material.grid)[0], np.zeros(cells),
-                                      np.zeros(cells), np.zeros(n, dtype=np.int64))
+            functions, per = material.functions, (1 << dim) if material.vertices else 1
+            arrays["cell_average"] = (grid_record(material.grid)[0], material.vertices,
+                                      np.zeros(functions), np.zeros(functions),
+                                      np.zeros((n, per), dtype=np.int64), np.zeros((n, per)))
         self.finite = bool(executor.finite)
         layout = state_layout(material, dim)
         self.layout = layout if layout else None
@@ -543,7 +544,7 @@ class StepLoop:
         return arrays
 
     # With grid rules a call of the loop takes at most this many steps (their
-    # log holds a row per step: rk4 per stage)
+    # log holds a row per step: rk4's first stage's)
     RULE_LOG_STEPS = 512
 
     def _rules(self, kind, modifiers, calls_per_step, forces=None):
@@ -582,7 +583,7 @@ class StepLoop:
         rules' modifiers (a footing's clock and history, the walls' reactions)."""
         modifiers, _ = self._rule_arrays["force"]
         logged, states, reactions = self.module.rule_log(self.force_rules)
-        rows = min(int(logged), taken * (4 if self.scheme == "rk4" else 1))
+        rows = min(int(logged), taken)
         modifiers.take_steps(states[:rows], reactions[:rows])
 
     def _side_traction(self, f, state, k):

@@ -6,7 +6,8 @@ The compiled executor's grid modifiers (``CompiledExecutor.solve_grid``
 and ``project_velocity``, :mod:`skfem_mpm.solve.compiled_modifiers`) in
 the same order on the same kernels (:mod:`skfem_mpm.kernels.grid_modifiers`):
 
-    modify_force      before the acceleration solve (rk4: each stage's):
+    modify_force      before the acceleration solve (rk4: each stage's, at
+                      the stage's time t + c dt; a step's own at t):
                       the grid velocity at the start of the step,
                       M v^n = P (lumped, or consistent: one CG run of its
                       own, kept as the velocity's warm start), gravity
@@ -15,7 +16,8 @@ the same order on the same kernels (:mod:`skfem_mpm.kernels.grid_modifiers`):
                       the scene's order with the lumped mass and v^n
                       (MODIFY_FORCES); the acceleration solve then adds no
                       gravity (``acceleration_gravity``); the rules' states
-                      and reactions go into the next row of the log
+                      and reactions of a step's first force evaluation
+                      (stage c = 0) go into the next row of the log
     modify_velocity   MUSL: every velocity rule on the re-projected grid
                       velocity (MODIFY_VELOCITIES), each from the state its
                       force form left this step (``shared``)
@@ -25,9 +27,9 @@ them compiles none of this) or :class:`GridRules`, the packed rules of
 ``kernels.grid_modifiers.pack_rules`` and a log: a rule with a reaction
 (a wall, a footing) writes the total force it exerted into its row of
 ``reactions``, a rule with a state (a footing's clock) its state into its
-row of ``states``; after each force step both go into row ``logged`` of
-``log_states`` and ``log_reactions`` (one row per call of modify_force:
-per step, rk4 per stage), which
+row of ``states``; after each step's first force evaluation both go into
+row ``logged`` of ``log_states`` and ``log_reactions`` (one row per step,
+rk4's later stages record nothing: the protocol of :mod:`skfem_mpm.effects`), which
 :class:`~skfem_mpm.solve.compiled_loop.StepLoop` hands back to the
 modifiers for the steps taken after a call of the loop (a step the loop
 stopped is taken again by the executor from the modifiers' own state).
@@ -103,13 +105,14 @@ def _acceleration_gravity(run):
 
 
 @overload_method(RunType, "modify_force")
-def _modify_force(run):
+def _modify_force(run, stage):
     if not _force_rules(run):
-        return lambda run: None
+        return lambda run, stage: None
     consistent = _consistent(run)
 
-    def impl(run):
-        """v^n, gravity into the force, the force rules (see the module)."""
+    def impl(run, stage):
+        """v^n, gravity into the force, the force rules at time
+        t + stage dt (see the module)."""
         if run.stop:
             return
         t0 = monotonic_ns()
@@ -121,14 +124,17 @@ def _modify_force(run):
         if not run.stop:
             r = run.force_rules
             MODIFY_FORCES(r.codes, r.parameters, r.offsets, r.dofs, run.force, run.v_old,
-                          run.mass, run.dt, r.reactions, r.data_offsets, r.data, r.states)
+                          run.mass, run.dt, run.t, stage, r.reactions, r.data_offsets, r.data,
+                          r.states)
             row = r.logged
-            if row < r.log_states.shape[0]:
+            if stage != 0.0:
+                pass  # a later rk4 stage: the step's record is its first stage's
+            elif row < r.log_states.shape[0]:
                 copy_into(r.log_states[row], r.states)
                 copy_into(r.log_reactions[row], r.reactions)
+                r.logged = row + 1
             else:  # StepLoop sizes the log for every call of a run: never
                 run.stop = 2
-            r.logged = row + 1
         elapsed = monotonic_ns() - t0
         run.phase_ns[6] += elapsed  # effects, not the solve that encloses it
         run.phase_ns[1] -= elapsed

@@ -39,7 +39,7 @@ one body, or several of one linear elastic material: linear elastic (its stress 
 rate into the rk4 rates gather; ``run.law_at`` None), or with MUSL, USL
 and CD (rk4: finite strain, the law at each stage's F) a material with a
 compiled point law (``run.law_at``: the address of its C callback;
-B-bar's cell average of the dilatation rate before it,
+B-bar's projected dilatation rate before it,
 ``run.cell_average``): g2p stores L and the executor's constitutive kernel
 (``MATERIAL_UPDATE``, :mod:`skfem_mpm.kernels.constitutive`) writes the
 new stress, V, F (finite strain) and packed material state into the
@@ -147,8 +147,9 @@ FIELDS = (
     "law_at", "law_params", "finite", "F", "F_new", "V0", "mstate", "mstate_new",
     "law_flags", "no_index",
     # B-bar (a material with ``cell_average``): None, or (its grid's axes,
-    # work arrays: the cells' volumes and weighted dilatations, the
-    # particles' cells) of kernels.bbar.average_dilatation
+    # the vertex functions or the cells', work arrays: the functions'
+    # volumes and weighted dilatations, the particles' function ids and
+    # values) of kernels.bbar.average_dilatation
     "cell_average",
     # a side traction: a SideTraction (None: none; compiled_loop_traction)
     "traction",
@@ -489,7 +490,7 @@ def _solve_grid(run, state, grid, end_velocity=None):
                 return run.a
             t0 = monotonic_ns()
             run.prepare_grid()
-            run.modify_force()  # damping, walls (compiled_loop_modifiers)
+            run.modify_force(0.0)  # damping, walls, footings (compiled_loop_modifiers)
             run.solve_acceleration()
             run.phase_ns[1] += monotonic_ns() - t0
             return run.a
@@ -503,7 +504,7 @@ def _solve_grid(run, state, grid, end_velocity=None):
             vdt = end_velocity * run.dt
             run.prepare_grid()
             if modified:  # v^n, the modified force, then a (compiled_loop_modifiers)
-                run.modify_force()
+                run.modify_force(0.0)
                 run.solve_acceleration()
             elif run.cm.hybrid:
                 run.lumped_solve(run.force, run.no_gravity, run.a, 0)
@@ -531,7 +532,7 @@ def _solve_grid(run, state, grid, end_velocity=None):
                      a_values, has_values, vdt, run.a, run.v_grid)
         else:
             if modified:  # v^n and the modified force (compiled_loop_modifiers)
-                run.modify_force()
+                run.modify_force(0.0)
             else:
                 run.lumped_solve(run.momentum, run.no_gravity, run.v_old, 1)
             run.lumped_solve(run.force, run.acceleration_gravity, run.a, 0)
@@ -638,8 +639,8 @@ def _update_stress(run, state, grid, velocity=None):
         t0 = monotonic_ns()
         if bbar:
             ca = run.cell_average
-            AVERAGE_DILATATION(ca[0], run.no_index, True, run.x, run.V, run.L, ca[1], ca[2],
-                               ca[3])
+            AVERAGE_DILATATION(ca[0], run.no_index, True, ca[1], run.x, run.V, run.L, ca[2],
+                               ca[3], ca[4], ca[5])
         if run.finite:
             F = run.F
             F_out = run.F_new
@@ -787,8 +788,8 @@ def _stage_rates(run, state, particles, c, reactions=False):
             return slot
         t0 = monotonic_ns()
         run.prepare_grid()
-        if modified:  # v, the modified force, then a (compiled_loop_modifiers)
-            run.modify_force()
+        if modified:  # v, the modified force at the stage's time, then a
+            run.modify_force(c)
             run.solve_acceleration()
         elif not consistent:
             run.lumped_solve(run.momentum, run.no_gravity, run.v_old, 1)

@@ -16,6 +16,7 @@ from it and gives it back, so the executor and the loop take turns.
 """
 import numpy as np
 
+from ..effects import modified_force
 from ..kernels.grid_modifiers import modify_forces, modify_velocities, pack_rules
 
 __all__ = ["CompiledModifiers"]
@@ -62,18 +63,20 @@ class CompiledModifiers:
             if rule.reacts:
                 modifier.take_rule_steps(states[:, r], reactions[:, r])
 
-    def modify_force(self, force, velocity, mass, dt):
-        """The grid force (a new array) changed by every modifier in order."""
+    def modify_force(self, force, velocity, mass, dt, t, stage):
+        """The grid force (a new array) changed by every modifier in order,
+        at time t + stage dt (stage 0 records the step: the protocol of
+        :mod:`skfem_mpm.effects`)."""
         force = force.copy()
         for modifier, rule, one in zip(self.modifiers, self.rules, self._one):
             if one is None:
-                force = modifier.modify_force(force, velocity, mass, dt)
+                force = modified_force(modifier, force, velocity, mass, dt, t, stage)
                 continue
             codes, parameters, offsets, dofs, reactions, data_offsets, data, states = one
             states[0] = modifier.rule_state()
             modify_forces(codes, parameters, offsets, dofs, force, velocity, mass, float(dt),
-                          reactions, data_offsets, data, states)
-            if rule.reacts:
+                          float(t), float(stage), reactions, data_offsets, data, states)
+            if rule.reacts and stage == 0.0:
                 modifier.take_rule_steps(states.copy(), reactions.copy())
         return force
 

@@ -13,7 +13,8 @@ stage, R(t, y) at the staged particles y:
                             (tiny-mass merge, fast-dof guard, hybrid mass),
                             constrained dofs: v(t) and dv/dt(t)
                             (:func:`runge_kutta.prescribed_acceleration`);
-                            force modifiers (damping) applied with that v
+                            force modifiers (damping, walls, footings)
+                            applied with that v at the stage's time
     rates                   one gather kernel: N v, N a, V tr L and, for
                             linear elasticity, its stress rate, else L
                             (:mod:`skfem_mpm.kernels.gather`); other
@@ -122,7 +123,8 @@ class CompiledRungeKutta:
                     if gravity is not None:
                         force = force + mass[:, None] * gravity[None, :]
                         gravity = None
-                    force = self.force_modifiers.modify_force(force, v, mass, state.dt)
+                    force = self.force_modifiers.modify_force(force, v, mass, state.dt,
+                                                              state.t, c)
             with state.timer("solve"):
                 a = self._grid_solve(state, a_system, mass, force, a_values, "acceleration",
                                      self._a, a_small, gravity)

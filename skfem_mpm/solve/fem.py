@@ -38,6 +38,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
+from ..effects import modified_force
 from ..errors import SimulationError
 from ..kernels import resolve_backend
 from ..materials.state import split_update, state_layout
@@ -363,7 +364,7 @@ def fem(scene, method=None, save_every=None, progress=False):
             force = force + f_ext
         if model.force_modifiers:
             for modifier in model.force_modifiers:
-                force = modifier.modify_force(force, state.v, model.lumped, dt)
+                force = modified_force(modifier, force, state.v, model.lumped, dt, t, 0.0)
         with timer("solve"):
             a_values = (values(t + dt) - values(t)) / dt if constraints.prescribed \
                 else np.zeros_like(force)

@@ -71,7 +71,7 @@ class ReferenceExecutor:
 
     def stage_rates(self, state, particles, c, reactions=False):
         """R(t + c dt, particles) of a Runge-Kutta stage."""
-        return runge_kutta.stage_rates(state, particles, state.t + c * state.dt, reactions)
+        return runge_kutta.stage_rates(state, particles, c, reactions)
 
     def stage(self, state, rates, weights):
         return runge_kutta.staged_particles(state, rates, weights)

@@ -55,6 +55,7 @@ schemes' (their grid solve at t).
 """
 import numpy as np
 
+from ..effects import modified_force
 from ..errors import InvalidState
 from ..materials.base import Material, det
 from . import steps
@@ -153,11 +154,13 @@ def _material_rates(state, particles, L):
     return stress_rate, F_rate, V_rate
 
 
-def stage_rates(state, particles, t, reactions=False):
-    """R(t, y) for the particles ``particles`` (a stage state) at time t:
-    particles to grid, M v = P and M a = f (force modifiers such as damping
-    applied with that v), grid to particles. ``reactions``: set the state's
-    reactions from this stage's acceleration solve."""
+def stage_rates(state, particles, stage, reactions=False):
+    """R(t, y) for the particles ``particles`` (a stage state) at the
+    stage's time t = state.t + stage dt: particles to grid, M v = P and M a = f
+    (force modifiers such as damping applied with that v, at that time:
+    see :mod:`skfem_mpm.effects`), grid to particles. ``reactions``: set
+    the state's reactions from this stage's acceleration solve."""
+    t = state.t + stage * state.dt
     data = steps.particles_to_grid(state, particles, t)
     c = state.constraints
     with state.timer("solve"):
@@ -168,7 +171,8 @@ def stage_rates(state, particles, t, reactions=False):
     if state.force_modifiers:
         with state.timer("effects"):
             for modifier in state.force_modifiers:
-                force = modifier.modify_force(force, v, data.lumped, state.dt)
+                force = modified_force(modifier, force, v, data.lumped, state.dt, state.t,
+                                       stage)
     with state.timer("solve"):
         a = system.solve(force, prescribed_acceleration(c, t, state.dt), "acceleration")
         system.remember("acceleration", a)

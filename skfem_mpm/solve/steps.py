@@ -28,6 +28,7 @@ state intact.
 """
 import numpy as np
 
+from ..effects import modified_force
 from ..errors import InvalidState
 from ..kernels.step_size import guard_limit
 from ..materials.state import split_update
@@ -332,7 +333,8 @@ def solve_grid(state, data, need_old_velocity=False, end_velocity=None):
     if state.force_modifiers:
         with state.timer("effects"):
             for modifier in state.force_modifiers:
-                force = modifier.modify_force(force, data.velocity_old, data.lumped, dt)
+                force = modified_force(modifier, force, data.velocity_old, data.lumped, dt,
+                                       t, 0.0)
     with state.timer("solve"):
         system = step_system(state, data)
         c = state.constraints

@@ -128,7 +128,7 @@ def _warm_up_grid_rules(ndofs, dim):
     codes, parameters, offsets, dofs, reactions, data_offsets, data, states = pack_rules([], dim)
     zeros = np.zeros((ndofs, dim))
     modify_forces(codes, parameters, offsets, dofs, zeros, zeros.copy(), np.ones(ndofs), 0.1,
-                  reactions, data_offsets, data, states)
+                  0.0, 0.0, reactions, data_offsets, data, states)
     modify_velocities(codes, parameters, offsets, dofs, zeros, np.ones(ndofs), data_offsets,
                       data, states)
 
@@ -176,6 +176,8 @@ def _warm_up_point_laws(k, dim, materials):
             from ..kernels.records import grid_record
 
             x = np.array([[b[0] for b in k.grid.bounds]])
-            average_dilatation(grid_record(k.grid)[0], np.zeros(0, dtype=np.int64), True, x,
-                               np.ones(1), one.copy(), np.zeros(k.grid.ncells),
-                               np.zeros(k.grid.ncells), np.zeros(1, dtype=np.int64))
+            per = (1 << dim) if material.vertices else 1
+            average_dilatation(grid_record(k.grid)[0], np.zeros(0, dtype=np.int64), True,
+                               material.vertices, x, np.ones(1), one.copy(),
+                               np.zeros(material.functions), np.zeros(material.functions),
+                               np.zeros((1, per), dtype=np.int64), np.zeros((1, per)))
