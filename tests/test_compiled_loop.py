@@ -909,6 +909,19 @@ def test_bodies_of_one_linear_elastic_material_run_in_the_loop(monkeypatch, sche
     assert np.abs(looped.history["stress"][-1]).max() > 0
 
 
+@pytest.mark.parametrize("save_every", [None, 23])
+def test_the_last_save_keeps_the_last_steps_arrays(save_every):
+    """The save of the last step (after the loop, or its own save_every
+    save) keeps the arrays the result's particles hold (nothing writes them
+    again) instead of a copy: a state less per particle at the peak."""
+    result = simulate(two_blocks(), Method(scheme="usl"), save_every=save_every)
+    assert result.counts["steps"] == 23
+    saved = dict.__getitem__(result.history, "x")  # the list, before History stacks it
+    assert saved[-1] is result.particles.x
+    assert dict.__getitem__(result.history, "stress")[-1] is result.particles.stress
+    assert not np.array_equal(saved[-1], saved[0])
+
+
 def test_bodies_of_different_materials_stay_with_the_executor():
     state = prepare(two_blocks(E_right=20.0), Method())
     executor = CompiledExecutor(state)

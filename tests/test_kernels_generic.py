@@ -1,6 +1,7 @@
 """The particle-grid kernels generated from one source for 1D, 2D and 3D
 (skfem_mpm.kernels.scatter / gather) against the transfer-matrix reference,
 directly and through the compiled executor's binding (kernels.mpm.Kernels)."""
+import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -495,3 +496,68 @@ def test_sorted_distinct_is_np_unique():
         for _ in range(10):
             values = rng.integers(-3, 9, size=n + 1).astype(np.int64)
             np.testing.assert_array_equal(_sorted_distinct(values), np.unique(values))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_p2g_writes_the_grid_near_the_particles_only(dim):
+    """reduce_fields rewrites only the nodes of the particles' hull and of
+    the last call's (Transfers.occupied), on arrays that start as zeros:
+    with particles in one corner, then in the opposite one, then in the
+    first again, p2g's arrays equal the sum of the per-thread copies over
+    every node (zero outside the hull: nothing stale), and the one-pass USL grid
+    step on those ranges gives the a and v of a pass over every node. The
+    serial copies (those compiled for small runs), three thread blocks."""
+    grid, rng = make(dim, 2, "uniform")
+    t = Transfers(grid, nthreads=3, parallel=False)
+    nd = grid.ndofs
+    lo = np.array([b[0] for b in grid.bounds])
+    hi = np.array([b[1] for b in grid.bounds])
+    full = np.array([0, nd, 0, nd])
+    usl = for_threads(mpm.usl_grid, False)
+    mask = np.zeros((nd, dim), dtype=bool)
+    mask[:3] = True  # constrained dofs far from the second corner
+    a, v = np.zeros((nd, dim)), np.zeros((nd, dim))
+    for corner in (0.25, 0.6, 0.25):
+        p_ = particles(grid, 60, rng, "cells")
+        p_.x = lo + (hi - lo) * (corner + 0.15 * rng.random((60, dim)))
+        mass, momentum, force = (x.copy() for x in t.p2g(p_))
+        copies, touched = t.copies(1 + 2 * dim)
+        first, last = int(touched[:, 0].min()), int(touched[:, 1].max())
+        assert tuple(t.occupied[:2]) == (first, last) and 0 < first and last < nd
+        summed = copies.sum(axis=0)  # the copies are zero outside their ranges
+        everywhere = (summed[:, 0], summed[:, 1:1 + dim], summed[:, 1 + dim:])
+        for got, want in zip((mass, momentum, force), everywhere):
+            assert np.array_equal(got, want)
+            assert not np.any(got[:first]) and not np.any(got[last:])
+        gravity = np.full(dim, -2.0)
+        a_all, v_all = np.full((nd, dim), np.nan), np.full((nd, dim), np.nan)
+        usl(mass, momentum, force, gravity, mask, force, force, False, 0.1, a_all, v_all,
+            full.copy())
+        usl(mass, momentum, force, gravity, mask, force, force, False, 0.1, a, v, t.occupied)
+        assert np.array_equal(a, a_all) and np.array_equal(v, v_all)
+        assert tuple(t.occupied[2:]) == (first, last)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads VmRSS (Linux)")
+def test_lazy_zeros_take_memory_only_where_written():
+    """kernels.pages.lazy_zeros: C-contiguous writable zeros whose pages are
+    mapped on first write: reading all of 64 MiB maps (nearly) nothing,
+    writing a quarter maps about that quarter."""
+    from skfem_mpm.kernels.pages import lazy_zeros
+
+    def rss_mib():
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+        raise AssertionError("no VmRSS")
+
+    size = 64 << 20
+    before = rss_mib()
+    a = lazy_zeros((size // 8 // 4, 4))
+    assert a.flags.c_contiguous and a.flags.writeable and a.dtype == np.float64
+    assert a.sum() == 0.0
+    read = rss_mib() - before
+    a[: a.shape[0] // 4] = 1.0
+    written = rss_mib() - before
+    assert read < 4 and 12 < written - read < 24, (read, written)

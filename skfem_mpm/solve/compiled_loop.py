@@ -383,12 +383,13 @@ class StepLoop:
         x, v, u, V, stress = self._arrays
         vec = (lambda: empty((n, dim)))
         fields = dict(
-            x=x, v=v, u=u, m=np.array(p.m, dtype=np.float64), V=V, stress=stress,
+            x=x, v=v, u=u, m=np.ascontiguousarray(p.m, dtype=np.float64), V=V, stress=stress,
             x_new=vec(), v_new=vec(), u_new=vec(), V_new=empty(n),
             stress_new=empty((n, dim, dim)),
             acc=vec() if cd else np.zeros((1, dim)),
             L=np.empty((1, 1, 1)) if self.fused else empty((n, dim, dim)),
             grid=grid_record(grid), mass_range=np.zeros((k.nthreads, 2)),
+            occupied=k.transfers.occupied,  # shared with the executor, as the grid arrays
             copies_p2g=copies_p2g, touched_p2g=touched_p2g, copies_g2p2g=copies_g2p2g,
             touched_g2p2g=touched_g2p2g,
             mask=np.ascontiguousarray(state.constraints.mask),
@@ -594,7 +595,8 @@ class StepLoop:
             tau=zeros((1, 3, dim)), first_step=0, faces=zeros((count, dim)),
             loads=zeros((count, dim)), zero_v=zeros((count, dim)), zero_m=zeros(count),
             zero_stress=zeros((count, dim, dim)), mass=zeros(nd), momentum=zeros((nd, dim)),
-            force=zeros((nd, dim)), mass_range=zeros((k.nthreads, 2)))
+            force=zeros((nd, dim)), mass_range=zeros((k.nthreads, 2)),
+            occupied=zeros(4, dtype=np.int64))
         return self.module.new_side_traction(
             *(fields[name] for name in self.module.TRACTION_FIELDS))
 
