@@ -1079,14 +1079,14 @@ def _dots(r, z, partial):
 def apply_kron(kron, r, z):
     """z = P^-1 r with the Kronecker arguments ``kron``: those of
     :func:`~skfem_mpm.kernels.kronecker.apply_kronecker` (two factors, 1D
-    and 2D) or, a tuple of seven, of ``apply_kronecker_axes`` (three
-    factors, 3D). Compiled code only (chosen by the tuple's type)."""
+    and 2D) or, a tuple of eight, of ``apply_kronecker_axes`` (three
+    factors per box, 3D). Compiled code only (chosen by the tuple's type)."""
     raise NotImplementedError("apply_kron is called from compiled code only")
 
 
 @overload(apply_kron)
 def _apply_kron_typed(kron, r, z):
-    if len(kron) == 7:
+    if len(kron) == 8:
         return lambda kron, r, z: apply_kronecker_axes(*kron, r, z)
     return lambda kron, r, z: apply_kronecker(*kron, r, z)
 
@@ -1099,9 +1099,8 @@ def narrow_kron(kron, now, n):
 
 @overload(narrow_kron)
 def _narrow_kron_typed(kron, now, n):
-    if len(kron) == 7:
-        return lambda kron, now, n: (kron[0], kron[1], kron[2], kron[3], kron[4],
-                                     _narrow(now[5], n), kron[6])
+    if len(kron) == 8:  # a flat work space: apply_kronecker_axes reads nc from r
+        return lambda kron, now, n: now
     return lambda kron, now, n: (kron[0], kron[1], kron[2], kron[3], _narrow(now[4], n),
                                  kron[5])
 

@@ -134,6 +134,7 @@ _GRID_KERNELS = {
     "EXPAND_PROBLEM": mpm.expand_problem,
     "ELL_PCG": mpm.ell_pcg,
     "FIT_KRONECKER": kronecker.fit_kronecker,
+    "KRONECKER_BOXES": kronecker.kronecker_boxes,
     # the tiny-mass merge of consistent mass (compiled_loop_mass)
     "NEIGHBOUR_MAXIMA": tiny_mass.neighbour_maxima,
     "MERGING_ROWS": tiny_mass.merging_rows,
@@ -298,9 +299,9 @@ def _prelude(dim, parallel, window, variant):
                 3: "(b0, u0, ih0, C0), (b1, u1, ih1, C1), (b2, u2, ih2, C2) = axes\n"
                    "    CONSISTENT_AXES(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, "
                    "p, nbx, nby, copies, stiff, touched)"}[dim]
-    kronecker = ("return (cm.Lx[g], cm.Ly[g], cm.Lz[g], cm.box_index[g, :n], "
-                 "cm.inv_scale[g, :n], cm.box[:nz * ny * nx * nc].reshape((nz, ny, nx, nc)), "
-                 "max(1, min(nt, ny * nx)))" if dim == 3 else
+    kronecker = ("return (cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz], cm.box_index[g, :n], "
+                 "cm.inv_scale[g, :n], cm.box, nt, cm.boxes[g, :cm.n_boxes[g]])"
+                 if dim == 3 else
                  "return (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n], "
                  "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)))")
     body = f'''
@@ -323,7 +324,7 @@ def ASSEMBLE(x, m, axes, p, nbx, nby, copies, stiff, touched):
 def KRONECKER_ARGS(cm, g, n, nc, nt):
     """Group g's Kronecker preconditioner for n rows and nc columns as
     ell_pcg takes it (KroneckerData.args: apply_kronecker's arguments,
-    3D apply_kronecker_axes')."""
+    3D apply_kronecker_axes', its boxes' factors concatenated)."""
     nz, ny, nx = cm.box_shape[g, 0], cm.box_shape[g, 1], cm.box_shape[g, 2]
     {kronecker}
 '''
@@ -676,6 +677,7 @@ class StepLoop:
         for g, comps in enumerate(groups.values()):
             group_comps[g, :len(comps)] = comps
         nc = 2 * dim  # the most columns of a CG run: two problems
+        boxes = kronecker.MAX_BOXES if dim == 3 else 1  # (the concatenated factors' rows)
         merged_size = int(cls.MERGE_BUFFER * nd * ns)  # as StencilSystem's
         zeros, empty = np.zeros, np.empty
         fields = dict(
@@ -698,14 +700,16 @@ class StepLoop:
             # leaves its pages unmapped)
             F=zeros((G, nd, ns)), fcols=zeros((G, nd, ns), dtype=np.int32),
             inv_diag=zeros((G, nd)),
-            Lx=zeros((G, nbx, p + 1)), Ly=np.ones((G, nby, p + 1)),
-            Lz=np.ones((G, nbz, p + 1)),
+            Lx=zeros((G, boxes * nbx, p + 1)), Ly=np.ones((G, boxes * nby, p + 1)),
+            Lz=np.ones((G, boxes * nbz, p + 1)),
             boxed_rows=zeros((G, nd), dtype=np.int64),
             n_boxed=np.full(G, -1, dtype=np.int64), box_shape=zeros((G, 3), dtype=np.int64),
             box_index=zeros((G, nd), dtype=np.int64),
             box_coords=zeros((G, nd, 3), dtype=np.int64), inv_scale=zeros((G, nd)),
-            fit_bands=zeros((3, max(nbx, nby, nbz), p + 1)),
-            fit_sums=zeros((3, max(nbx, nby, nbz))),
+            fit_bands=zeros((3, boxes * max(nbx, nby, nbz), p + 1)),
+            fit_sums=zeros((3, boxes * max(nbx, nby, nbz))),
+            boxes=zeros((G, kronecker.MAX_BOXES, kronecker.BOX_FIELDS), dtype=np.int64),
+            n_boxes=zeros(G, dtype=np.int64),
             b=empty(nd * nc), x=empty(nd * nc), work=empty(6 * nd * nc),
             box=empty(nbx * nby * nbz * nc), rtol=1e-13,
             max_iterations=int(cls.max_iterations or 0),

@@ -30,7 +30,10 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
                     of T, :func:`skfem_mpm.kernels.tiny_mass.merging_rows`,
                     and the system T^T M' T on its kept free dofs,
                     :mod:`skfem_mpm.kernels.merged_mass`), the
-                    preconditioner fitted to that system's stencil part
+                    preconditioner fitted to that system's stencil part;
+                    in 3D one Kronecker box per coupled component of the
+                    fitted rows (kernels.kronecker.kronecker_boxes), as
+                    KroneckerData.of_system builds them
     mass_solve      M x = rhs on the free dofs (constrained dofs their
                     prescribed values, or 0; massless dofs 0: the fixed
                     columns' known values moved to the right-hand side
@@ -78,6 +81,11 @@ MASS_FIELDS = (
     # (a, b, c) per row, scaling; fit_kronecker's work space
     "Lx", "Ly", "Lz", "boxed_rows", "n_boxed", "box_shape", "box_index", "box_coords",
     "inv_scale", "fit_bands", "fit_sums",
+    # 3D: one box per coupled component (kernels.kronecker.kronecker_boxes):
+    # the boxes' rows of apply_kronecker_axes and their count; box_shape
+    # the concatenated factors' lengths, box_coords the rows' coordinates
+    # in them, box_index their entries in the work space (-1: diagonal)
+    "boxes", "n_boxes",
     # conjugate gradients: right-hand sides, solutions, work space (flat)
     "b", "x", "work", "box", "rtol", "max_iterations", "fringe_from", "fringe_min_rows",
     "fringe_layers", "fringe_on", "iterations",
@@ -289,7 +297,12 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
                 cm.inv_diag[g, r] = 1.0 / mass[rows[r]]
         if n == 0:
             continue
-        _kronecker_box(cm, g, rows, nbx, nby)
+        if DIM == 3:  # a box per coupled component, built each step (they follow A)
+            cm.n_boxes[g] = KRONECKER_BOXES(fit, rows, cm.kept_index[g] if merged else
+                                            cm.index[g], p, nbx, nby, nd, cm.box_coords[g, :n],
+                                            cm.box_index[g, :n], cm.boxes[g], cm.box_shape[g])
+        else:
+            _kronecker_box(cm, g, rows, nbx, nby)
         nz = cm.box_shape[g, 0]
         ny = cm.box_shape[g, 1]
         nx = cm.box_shape[g, 2]
