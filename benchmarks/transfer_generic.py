@@ -158,6 +158,7 @@ def new_calls(grid, p, ga, gv, dt, lame, window=None):
     L = np.empty((p.n, dim, dim))
     acc = np.zeros((1, dim))
     out = (np.empty(grid.ndofs), np.empty((grid.ndofs, dim)), np.empty((grid.ndofs, dim)))
+    everywhere = np.array([0, grid.ndofs, 0, grid.ndofs])  # every node written, as before
     p2g = p2g_kernel(dim, deg, window)
     g2p2g = g2p2g_kernel(dim, deg, window)
     g2p = g2p_kernel(dim, deg)
@@ -168,7 +169,7 @@ def new_calls(grid, p, ga, gv, dt, lame, window=None):
         "g2p2g": lambda: g2p2g(parts, record, ga, dt, vnew, copies2, touched2),
         "g2p": lambda: g2p(parts, record, ga, gv, fused, new, L, acc, t.flags),
         "g2p L": lambda: g2p(parts, record, ga, gv, stored, new, L, acc, t.flags),
-        "reduce": lambda: reduce_fields(copies, touched, *out, t.mass_range),
+        "reduce": lambda: reduce_fields(copies, touched, *out, t.mass_range, everywhere),
     }
 
 

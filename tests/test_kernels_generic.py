@@ -1,6 +1,7 @@
 """The particle-grid kernels generated from one source for 1D, 2D and 3D
 (skfem_mpm.kernels.scatter / gather) against the transfer-matrix reference,
 directly and through the compiled executor's binding (kernels.mpm.Kernels)."""
+import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -459,7 +460,9 @@ def test_three_factor_kronecker_on_one_layer_is_the_two_factor_one():
         r = rng.standard_normal((nr, nc))
         z2, z3 = np.empty_like(r), np.empty_like(r)
         apply_kronecker(Lx, Ly, local, inv, np.empty((ny, nx, nc)), 2, r, z2)
-        apply_kronecker_axes(Lx, Ly, Ly, local, inv, np.empty((1, ny, nx, nc)), 2, r, z3)
+        one = np.array([[0, 1, ny, nx, 0, 0, 0]], dtype=np.int64)  # one box, one layer
+        apply_kronecker_axes(Lx, Ly, np.ones((1, 3)), local, inv, np.empty(ny * nx * nc), 2,
+                             one, r, z3)
         assert np.array_equal(z2, z3)
 
     def dense(L):  # (L L^T) from the stored factor
@@ -479,7 +482,8 @@ def test_three_factor_kronecker_on_one_layer_is_the_two_factor_one():
     inv = 0.5 + rng.random(nr)
     r = rng.standard_normal((nr, 2))
     z = np.empty_like(r)
-    apply_kronecker_axes(Lx, Ly, Lz, local, inv, np.empty((nz, ny, nx, 2)), 2, r, z)
+    box = np.array([[0, nz, ny, nx, 0, 0, 0]], dtype=np.int64)
+    apply_kronecker_axes(Lx, Ly, Lz, local, inv, np.empty(nr * 2), 2, box, r, z)
     M = np.kron(dense(Lz), np.kron(dense(Ly), dense(Lx)))
     S = np.diag(1.0 / inv)
     assert np.abs(S @ M @ S @ z - r).max() < 1e-10 * np.abs(r).max()
@@ -495,3 +499,146 @@ def test_sorted_distinct_is_np_unique():
         for _ in range(10):
             values = rng.integers(-3, 9, size=n + 1).astype(np.int64)
             np.testing.assert_array_equal(_sorted_distinct(values), np.unique(values))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_p2g_writes_the_grid_near_the_particles_only(dim):
+    """reduce_fields rewrites only the nodes of the particles' hull and of
+    the last call's (Transfers.occupied), on arrays that start as zeros:
+    with particles in one corner, then in the opposite one, then in the
+    first again, p2g's arrays equal the sum of the per-thread copies over
+    every node (zero outside the hull: nothing stale), and the one-pass USL grid
+    step on those ranges gives the a and v of a pass over every node. The
+    serial copies (those compiled for small runs), three thread blocks."""
+    grid, rng = make(dim, 2, "uniform")
+    t = Transfers(grid, nthreads=3, parallel=False)
+    nd = grid.ndofs
+    lo = np.array([b[0] for b in grid.bounds])
+    hi = np.array([b[1] for b in grid.bounds])
+    full = np.array([0, nd, 0, nd])
+    usl = for_threads(mpm.usl_grid, False)
+    mask = np.zeros((nd, dim), dtype=bool)
+    mask[:3] = True  # constrained dofs far from the second corner
+    a, v = np.zeros((nd, dim)), np.zeros((nd, dim))
+    for corner in (0.25, 0.6, 0.25):
+        p_ = particles(grid, 60, rng, "cells")
+        p_.x = lo + (hi - lo) * (corner + 0.15 * rng.random((60, dim)))
+        mass, momentum, force = (x.copy() for x in t.p2g(p_))
+        copies, touched = t.copies(1 + 2 * dim)
+        first, last = int(touched[:, 0].min()), int(touched[:, 1].max())
+        assert tuple(t.occupied[:2]) == (first, last) and 0 < first and last < nd
+        summed = copies.sum(axis=0)  # the copies are zero outside their ranges
+        everywhere = (summed[:, 0], summed[:, 1:1 + dim], summed[:, 1 + dim:])
+        for got, want in zip((mass, momentum, force), everywhere):
+            assert np.array_equal(got, want)
+            assert not np.any(got[:first]) and not np.any(got[last:])
+        gravity = np.full(dim, -2.0)
+        a_all, v_all = np.full((nd, dim), np.nan), np.full((nd, dim), np.nan)
+        usl(mass, momentum, force, gravity, mask, force, force, False, 0.1, a_all, v_all,
+            full.copy())
+        usl(mass, momentum, force, gravity, mask, force, force, False, 0.1, a, v, t.occupied)
+        assert np.array_equal(a, a_all) and np.array_equal(v, v_all)
+        assert tuple(t.occupied[2:]) == (first, last)
+
+
+def test_kronecker_boxes_follow_the_coupled_components():
+    """3D: the Kronecker preconditioner of KroneckerData.of_system takes one
+    box per coupled component of the matrix (kernels.kronecker.kronecker_boxes):
+    two blocks of free dofs, each a Kronecker product of its own banded
+    factors, within the stencil's reach of each other but not coupled
+    (zero entries between them), and dofs coupled to nothing: the
+    preconditioner is the exact inverse (P = A wherever A is a Kronecker
+    product, kernels.kronecker's docstring); one box over both blocks is
+    not."""
+    from skfem_mpm.kernels.kronecker import KroneckerData, apply_kronecker_axes
+
+    apply = serial(apply_kronecker_axes)
+    rng = np.random.default_rng(3)
+    p, nb = 2, 12
+    width = 2 * p + 1
+
+    def banded(n):  # SPD, positive entries, bandwidth p
+        K = np.diag(2.0 + rng.random(n))
+        for d, size in ((1, 0.5), (2, 0.1)):
+            off = size * rng.random(n - d)
+            K += np.diag(off, d) + np.diag(off, -d)
+        return K
+
+    # block 0: a in 1..4; block 1: a in 6..9 (2 = p apart: stencil slots
+    # between them exist, their entries are 0); both b, c in 2..5 and 3..7
+    blocks = [((1, 5), (2, 6), (3, 8)), ((6, 10), (2, 6), (3, 8))]
+    factors = [[banded(hi - lo) for lo, hi in axes] for axes in blocks]
+    lonely = [(11, 0, 0), (0, 11, 11)]  # coupled to nothing
+    owner, local = {}, {}
+    for i, axes in enumerate(blocks):
+        for c in range(*axes[2]):
+            for b in range(*axes[1]):
+                for a in range(*axes[0]):
+                    k = (c * nb + b) * nb + a
+                    owner[k] = i
+                    local[k] = (a - axes[0][0], b - axes[1][0], c - axes[2][0])
+    rows = np.array(sorted(list(owner) + [(c * nb + b) * nb + a for a, b, c in lonely]))
+    index = np.full(nb ** 3, -1, dtype=np.int64)
+    index[rows] = np.arange(rows.size)
+    A = np.zeros((rows.size, width ** 3))
+    for r, k in enumerate(rows):
+        a, b, c = k % nb, (k // nb) % nb, k // (nb * nb)
+        if k not in owner:
+            A[r, (width ** 3 - 1) // 2] = 1.5 + r
+            continue
+        Kx, Ky, Kz = factors[owner[k]]
+        la, lb, lc = local[k]
+        for s in range(width ** 3):
+            da, db, dc = s % width - p, (s // width) % width - p, s // (width * width) - p
+            j = ((c + dc) * nb + b + db) * nb + a + da
+            if owner.get(j, -1) == owner[k]:
+                ja, jb, jc = local[j]
+                A[r, s] = Kx[la, ja] * Ky[lb, jb] * Kz[lc, jc]
+    dense = np.zeros((rows.size, rows.size))
+    for r, k in enumerate(rows):
+        a, b, c = k % nb, (k // nb) % nb, k // (nb * nb)
+        for s in np.flatnonzero(A[r]):
+            da, db, dc = s % width - p, (s // width) % width - p, s // (width * width) - p
+            dense[r, index[((c + dc) * nb + b + db) * nb + a + da]] = A[r, s]
+    x = rng.standard_normal((rows.size, 2))
+    b = dense @ x
+    kron = KroneckerData.of_system(A, rows, (p, nb, nb, 3), index=index)
+    assert kron.boxes.shape[0] == 2
+    assert np.array_equal(np.flatnonzero(kron.local < 0), index[[(c * nb + b_) * nb + a
+                                                                 for a, b_, c in lonely]])
+    z = np.empty_like(b)
+    apply(*kron.args(2, 2), b, z)
+    assert np.abs(z - x).max() < 1e-12 * np.abs(x).max()
+    # one box over both blocks (the rows of both as one component): not exact
+    joined = A.copy()
+    first = [r for r, k in enumerate(rows) if owner.get(k) == 0 and local[k][0] == 3]
+    joined[first, (width ** 3 - 1) // 2 + 2] = 1e-300  # a coupling to block 1 (a + 2)
+    one = KroneckerData.of_system(joined, rows, (p, nb, nb, 3), index=index)
+    assert one.boxes.shape[0] == 1
+    apply(*one.args(2, 2), b, z)
+    assert np.abs(z - x).max() > 1e-3 * np.abs(x).max()
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads VmRSS (Linux)")
+def test_lazy_zeros_take_memory_only_where_written():
+    """kernels.pages.lazy_zeros: C-contiguous writable zeros whose pages are
+    mapped on first write: reading all of 64 MiB maps (nearly) nothing,
+    writing a quarter maps about that quarter."""
+    from skfem_mpm.kernels.pages import lazy_zeros
+
+    def rss_mib():
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+        raise AssertionError("no VmRSS")
+
+    size = 64 << 20
+    before = rss_mib()
+    a = lazy_zeros((size // 8 // 4, 4))
+    assert a.flags.c_contiguous and a.flags.writeable and a.dtype == np.float64
+    assert a.sum() == 0.0
+    read = rss_mib() - before
+    a[: a.shape[0] // 4] = 1.0
+    written = rss_mib() - before
+    assert read < 4 and 12 < written - read < 24, (read, written)

@@ -18,13 +18,13 @@ tests compare the two to 1e-12.
 import math
 
 import numpy as np
-from numba import get_num_threads, njit, prange
+from numba import get_num_threads, njit, prange, types
 from numba.extending import overload
 
 from .band_factor import apply_band_factor
 from .fringe import apply_corrected
 from .kronecker import apply_kronecker, apply_kronecker_axes
-from .scatter import holders
+from .scatter import holders, node_hull
 from .serial import for_threads
 from .stencil import closed_axis_functions
 from .tiny_mass import merged_lumped_solve_axes
@@ -430,12 +430,17 @@ def lumped_solve(mass, rhs, gravity, constrained, values, has_values, out):
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def usl_grid(mass, momentum, force, gravity, constrained, v_values, a_values, has_values,
-             vdt, a, v_new):
+             vdt, a, v_new, occupied):
     """The USL/CD grid step in one pass: a = f / m + g, v_new = P / m + vdt a
     on free dofs with mass; constraint values (or 0) on constrained dofs; 0
-    on empty dofs."""
+    on empty dofs. Written on the nodes of the two ranges of ``occupied``
+    (see :func:`skfem_mpm.kernels.scatter.reduce_fields`: the mass is zero
+    outside the first, a and v_new outside both hold zeros or constraint
+    values), after which the second is the first; ``occupied`` = (0, nk,
+    0, nk) writes every node."""
     nk, dim = force.shape
-    for k in prange(nk):
+    lo, hi = node_hull(occupied[0], occupied[1], occupied[2], occupied[3])
+    for k in prange(lo, hi):
         mk = mass[k]
         for c in range(dim):
             if constrained[k, c]:
@@ -449,6 +454,8 @@ def usl_grid(mass, momentum, force, gravity, constrained, v_values, a_values, ha
                 ak = 0.0
             a[k, c] = ak
             v_new[k, c] = vo + vdt * ak
+    occupied[2] = occupied[0]
+    occupied[3] = occupied[1]
 
 
 WORK_BLOCKS = 16
@@ -767,12 +774,17 @@ class Kernels:
         return small, int(count)
 
     def usl_grid(self, mass, momentum, force, gravity, constrained, v_values, a_values, vdt,
-                 a, v_new):
-        """One pass of the USL/CD grid step (see usl_grid)."""
+                 a, v_new, occupied=None):
+        """One pass of the USL/CD grid step (see usl_grid); ``occupied``:
+        the node ranges of the transfers' arrays (Transfers.occupied) when
+        ``mass`` is theirs and ``a``, ``v_new`` start as zeros, else None
+        (every node)."""
         has = v_values is not None
+        if occupied is None:
+            occupied = np.array([0, mass.shape[0], 0, mass.shape[0]], dtype=np.int64)
         self.kernel(usl_grid)(mass, momentum, force, gravity, constrained,
                               v_values if has else force, a_values if has else force, has, vdt,
-                              a, v_new)
+                              a, v_new, occupied)
 
     def merged_solve(self, mass, rhs, gravity, constrained, values, tol, out):
         """Lumped solve with the tiny-mass merge into ``out``; returns the
@@ -1070,14 +1082,15 @@ def apply_kron(kron, r, z):
     :func:`~skfem_mpm.kernels.kronecker.apply_kronecker` (two factors, 1D
     and 2D) followed by a band factor and whether to apply it instead
     (:func:`~skfem_mpm.kernels.band_factor.apply_band_factor`), or, a
-    tuple of seven, those of ``apply_kronecker_axes`` (three factors, 3D).
-    Compiled code only (chosen by the tuple's type)."""
+    tuple of eight ending in the boxes' rows, those of
+    ``apply_kronecker_axes`` (three factors per box, 3D). Compiled code only
+    (chosen by the type of the tuple's last item)."""
     raise NotImplementedError("apply_kron is called from compiled code only")
 
 
 @overload(apply_kron)
 def _apply_kron_typed(kron, r, z):
-    if len(kron) == 7:
+    if isinstance(kron[-1], types.Array):  # 3D: the boxes' rows last
         return lambda kron, r, z: apply_kronecker_axes(*kron, r, z)
 
     def apply(kron, r, z):
@@ -1096,9 +1109,8 @@ def narrow_kron(kron, now, n):
 
 @overload(narrow_kron)
 def _narrow_kron_typed(kron, now, n):
-    if len(kron) == 7:
-        return lambda kron, now, n: (kron[0], kron[1], kron[2], kron[3], kron[4],
-                                     _narrow(now[5], n), kron[6])
+    if isinstance(kron[-1], types.Array):  # 3D: apply_kronecker_axes reads nc from r
+        return lambda kron, now, n: now
     return lambda kron, now, n: (kron[0], kron[1], kron[2], kron[3], _narrow(now[4], n),
                                  kron[5], kron[6], kron[7])
 

@@ -50,8 +50,10 @@ __all__ = [
     "g2p2g_source",
     "p2g_kernel",
     "p2g_source",
+    "node_hull",
     "reduce_copies",
     "reduce_fields",
+    "touched_hull",
 ]
 
 
@@ -338,20 +340,54 @@ def _starts(threads, count, size):
     return starts
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def node_hull(lo0, hi0, lo1, hi1):
+    """The smallest node range [lo, hi) holding [lo0, hi0) and [lo1, hi1)
+    (a range with lo >= hi is empty; two empty ones give (0, 0))."""
+    if lo0 >= hi0:
+        return (lo1, hi1) if lo1 < hi1 else (0, 0)
+    if lo1 >= hi1:
+        return lo0, hi0
+    return min(lo0, lo1), max(hi0, hi1)
+
+
+@njit(cache=True, error_model="numpy")
+def touched_hull(touched):
+    """The node range [lo, hi) holding every thread's touched range."""
+    lo, hi = 0, 0
+    for t in range(touched.shape[0]):
+        lo, hi = node_hull(lo, hi, touched[t, 0], touched[t, 1])
+    return lo, hi
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def reduce_fields(copies, touched, mass, momentum, force, mass_range):
+def reduce_fields(copies, touched, mass, momentum, force, mass_range, occupied):
     """Sum the per-thread copies of p2g's (m, P, f) into three arrays;
-    mass_range[r] = (smallest positive, largest) mass of chunk r's nodes."""
+    mass_range[r] = (smallest positive, largest) mass of chunk r's nodes.
+
+    ``occupied`` (4,) holds two node ranges [lo, hi): entries 0-1 where
+    (m, P, f) may be nonzero, 2-3 where the grid acceleration and velocity
+    may be nonzero (other than constraint values; see
+    :func:`skfem_mpm.kernels.mpm.usl_grid`). Only the nodes of the copies'
+    ranges and of entries 0-1 are written (zero outside the copies'
+    ranges); entries 0-1 become the copies' hull and entries 2-3 grow by
+    it. A grid array whose first write is a call of this kernel (zeros on
+    a mapping of small pages, :func:`skfem_mpm.kernels.pages.lazy_zeros`)
+    then costs memory only near the particles. Whoever writes nonzero
+    values into (m, P, f) outside entries 0-1 widens them."""
     _, nk, nc = copies.shape
     dim = momentum.shape[1]
     nr = mass_range.shape[0]
     flat = copies.reshape(copies.size)
     P = momentum.reshape(momentum.size)
     f = force.reshape(force.size)
+    lo, hi = touched_hull(touched)
+    w0, w1 = node_hull(occupied[0], occupied[1], lo, hi)
+    span = w1 - w0
     for r in prange(nr):
         smallest = np.inf
         largest = 0.0
-        cuts, threads, counts = holders(touched, r * nk // nr, (r + 1) * nk // nr)
+        cuts, threads, counts = holders(touched, w0 + r * span // nr, w0 + (r + 1) * span // nr)
         for j in range(cuts.shape[0] - 1):
             count = counts[j]
             starts = _starts(threads[j], count, nk * nc)
@@ -367,6 +403,9 @@ def reduce_fields(copies, touched, mass, momentum, force, mass_range):
                                                             k * nc + 1 + dim + c)
         mass_range[r, 0] = smallest
         mass_range[r, 1] = largest
+    occupied[0] = lo
+    occupied[1] = hi
+    occupied[2], occupied[3] = node_hull(occupied[2], occupied[3], lo, hi)
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)

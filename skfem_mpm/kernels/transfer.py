@@ -9,6 +9,7 @@ import numpy as np
 from numba import get_num_threads
 
 from .gather import g2p_kernel, rates_kernel
+from .pages import lazy_zeros
 from .records import grid_record, particle_record
 from .scatter import g2p2g_kernel, p2g_kernel, reduce_copies, reduce_fields
 from .serial import for_threads
@@ -25,7 +26,11 @@ class Transfers:
     dimension). ``window``: the run window of the scatter kernels (None:
     where it pays, see :func:`skfem_mpm.kernels.scatter.p2g_kernel`).
     ``mass`` and ``mass_range`` hold the lumped mass of the last p2g call
-    and each reduction chunk's (smallest positive, largest) entry.
+    and each reduction chunk's (smallest positive, largest) entry;
+    ``occupied`` the node ranges where p2g's arrays and the grid
+    acceleration and velocity may be nonzero (see
+    :func:`~skfem_mpm.kernels.scatter.reduce_fields`): p2g's arrays and
+    the per-thread copies take memory only near the particles.
     ``parallel`` False: the serial kernels (the same blocks, the same bits)."""
 
     def __init__(self, grid, nthreads=None, window=None, parallel=True):
@@ -40,9 +45,11 @@ class Transfers:
         self._reduce_copies = for_threads(reduce_copies, self.parallel)
         self._copies = {}
         nd, dim = self.ndofs, self.dim
-        self.mass = np.empty(nd)
-        self._momentum = np.empty((nd, dim))
-        self._force = np.empty((nd, dim))
+        # p2g's arrays: written near the particles only (see reduce_fields)
+        self.mass = lazy_zeros(nd)
+        self._momentum = lazy_zeros((nd, dim))
+        self._force = lazy_zeros((nd, dim))
+        self.occupied = np.zeros(4, dtype=np.int64)
         self._projected = np.empty((nd, dim))
         self.mass_range = np.zeros((self.nthreads, 2))
         self._no_force = np.zeros((1, dim))
@@ -55,11 +62,18 @@ class Transfers:
         compiled loop: the two never step at once)."""
         return self.mass, self._momentum, self._force, self._projected
 
+    def occupy_all(self):
+        """Mark every node of (mass, momentum, force) as possibly nonzero
+        (``occupied``, see reduce_fields): after a write of nonzero values
+        outside the particles' nodes (a side traction's grid force)."""
+        self.occupied[0] = 0
+        self.occupied[1] = self.ndofs
+
     def copies(self, nfields):
         """Per-thread grid copies with ``nfields`` fields (zero outside their
         touched ranges) and those ranges."""
         if nfields not in self._copies:
-            self._copies[nfields] = (np.zeros((self.nthreads, self.ndofs, nfields)),
+            self._copies[nfields] = (lazy_zeros((self.nthreads, self.ndofs, nfields)),
                                      np.zeros((self.nthreads, 2), dtype=np.int64))
         return self._copies[nfields]
 
@@ -72,7 +86,7 @@ class Transfers:
             particle_record(particles), self.record, fext if has else self._no_force, has,
             copies, touched)
         self._reduce_fields(copies, touched, self.mass, self._momentum, self._force,
-                            self.mass_range)
+                            self.mass_range, self.occupied)
         return self.mass, self._momentum, self._force
 
     def g2p2g(self, particles, grid_a, dt, v_new):

@@ -49,6 +49,7 @@ from ..kernels.records import grid_record
 from ..kernels import serial
 from ..kernels.fast_dof import limit_by_effective_mass
 from ..kernels.mpm import Kernels, fast_row_fractions
+from ..kernels.pages import lazy_zeros
 from ..kernels.step_size import guard_limit
 from ..kernels.traction import loads_power, side_faces
 from ..materials import LinearElastic
@@ -163,8 +164,10 @@ class CompiledExecutor(CompiledRungeKutta):
         self._acc = None
         nd, dim = state.grid.ndofs, state.grid.dim
         self._v_old = np.empty((nd, dim))
-        self._v_new = np.empty((nd, dim))
-        self._a = np.empty((nd, dim))
+        # the grid velocity and acceleration: the one-pass USL grid step
+        # writes them near the particles only (Transfers.occupied)
+        self._v_new = lazy_zeros((nd, dim))
+        self._a = lazy_zeros((nd, dim))
         self._no_gravity = np.zeros(dim)
         self._no_index = np.zeros(0, dtype=np.int64)
         self._first_bad = np.full(self.kernels.nthreads, -1, dtype=np.int64)
@@ -442,6 +445,7 @@ class CompiledExecutor(CompiledRungeKutta):
         with state.timer("solve"):
             if grid.grid_force is not None:
                 grid.force += grid.grid_force
+                self.kernels.transfers.occupy_all()  # nonzero beyond the particles' nodes
             if grid.stencil is not None:
                 small = self._small_dofs(state, grid.mass)
                 grid.system = self._consistent_system(state, grid.mass, *grid.stencil, small)
@@ -481,9 +485,11 @@ class CompiledExecutor(CompiledRungeKutta):
         v_grid = None
         with state.timer("solve"):
             if factor is not None and not small and not state.force_modifiers:
+                transfers = k.transfers
                 k.usl_grid(mass, momentum, force, self._no_gravity if gravity is None
                            else gravity, c.mask, t_values, a_values, factor * dt,
-                           self._a, self._v_new)
+                           self._a, self._v_new,
+                           transfers.occupied if mass is transfers.mass else None)
                 a, v_grid = self._a, self._v_new
             elif factor is not None and a_system is not None and v_old is None:
                 a, v_old = self._consistent_solves(

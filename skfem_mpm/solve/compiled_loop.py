@@ -136,6 +136,7 @@ _GRID_KERNELS = {
     "FIT_KRONECKER": kronecker.fit_kronecker,
     "ELL_BAND_WIDTH": band_factor.ell_band_width,
     "FIT_BAND_FACTOR": band_factor.fit_band_factor,
+    "KRONECKER_BOXES": kronecker.kronecker_boxes,
     # the tiny-mass merge of consistent mass (compiled_loop_mass)
     "NEIGHBOUR_MAXIMA": tiny_mass.neighbour_maxima,
     "MERGING_ROWS": tiny_mass.merging_rows,
@@ -300,9 +301,9 @@ def _prelude(dim, parallel, window, variant):
                 3: "(b0, u0, ih0, C0), (b1, u1, ih1, C1), (b2, u2, ih2, C2) = axes\n"
                    "    CONSISTENT_AXES(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, "
                    "p, nbx, nby, copies, stiff, touched)"}[dim]
-    kronecker = ("return (cm.Lx[g], cm.Ly[g], cm.Lz[g], cm.box_index[g, :n], "
-                 "cm.inv_scale[g, :n], cm.box[:nz * ny * nx * nc].reshape((nz, ny, nx, nc)), "
-                 "max(1, min(nt, ny * nx)))" if dim == 3 else
+    kronecker = ("return (cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz], cm.box_index[g, :n], "
+                 "cm.inv_scale[g, :n], cm.box, nt, cm.boxes[g, :cm.n_boxes[g]])"
+                 if dim == 3 else
                  "w = cm.band_width[g]\n"
                  "    m = n if w >= 0 else 0  # the band factor's rows (none: Kronecker)\n"
                  "    band = cm.band[g, :m * (w + 1)].reshape((m, max(w, 0) + 1))\n"
@@ -328,7 +329,7 @@ def ASSEMBLE(x, m, axes, p, nbx, nby, copies, stiff, touched):
 def KRONECKER_ARGS(cm, g, n, nc, nt):
     """Group g's Kronecker preconditioner for n rows and nc columns as
     ell_pcg takes it (KroneckerData.args: apply_kronecker's arguments,
-    3D apply_kronecker_axes')."""
+    3D apply_kronecker_axes', its boxes' factors concatenated)."""
     nz, ny, nx = cm.box_shape[g, 0], cm.box_shape[g, 1], cm.box_shape[g, 2]
     {kronecker}
 '''
@@ -388,12 +389,13 @@ class StepLoop:
         x, v, u, V, stress = self._arrays
         vec = (lambda: empty((n, dim)))
         fields = dict(
-            x=x, v=v, u=u, m=np.array(p.m, dtype=np.float64), V=V, stress=stress,
+            x=x, v=v, u=u, m=np.ascontiguousarray(p.m, dtype=np.float64), V=V, stress=stress,
             x_new=vec(), v_new=vec(), u_new=vec(), V_new=empty(n),
             stress_new=empty((n, dim, dim)),
             acc=vec() if cd else np.zeros((1, dim)),
             L=np.empty((1, 1, 1)) if self.fused else empty((n, dim, dim)),
             grid=grid_record(grid), mass_range=np.zeros((k.nthreads, 2)),
+            occupied=k.transfers.occupied,  # shared with the executor, as the grid arrays
             copies_p2g=copies_p2g, touched_p2g=touched_p2g, copies_g2p2g=copies_g2p2g,
             touched_g2p2g=touched_g2p2g,
             mask=np.ascontiguousarray(state.constraints.mask),
@@ -600,7 +602,8 @@ class StepLoop:
             tau=zeros((1, 3, dim)), first_step=0, faces=zeros((count, dim)),
             loads=zeros((count, dim)), zero_v=zeros((count, dim)), zero_m=zeros(count),
             zero_stress=zeros((count, dim, dim)), mass=zeros(nd), momentum=zeros((nd, dim)),
-            force=zeros((nd, dim)), mass_range=zeros((k.nthreads, 2)))
+            force=zeros((nd, dim)), mass_range=zeros((k.nthreads, 2)),
+            occupied=zeros(4, dtype=np.int64))
         return self.module.new_side_traction(
             *(fields[name] for name in self.module.TRACTION_FIELDS))
 
@@ -681,6 +684,7 @@ class StepLoop:
             group_comps[g, :len(comps)] = comps
         nc = 2 * dim  # the most columns of a CG run: two problems
         band_max = int(cls.BAND_MAX) if dim == 2 else 0
+        boxes = kronecker.MAX_BOXES if dim == 3 else 1  # (the concatenated factors' rows)
         merged_size = int(cls.MERGE_BUFFER * nd * ns)  # as StencilSystem's
         zeros, empty = np.zeros, np.empty
         fields = dict(
@@ -703,14 +707,16 @@ class StepLoop:
             # leaves its pages unmapped)
             F=zeros((G, nd, ns)), fcols=zeros((G, nd, ns), dtype=np.int32),
             inv_diag=zeros((G, nd)),
-            Lx=zeros((G, nbx, p + 1)), Ly=np.ones((G, nby, p + 1)),
-            Lz=np.ones((G, nbz, p + 1)),
+            Lx=zeros((G, boxes * nbx, p + 1)), Ly=np.ones((G, boxes * nby, p + 1)),
+            Lz=np.ones((G, boxes * nbz, p + 1)),
             boxed_rows=zeros((G, nd), dtype=np.int64),
             n_boxed=np.full(G, -1, dtype=np.int64), box_shape=zeros((G, 3), dtype=np.int64),
             box_index=zeros((G, nd), dtype=np.int64),
             box_coords=zeros((G, nd, 3), dtype=np.int64), inv_scale=zeros((G, nd)),
-            fit_bands=zeros((3, max(nbx, nby, nbz), p + 1)),
-            fit_sums=zeros((3, max(nbx, nby, nbz))),
+            fit_bands=zeros((3, boxes * max(nbx, nby, nbz), p + 1)),
+            fit_sums=zeros((3, boxes * max(nbx, nby, nbz))),
+            boxes=zeros((G, kronecker.MAX_BOXES, kronecker.BOX_FIELDS), dtype=np.int64),
+            n_boxes=zeros(G, dtype=np.int64),
             b=empty(nd * nc), x=empty(nd * nc), work=empty(6 * nd * nc),
             box=empty(nbx * nby * nbz * nc), rtol=1e-13,
             max_iterations=int(cls.max_iterations or 0),

@@ -34,6 +34,9 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
                     a group whose band factor is on (StencilSystem.BAND_FROM)
                     and whose system is narrow enough gets the band
                     factor of its rows instead (kernels.band_factor)
+                    in 3D one Kronecker box per coupled component of the
+                    fitted rows (kernels.kronecker.kronecker_boxes), as
+                    KroneckerData.of_system builds them
     mass_solve      M x = rhs on the free dofs (constrained dofs their
                     prescribed values, or 0; massless dofs 0: the fixed
                     columns' known values moved to the right-hand side
@@ -86,6 +89,11 @@ MASS_FIELDS = (
     # iterations that switch it on, this step's band (-1: the Kronecker
     # preconditioner), the factor (flat, rows x (band + 1))
     "banded_on", "band_max", "band_from", "band_width", "band",
+    # 3D: one box per coupled component (kernels.kronecker.kronecker_boxes):
+    # the boxes' rows of apply_kronecker_axes and their count; box_shape
+    # the concatenated factors' lengths, box_coords the rows' coordinates
+    # in them, box_index their entries in the work space (-1: diagonal)
+    "boxes", "n_boxes",
     # conjugate gradients: right-hand sides, solutions, work space (flat)
     "b", "x", "work", "box", "rtol", "max_iterations", "fringe_from", "fringe_min_rows",
     "fringe_layers", "fringe_on", "iterations",
@@ -301,13 +309,18 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
         cm.band_width[g] = -1
         if n == 0:
             continue
-        if cm.banded_on[g] and not merged:
-            w = ELL_BAND_WIDTH(cm.cols[g, :n])
-            if w <= cm.band_max and FIT_BAND_FACTOR(cm.A[g, :n], cm.cols[g, :n],
-                                                    cm.band[g, :n * (w + 1)].reshape((n, w + 1))):
-                cm.band_width[g] = w
-                continue
-        _kronecker_box(cm, g, rows, nbx, nby)
+        if DIM == 3:  # a box per coupled component, built each step (they follow A)
+            cm.n_boxes[g] = KRONECKER_BOXES(fit, rows, cm.kept_index[g] if merged else
+                                            cm.index[g], p, nbx, nby, nd, cm.box_coords[g, :n],
+                                            cm.box_index[g, :n], cm.boxes[g], cm.box_shape[g])
+        else:
+            if cm.banded_on[g] and not merged:
+                w = ELL_BAND_WIDTH(cm.cols[g, :n])
+                if w <= cm.band_max and FIT_BAND_FACTOR(cm.A[g, :n], cm.cols[g, :n],
+                                                        cm.band[g, :n * (w + 1)].reshape((n, w + 1))):
+                    cm.band_width[g] = w
+                    continue
+            _kronecker_box(cm, g, rows, nbx, nby)
         nz = cm.box_shape[g, 0]
         ny = cm.box_shape[g, 1]
         nx = cm.box_shape[g, 2]

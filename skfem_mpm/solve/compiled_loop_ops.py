@@ -77,6 +77,7 @@ from numba import njit, types
 from numba.core.extending import overload_attribute, overload_method
 from numba.experimental import structref
 
+from skfem_mpm.kernels.scatter import node_hull
 from skfem_mpm.solve import schemes
 
 
@@ -98,8 +99,10 @@ FIELDS = (
     # particles: the current state and the arrays the step writes
     "x", "v", "u", "m", "V", "stress", "x_new", "v_new", "u_new", "V_new", "stress_new",
     "acc", "L",
-    # grid: record, lumped mass, momentum, force, per-thread copies
-    "grid", "mass", "momentum", "force", "mass_range", "copies_p2g", "touched_p2g",
+    # grid: record, lumped mass, momentum, force, per-thread copies, the
+    # node ranges those arrays and (a, v_grid) may be nonzero in
+    # (kernels.scatter.reduce_fields)
+    "grid", "mass", "momentum", "force", "mass_range", "occupied", "copies_p2g", "touched_p2g",
     "copies_g2p2g", "touched_g2p2g", "momentum_new", "a", "v_grid", "v_old", "mask", "gravity",
     "no_gravity", "no_force", "small", "small_tol", "small_count", "small_max", "nbx", "nby",
     "degree", "flags",
@@ -357,7 +360,7 @@ def _scatter(run, particles, column):
             faces = (st.faces, st.zero_v, st.zero_v, st.zero_m, st.zero_m, st.zero_stress)
             P2G(run.p2g_at, faces, run.grid, st.loads, True, run.copies_p2g, run.touched_p2g)
             REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, st.mass, st.momentum, st.force,
-                          st.mass_range)
+                          st.mass_range, st.occupied)
         if reconstructed:
             if tls:
                 fitted = call(tls_points, run.rc, particles[0], particles[1], run.m,
@@ -378,12 +381,15 @@ def _scatter(run, particles, column):
         fext, has_fext = run.particle_forces(column)  # (a body force: compiled_loop_body_force)
         P2G(run.p2g_at, points, run.grid, fext, has_fext, run.copies_p2g, run.touched_p2g)
         REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, run.mass, run.momentum, run.force,
-                      run.mass_range)
+                      run.mass_range, run.occupied)
         run.set_constraint_values(column)  # (prescribed velocities: compiled_loop_prescribed)
-        if traction:
-            for k in range(run.force.shape[0]):
+        if traction:  # its force is zero outside its nodes (the range occupied[0:2])
+            lo, hi = run.traction.occupied[0], run.traction.occupied[1]
+            for k in range(lo, hi):
                 for c in range(run.force.shape[1]):
                     run.force[k, c] = run.force[k, c] + run.traction.force[k, c]
+            run.occupied[0], run.occupied[1] = node_hull(run.occupied[0], run.occupied[1], lo,
+                                                         hi)
         run.small_count = 0  # tiny-mass dofs (see Kernels.small_mass): merged solves
         if run.small_tol > 0.0:
             smallest = np.inf
@@ -529,7 +535,7 @@ def _solve_grid(run, state, grid, end_velocity=None):
             v_values, has_values = run.constraint_values(run.momentum, 1)
             a_values, has_values = run.constraint_values(run.force, 0)
             USL_GRID(run.mass, run.momentum, run.force, run.gravity, run.mask, v_values,
-                     a_values, has_values, vdt, run.a, run.v_grid)
+                     a_values, has_values, vdt, run.a, run.v_grid, run.occupied)
         else:
             if modified:  # v^n and the modified force (compiled_loop_modifiers)
                 run.modify_force(0.0)

@@ -37,8 +37,9 @@ TRACTION_FIELDS = (
     # the faces and loads of the last evaluation; the faces as particles
     # that carry nothing else (zero velocity, mass, volume, stress)
     "faces", "loads", "zero_v", "zero_m", "zero_stress",
-    # the grid force and the p2g kernel's other outputs (not read)
-    "mass", "momentum", "force", "mass_range",
+    # the grid force and the p2g kernel's other outputs (not read), the
+    # node range of the force (kernels.scatter.reduce_fields)
+    "mass", "momentum", "force", "mass_range", "occupied",
 )
 
 

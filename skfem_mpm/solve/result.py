@@ -113,8 +113,10 @@ class Recorder:
     """Collects saves during a run and builds the Result.
 
     The reference positions and particle indices are stored once for as
-    long as they do not change, and the initial save shares the arrays of
-    the state it was given (nothing writes into them)."""
+    long as they do not change, and the initial and the final save share
+    the arrays of the state they were given (nothing writes into them:
+    the scene's own arrays, and those of the last step, which the result
+    holds as its particles too)."""
 
     def __init__(self):
         self.times = []
@@ -125,7 +127,7 @@ class Recorder:
 
     def save(self, state, share=False):
         """Record the state; ``share`` keeps references instead of copies
-        (for the initial state, which no step writes into)."""
+        (for the initial and the final state, which no step writes into)."""
         p = state.particles
         self.times.append(float(state.t))
         v = state.reported_velocity()

@@ -195,7 +195,9 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
             if bar is not None:
                 bar.update(taken)
             if save_every is not None and state.step % save_every == 0:
-                recorder.save(state)
+                # the last step's arrays are written no more: shared unless a
+                # callback may still edit them in place
+                recorder.save(state, share=state.done and callback is None)
             if checkpoint is not None and state.step % checkpoint[1] == 0:
                 from ..io import write_checkpoint
 
@@ -228,6 +230,7 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - t0
+    loop = None  # its spare particle arrays and grid copies go before the last save
     if recorder.last_step_saved != state.step:
-        recorder.save(state)
+        recorder.save(state, share=True)  # no step writes the final arrays again
     return recorder.result(state, wall, jit_time, extra={"path": path})

@@ -41,7 +41,9 @@ class StencilSystem:
     into a compact row-by-row (ELL) matrix. The preconditioner is the
     Kronecker one of :mod:`skfem_mpm.kernels.kronecker` with the factors
     fitted to that matrix each step (:func:`~skfem_mpm.kernels.kronecker.fit_kronecker`;
-    ``"kronecker"``, default), with the fringe correction of :mod:`skfem_mpm.kernels.fringe`
+    ``"kronecker"``, default; in 3D one box per coupled component of the
+    matrix, :func:`~skfem_mpm.kernels.kronecker.kronecker_boxes`), with the
+    fringe correction of :mod:`skfem_mpm.kernels.fringe`
     on ``FRINGE_LAYERS`` layers of the free-dof set's edge (2D) once the
     Kronecker step alone has needed ``FRINGE_FROM`` iterations (0 layers:
     never), or the inverse lumped mass (``"lumped"``). On a 2D grid a
@@ -166,7 +168,8 @@ class StencilSystem:
         kron = None
         if self.preconditioner == "kronecker" and n:
             kron = KroneckerData.of_system(fit[:n * ns].reshape((n, ns)), merge.kept,
-                                           self.geometry, previous=self.memo.get(f"kronecker{g}"))
+                                           self.geometry, previous=self.memo.get(f"kronecker{g}"),
+                                           index=merge.kept_index)
             self.memo[f"kronecker{g}"] = kron
         group[3] = (Ar[:n * W].reshape((n, W)), colsr[:n * W].reshape((n, W)),
                     Fr[:n * WF].reshape((n, WF)), fcolsr[:n * WF].reshape((n, WF)),
@@ -207,7 +210,7 @@ class StencilSystem:
             kron = self._band(g, A, cols)
         if self.preconditioner == "kronecker" and rows.size and kron is None:
             kron = KroneckerData.of_system(A, rows, self.geometry,
-                                           previous=self.memo.get(f"kronecker{g}"))
+                                           previous=self.memo.get(f"kronecker{g}"), index=index)
             self.memo[f"kronecker{g}"] = kron
             if self.fringe_layers > 0 and (self.FRINGE_FROM <= 0
                                            or f"fringe{g}_on" in self.warm):
