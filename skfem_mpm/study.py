@@ -41,7 +41,7 @@ import multiprocessing
 import os
 import statistics
 import time
-from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Executor, ProcessPoolExecutor, wait
 from itertools import zip_longest
 
 from .benchmarks import get_benchmark
@@ -175,13 +175,14 @@ def _compiled_kernels():
 
     from numba.core.dispatcher import Dispatcher
 
-    def is_dispatcher(obj):
-        try:
-            return isinstance(obj, Dispatcher)
-        except ReferenceError:  # a weak proxy whose object is gone
-            return False
-
-    return {id(d): len(d.overloads) for d in gc.get_objects() if is_dispatcher(d)}
+    # the classes themselves, not isinstance: an ABC's instance check over
+    # every tracked object costs ~10x more (a timed run scans twice)
+    kinds, todo = set(), [Dispatcher]
+    while todo:
+        kind = todo.pop()
+        kinds.add(kind)
+        todo += [k for k in kind.__subclasses__() if k not in kinds]
+    return {id(d): len(d.overloads) for d in gc.get_objects() if type(d) in kinds}
 
 
 def _kernels_added(before):
@@ -210,8 +211,7 @@ def run_one(job):
     repeat = int(job.get("repeat", 1))
     if repeat < 1:
         raise ValueError(f"repeat must be a positive integer, got {repeat}")
-    method = Method(scheme=spec["scheme"], mass=spec["mass"],
-                    reconstruction=spec["reconstruction"], cfl=spec["cfl"], dt=job.get("dt"))
+    method = _job_method(job)
     fem_run = spec["kind"] == "fem"
     scene = bench.scene(job["cells"], spec["degree"], job["ppc"], fem=fem_run,
                         t_end=job.get("t_end"))
@@ -261,6 +261,35 @@ def run_one(job):
         record["error_measure"] = bench.primary_error
         record["error"] = record[bench.primary_error]
     return record
+
+
+def _job_method(job):
+    """The Method of a job."""
+    spec = job["method"]
+    return Method(scheme=spec["scheme"], mass=spec["mass"],
+                  reconstruction=spec["reconstruction"], cfl=spec["cfl"], dt=job.get("dt"))
+
+
+def precompile(job):
+    """Compile (or load) the consistent-mass share of the compiled loop
+    ``job`` runs (:func:`skfem_mpm.solve.compiled_loop.precompile_mass`),
+    untimed; returns no records. A second worker runs it while the first
+    runs the job's family (:func:`run_chain`), which then loads that
+    share instead of compiling it: the longest first use is split over
+    two cores."""
+    spec = job["method"]
+    if spec["kind"] != "mpm" or spec["mass"] == "lumped":
+        return []
+    from .solve.compiled import CompiledExecutor, compiled_executor_applies
+    from .solve.compiled_loop import precompile_mass
+    from .solve.state import prepare
+
+    bench = get_benchmark(job["benchmark"], job.get("variant"), **job.get("params", {}))
+    state = prepare(bench.scene(job["cells"], spec["degree"], job["ppc"], t_end=job.get("t_end")),
+                    _job_method(job))
+    if compiled_executor_applies(state)[0]:
+        precompile_mass(state, CompiledExecutor(state))
+    return []
 
 
 def run_chain(jobs):
@@ -363,19 +392,36 @@ def convergence(benchmark, methods, cells, ppc=DEFAULTS["ppc"], variant=None, pa
         # with a notice, the bar starts after the compiling jobs (both write
         # to stderr)
         bar = None if compile_notice else _bar(len(jobs), progress)
+        # each family's other jobs as soon as its first jobs are done (they
+        # load what those compiled), beside the families still compiling
+        later = {}
+        for i in rest:
+            later.setdefault(_family(jobs[i]["method"]), []).append(i)
+        singles = {}
         try:
             with notice():
-                futures = [(chain, pool.submit(run_chain, [jobs[i] for i in chain]))
-                           for chain in chains]
-                for chain, f in futures:
-                    for i, record in zip(chain, f.result()):
-                        done[i] = record
-                    if bar is not None:
-                        bar.update(len(chain))
+                chained = {(pool.submit(precompile, chain.job) if isinstance(chain, _Precompile)
+                            else pool.submit(run_chain, [jobs[i] for i in chain])): chain
+                           for chain in _with_precompile(chains, jobs, owned)}
+                waiting = set(chained)
+                while waiting:
+                    finished, waiting = wait(waiting, return_when=FIRST_COMPLETED)
+                    for f in finished:
+                        chain = chained[f]
+                        if isinstance(chain, _Precompile):
+                            f.result()
+                            continue
+                        for i, record in zip(chain, f.result()):
+                            done[i] = record
+                        if bar is not None:
+                            bar.update(len(chain))
+                        for i in later.pop(_family(jobs[chain[0]]["method"]), []):
+                            singles[i] = pool.submit(run_one, jobs[i])
             if bar is None:
-                bar = _bar(len(jobs), progress, initial=sum(len(c) for c in chains))
-            futures = [(i, pool.submit(run_one, jobs[i])) for i in rest]
-            for i, f in futures:
+                bar = _bar(len(jobs), progress, initial=len(done))
+            for i in [i for group in later.values() for i in group]:  # (none: every family chains)
+                singles[i] = pool.submit(run_one, jobs[i])
+            for i, f in singles.items():
                 done[i] = f.result()
                 if bar is not None:
                     bar.update()
@@ -387,6 +433,31 @@ def convergence(benchmark, methods, cells, ppc=DEFAULTS["ppc"], variant=None, pa
     records = [done[i] for i in range(len(jobs))]
     _add_orders(records)
     return records
+
+
+class _Precompile(list):
+    """A chain of no jobs whose task is :func:`precompile` of its ``job``."""
+
+    def __init__(self, job):
+        super().__init__()
+        self.job = job
+
+
+def _with_precompile(chains, jobs, owned):
+    """The chains to submit, in order: on a pool of our own with two workers
+    or more, the first family needing consistent mass on the compiled
+    loop (the longest first use) is followed by a :func:`precompile` of its
+    first job, which the next free worker takes while the family's own
+    worker compiles the rest of the loop."""
+    out = list(chains)
+    if not owned or (os.cpu_count() or 1) < 2:
+        return out
+    for k, chain in enumerate(chains):
+        spec = jobs[chain[0]]["method"]
+        if spec["kind"] == "mpm" and spec["mass"] != "lumped":
+            out.insert(k + 1, _Precompile(jobs[chain[0]]))
+            break
+    return out
 
 
 def _kernel_set(spec):

@@ -5,12 +5,14 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 
 import numpy as np
 import pytest
 from numba import njit, types
+from numba.core import config as numba_config
 
-from skfem_mpm.kernels.by_symbol import call
+from skfem_mpm.kernels.by_symbol import call, compile_lock
 
 
 @njit(cache=False)
@@ -223,3 +225,42 @@ def test_a_call_site_must_be_named():
     for site in ("", None, 3):
         with pytest.raises(ValueError, match="site must be a non-empty string"):
             call_at(site)
+
+
+def test_a_kernel_another_process_is_compiling_is_loaded_not_compiled(tmp_path):
+    """by_symbol.compile_lock: while one process compiles a kernel (holding
+    its lock), a second that needs it waits, then loads the first's
+    machine code from the shared cache instead of compiling it again."""
+    (tmp_path / "kern3_mod.py").write_text(textwrap.dedent("""
+        from numba import njit
+
+        @njit(cache=True)
+        def tripled_sum(a):
+            return 3.0 * a.sum()
+        """))
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"),
+               PYTHONPATH=os.pathsep.join([str(tmp_path), *sys.path]))
+    script = textwrap.dedent("""
+        from numba import types
+        from skfem_mpm.kernels.by_symbol import _entry_point
+        from kern3_mod import tripled_sum
+        _entry_point(tripled_sum, (types.float64[::1],))
+        print(tripled_sum.stats.cache_hits.total(), tripled_sum.stats.cache_misses.total())
+        """)
+    sys.path.insert(0, str(tmp_path))
+    old_cache = numba_config.CACHE_DIR
+    try:
+        numba_config.CACHE_DIR = str(tmp_path / "cache")  # (the lock's name and the cache)
+        from kern3_mod import tripled_sum
+
+        with compile_lock(tripled_sum, (types.float64[::1],)):
+            second = subprocess.Popen([sys.executable, "-c", script], env=env, cwd=tmp_path,
+                                      stdout=subprocess.PIPE, text=True)
+            time.sleep(3.0)  # it has started and waits for the lock
+            assert second.poll() is None
+            tripled_sum.compile((types.float64[::1],))
+        out, _ = second.communicate(timeout=120)
+    finally:
+        numba_config.CACHE_DIR = old_cache
+        sys.path.remove(str(tmp_path))
+    assert out.split() == ["1", "0"]  # loaded from the cache, not compiled

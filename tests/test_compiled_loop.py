@@ -309,6 +309,36 @@ def test_tiny_masses_with_consistent_mass_stay_in_the_loop(monkeypatch, case):
         assert looped.reactions[-1]["Prescribed('bottom', component=0)"][0] != 0.0
 
 
+def test_the_merge_kernels_compile_at_the_first_step_with_tiny_masses(monkeypatch):
+    """The tiny-mass merge is called through addresses set at the first
+    step that needs it (compile_seconds > 0; the loop then goes on from
+    that step), never in a run without tiny-mass dofs (the cases' bodies
+    fill whole cells, or cut them)."""
+    monkeypatch.setattr(StencilSystem, "FRINGE_LAYERS", 0)  # every step in the loop
+    for aligned in (True, False):
+        case = dict(TINY_CASES[0], material="linear", aligned=aligned)
+        state = prepare(scene_for(case, steps=23), Method(scheme="usl", mass="consistent"))
+        loop = compiled_loop.StepLoop(state, CompiledExecutor(state))
+        assert loop.run(state, 23) == 23
+        assert (state.small_dofs_max > 0) is (not aligned)
+        assert (loop.compile_seconds > 0.0) is (not aligned)
+
+
+def test_precompile_mass_compiles_what_the_loop_calls():
+    """A study's second worker compiles a consistent-mass loop's CG solve
+    and system preparation (precompile_mass) for the very argument types
+    the loop then calls them with: one signature each; lumped mass has
+    none to compile."""
+    scene = scene_for(mass_case(MASS_CASES[0]), steps=23)
+    state = prepare(scene, Method(scheme="musl", mass="consistent"))
+    assert compiled_loop.precompile_mass(state, CompiledExecutor(state))
+    loop = compiled_loop.StepLoop(state, CompiledExecutor(state))
+    for name in ("mass_solve", "prepare_mass"):
+        assert len(getattr(loop.module, name).overloads) == 1, name
+    lumped = prepare(scene, Method(scheme="musl", mass="lumped"))
+    assert not compiled_loop.precompile_mass(lumped, CompiledExecutor(lumped))
+
+
 def test_tiny_masses_of_the_traction_bar_stay_in_the_loop(monkeypatch):
     """S3 (1D, cubic, spline reconstruction, consistent mass, rk4: the
     variant test_rk4 compiles): the free end's last function is seen only

@@ -25,16 +25,28 @@ processes; the caller's library carries a reload hook (numba's
 the kernel in the new process and registers its address under that name.
 A function that links a caller compiled earlier inherits its hooks, also
 when that caller was loaded from the cache (:func:`_keep_reload_hooks`).
+
+Processes sharing numba's cache (a study's workers, test workers) compile a
+kernel once: the first holds :class:`compile_lock` while it compiles, the
+others wait and load its machine code from the cache.
 """
 import functools
 import hashlib
 import importlib
 import inspect
+import os
+import tempfile
+import time
 
 from llvmlite import binding as llvm
 from numba import types
-from numba.core import cgutils
+from numba.core import cgutils, config
 from numba.extending import intrinsic
+
+try:
+    import fcntl
+except ImportError:  # Windows
+    fcntl = None
 
 __all__ = ["ARGUMENT_TYPES", "call", "call_at", "native_address", "register"]
 
@@ -81,11 +93,59 @@ def symbol_name(module, name, argtypes):
     return "skfem_mpm.kernel." + hashlib.sha1(text.encode()).hexdigest()[:24]
 
 
+class compile_lock:
+    """Held while this process compiles ``kernel`` for ``argtypes``, so
+    that two processes sharing numba's cache compile a kernel once: the
+    second waits, then loads the first's machine code from the cache
+    (numba itself lets both compile). An advisory lock (``flock``) on a file
+    named after the cache directory and the kernel's symbol, released when
+    the process ends; a kernel waits only for its callees' locks (no cycle),
+    and at most ``WAIT`` seconds. Without ``fcntl`` (Windows): no lock."""
+
+    WAIT = 600.0
+
+    def __init__(self, kernel, argtypes):
+        func = kernel.py_func
+        where = f"{config.CACHE_DIR or ''}:{symbol_name(func.__module__, func.__name__, argtypes)}"
+        name = hashlib.sha1(where.encode()).hexdigest()[:24]
+        self.path = os.path.join(tempfile.gettempdir(), f"skfem_mpm-compile-{os.getuid()}",
+                                 name) if hasattr(os, "getuid") else None
+        self.fd = None
+
+    def __enter__(self):
+        if fcntl is None or self.path is None:
+            return self
+        try:
+            os.makedirs(os.path.dirname(self.path), exist_ok=True)
+            self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+        except OSError:  # an unwritable temporary folder: compile without
+            return self
+        deadline = time.monotonic() + self.WAIT
+        while True:
+            try:
+                fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return self
+            except OSError:
+                if time.monotonic() > deadline:
+                    return self
+                time.sleep(0.02)
+
+    def __exit__(self, *exc):
+        if self.fd is not None:
+            try:
+                fcntl.flock(self.fd, fcntl.LOCK_UN)
+            finally:
+                os.close(self.fd)
+                self.fd = None
+
+
 def _entry_point(kernel, argtypes):
     """(compile result, address of the native entry point) of ``kernel``
     compiled (or loaded from numba's cache) for ``argtypes``."""
     argtypes = tuple(argtypes)
-    kernel.compile(argtypes)
+    if argtypes not in kernel.overloads:
+        with compile_lock(kernel, argtypes):
+            kernel.compile(argtypes)
     cres = kernel.overloads[argtypes]
     address = cres.library.get_pointer_to_function(cres.fndesc.llvm_func_name)
     if not address:
@@ -158,28 +218,33 @@ def record_argument_types(label, argtypes):
         else None
 
 
-def native_address(kernel, argtypes):
+def native_address(kernel, argtypes, restype=types.none):
     """The native entry point of ``kernel`` compiled (or loaded) for
-    ``argtypes``, for :func:`call_at`."""
+    ``argtypes``, for a :func:`call_at` site declared to return ``restype``."""
     cres, address = _entry_point(kernel, argtypes)
-    if cres.signature.return_type != types.none:
-        raise TypeError(f"{kernel.py_func.__name__}: call_at calls kernels that return "
-                        f"nothing, this one returns {cres.signature.return_type}")
+    if cres.signature.return_type != restype:
+        raise TypeError(f"{kernel.py_func.__name__}: its call_at site expects {restype}, "
+                        f"the kernel returns {cres.signature.return_type}")
     return address
 
 
-def call_at(site):
+def call_at(site, restype=types.none):
     """An intrinsic ``f(address, *args)`` calling the kernel whose native
     entry point is at ``address`` (an integer held at run time, from
-    :func:`native_address`) with ``args``; the kernel returns nothing. One
+    :func:`native_address`) with ``args``; the kernel returns ``restype``
+    (declared here: the caller compiles before any kernel it may call). One
     compiled caller serves every kernel of the same argument types: which
-    one runs is data, not code. ``site`` names the call site: its argument
+    one runs is data, not code, and a kernel the caller reaches only in
+    some runs compiles only when Python points the caller at it.
+    ``site`` names the call site: its argument
     types are recorded under it in :data:`ARGUMENT_TYPES` when the caller
     compiles and when it loads from the cache, so that Python can compile
     the kernel it will point the caller at."""
     if not isinstance(site, str) or not site:
         raise ValueError(f"call_at: site must be a non-empty string naming the call site, "
                          f"got {site!r}")
+    if not isinstance(restype, types.Type):
+        raise ValueError(f"call_at: restype must be a numba type, got {restype!r}")
 
     @intrinsic
     def call_at_site(typingctx, address, *args):
@@ -191,12 +256,12 @@ def call_at(site):
         def codegen(context, builder, signature, llargs):
             context.active_code_library._reload_init.add(
                 functools.partial(record_argument_types, site, argtypes))
-            fnty = context.call_conv.get_function_type(types.none, argtypes)
+            fnty = context.call_conv.get_function_type(restype, argtypes)
             fn = builder.inttoptr(llargs[0], fnty.as_pointer())
-            _native_call(context, builder, fn, types.none, argtypes, args,
-                         cgutils.unpack_tuple(builder, llargs[1]))
-            return context.get_dummy_value()
+            result = _native_call(context, builder, fn, restype, argtypes, args,
+                                  cgutils.unpack_tuple(builder, llargs[1]))
+            return context.get_dummy_value() if restype == types.none else result
 
-        return types.none(address, types.StarArgTuple(args)), codegen
+        return restype(address, types.StarArgTuple(args)), codegen
 
     return call_at_site

@@ -112,6 +112,10 @@ MASS_FIELDS = (
     "merged", "merge_small", "entries", "row_dof", "row_weight", "neighbour_max", "kept_rows",
     "kept_index", "merged_A", "merged_cols", "merged_F", "merged_fcols", "merged_inv_diag",
     "merged_fit", "merged_sizes",
+    # the native entry points of the merge kernels (neighbour_maxima,
+    # merging_rows, merged_system, merged_problem, merged_expand), 0 until a
+    # step needs them (prepare_mass returns 6)
+    "merge_at",
     # the stencil and lumping fractions of the last step's reactions: the
     # step's own, or with rk4 copies of its first stage's
     "reaction_stencil", "reaction_fast",
@@ -165,6 +169,12 @@ def mass_records(cm):
     step's reactions, the groups whose band factor is on."""
     return (cm.warm_good, cm.has_good, cm.fringe_on, cm.reaction_stencil, cm.reaction_fast,
             cm.banded_on)
+
+
+@njit(cache=True)
+def set_merge_at(cm, addresses):
+    """Point the mass system at the compiled merge kernels."""
+    copy_into(cm.merge_at, addresses)
 
 
 @njit(cache=True)
@@ -245,9 +255,10 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
     """The step's fast-row fractions, free-dof groups, ELL rows and
     preconditioner (see the module); with ``fixed_columns`` (prescribed
     velocities) also the rows' fixed-column part; with ``small_tol`` > 0
-    (tiny-mass dofs) the merge of each group. Returns False when a merged
+    (tiny-mass dofs) the merge of each group. Returns 0, or 4 when a merged
     row outgrew the kernels' lists (the executor's general grid system
-    takes the step)."""
+    takes the step), 6 when the merge kernels are not compiled yet
+    (``cm.merge_at``: StepLoop.run compiles them and takes the step again)."""
     stencil = cm.stencil
     nd, ns = stencil.shape
     centre = (ns - 1) // 2
@@ -265,17 +276,20 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
     else:
         cm.fast[:] = 0.0
     nbz = nd // (nbx * nby)
+    at = cm.merge_at
     if small_tol > 0.0:
-        NEIGHBOUR_MAXIMA(mass, nbx, nby, nbz, p, cm.neighbour_max)
+        if at[0] == 0:
+            return 6
+        NEIGHBOUR_MAXIMA(at[0], mass, nbx, nby, nbz, p, cm.neighbour_max)
     for g in range(cm.group_size.shape[0]):
         c0 = cm.group_comps[g, 0]
         merged = False
         if small_tol > 0.0:
-            count = MERGING_ROWS(mass, cm.neighbour_max, mask, c0, nbx, nby, nbz, p, small_tol,
-                                 cm.merge_small[g], cm.entries[g], cm.row_dof[g],
+            count = MERGING_ROWS(at[1], mass, cm.neighbour_max, mask, c0, nbx, nby, nbz, p,
+                                 small_tol, cm.merge_small[g], cm.entries[g], cm.row_dof[g],
                                  cm.row_weight[g])
             if count < 0:
-                return False
+                return 4
             merged = count > 0
         cm.merged[g] = merged
         n = 0
@@ -293,14 +307,14 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
                        fixed_columns or merged)
         fit = cm.A[g, :n]
         if merged:  # T^T M' T on the kept free dofs
-            n = MERGED_SYSTEM(cm.A[g, :n], cm.cols[g, :n], cm.F[g, :n], cm.fcols[g, :n], rows,
-                              cm.index[g], mask, c0, mass, cm.merge_small[g], cm.entries[g],
-                              cm.row_dof[g], cm.row_weight[g], p, nbx, nby, dim, cm.kept_rows[g],
-                              cm.kept_index[g], cm.merged_inv_diag[g], cm.merged_fit,
-                              cm.merged_A[g], cm.merged_cols[g], cm.merged_F[g],
+            n = MERGED_SYSTEM(at[2], cm.A[g, :n], cm.cols[g, :n], cm.F[g, :n], cm.fcols[g, :n],
+                              rows, cm.index[g], mask, c0, mass, cm.merge_small[g],
+                              cm.entries[g], cm.row_dof[g], cm.row_weight[g], p, nbx, nby, dim,
+                              cm.kept_rows[g], cm.kept_index[g], cm.merged_inv_diag[g],
+                              cm.merged_fit, cm.merged_A[g], cm.merged_cols[g], cm.merged_F[g],
                               cm.merged_fcols[g], cm.merged_sizes[g])
             if n < 0:
-                return False
+                return 4
             rows = cm.kept_rows[g, :n]
             fit = cm.merged_fit[:n * ns].reshape((n, ns))
         else:
@@ -326,7 +340,7 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
         nx = cm.box_shape[g, 2]
         FIT_KRONECKER(fit, cm.box_coords[g, :n], cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz],
                       cm.inv_scale[g, :n], cm.fit_bands, cm.fit_sums)
-    return True
+    return 0
 
 
 @njit(cache=True)
@@ -379,13 +393,13 @@ def mass_solve(cm, nt, count, rhs0, kind0, values0, has0, out0, rhs1, kind1, val
             fcols = cm.merged_fcols[g, :n * WF].reshape((n, WF))
             inv_diag = cm.merged_inv_diag[g, :n]
             small = cm.merge_small[g]
-            MERGED_PROBLEM(rows, cm.kept_index[g], small, cm.entries[g], cm.row_dof[g],
-                           cm.row_weight[g], rhs0, values0, has0,
+            MERGED_PROBLEM(cm.merge_at[3], rows, cm.kept_index[g], small, cm.entries[g],
+                           cm.row_dof[g], cm.row_weight[g], rhs0, values0, has0,
                            cm.warm[kind0] if cm.has_warm[kind0] else rhs0, cm.has_warm[kind0],
                            comps, 0, F, fcols, b, x)
             if count == 2:
-                MERGED_PROBLEM(rows, cm.kept_index[g], small, cm.entries[g], cm.row_dof[g],
-                               cm.row_weight[g], rhs1, values1, has1,
+                MERGED_PROBLEM(cm.merge_at[3], rows, cm.kept_index[g], small, cm.entries[g],
+                               cm.row_dof[g], cm.row_weight[g], rhs1, values1, has1,
                                cm.warm[kind1] if cm.has_warm[kind1] else rhs1,
                                cm.has_warm[kind1], comps, ncomp, F, fcols, b, x)
         else:
@@ -405,11 +419,11 @@ def mass_solve(cm, nt, count, rhs0, kind0, values0, has0, out0, rhs1, kind1, val
         if n > 0 and not _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x):
             return False
         if merged:
-            MERGED_EXPAND(rows, cm.merge_small[g], cm.entries[g], cm.row_dof[g],
+            MERGED_EXPAND(cm.merge_at[4], rows, cm.merge_small[g], cm.entries[g], cm.row_dof[g],
                           cm.row_weight[g], x, comps, 0, out0)
             if count == 2:
-                MERGED_EXPAND(rows, cm.merge_small[g], cm.entries[g], cm.row_dof[g],
-                              cm.row_weight[g], x, comps, ncomp, out1)
+                MERGED_EXPAND(cm.merge_at[4], rows, cm.merge_small[g], cm.entries[g],
+                              cm.row_dof[g], cm.row_weight[g], x, comps, ncomp, out1)
         else:
             EXPAND_PROBLEM(rows, x, comps, 0, out0)
             if count == 2:
@@ -444,6 +458,16 @@ def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x):
     elif cm.fringe_layers > 0 and its >= cm.fringe_from and n >= cm.fringe_min_rows:
         cm.fringe_on[g] = True
     return True
+
+
+@njit(cache=True)
+def mass_units(run):
+    """Never called: compiling it for a run's type compiles (or loads) the
+    functions its loop calls by symbol for consistent mass, mass_solve
+    (with ell_pcg) first, then prepare_mass, by the very calls of the
+    scheme operations (see compiled_loop.precompile_mass)."""
+    run.mass_solve(2, run.force, 0, run.a, run.momentum, 1, run.v_old)
+    run.prepare_grid()
 
 
 @njit(cache=True)

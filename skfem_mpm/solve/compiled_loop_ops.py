@@ -65,7 +65,11 @@ anything else stops the loop before it writes the current state
 cannot do (1), a tiny-mass merge of consistent mass whose rows outgrow the
 compiled merge's lists (4), a CG run above
 its tolerance (3), a fitted density 0 at a Gauss point (5). The Python
-step then takes that step and says what happened. ``run.handover``: the
+step then takes that step and says what happened. A step with tiny-mass
+dofs before the merge kernels were compiled (6): the merge is called
+through addresses (``run.merged_solve_at``, ``run.cm.merge_at``), 0 until
+:class:`~skfem_mpm.solve.compiled_loop.StepLoop` compiles the kernels at
+that first need and calls the loop again from the same state. ``run.handover``: the
 step was taken, and the next ones need the executor (the fringe
 correction turned on).
 
@@ -125,6 +129,8 @@ FIELDS = (
     "cm", "nthreads",
     # the native entry points of the run's degree's transfer kernels (call_at)
     "p2g_at", "g2p2g_at", "g2p_at", "rates_at",
+    # that of the lumped tiny-mass merge, 0 until a step needs it (STOP 6)
+    "merged_solve_at",
     # rk4 (placeholders of one particle for the other schemes): the stage
     # particles, the rates of the four stages (leading stage axis; F's and
     # the stage F only for a finite-strain point law), each
@@ -294,8 +300,15 @@ def set_reconstruction_factor(run, factor):
 
 @njit(cache=True)
 def clock(run):
-    """The run's time and step, and whether its last call stopped or handed over."""
-    return run.t, run.step, run.stop != 0 or run.handover
+    """The run's time and step, the stop code of its last call (0: none)
+    and whether it handed over."""
+    return run.t, run.step, run.stop, run.handover
+
+
+@njit(cache=True)
+def set_merged_solve(run, address):
+    """Point the run at the compiled lumped tiny-mass merge."""
+    run.merged_solve_at = address
 
 
 @njit(cache=True)
@@ -422,9 +435,12 @@ def _lumped_solve(run, rhs, gravity, out, kind):
         values, has_values = run.constraint_values(rhs, kind)
         if run.small_count == 0:
             LUMPED_SOLVE(run.mass, rhs, gravity, run.mask, values, has_values, out)
-        elif MERGED_SOLVE(run.mass, rhs, gravity, run.mask, values, has_values, run.nbx,
-                          run.nby, run.mass.shape[0] // (run.nbx * run.nby),
-                          run.degree, run.small_tol, out) < 0:
+        elif run.merged_solve_at == 0:  # not compiled yet: StepLoop.run compiles it
+            run.stop = 6
+        elif MERGED_SOLVE(run.merged_solve_at, run.mass, rhs, gravity, run.mask, values,
+                          has_values, run.nbx, run.nby,
+                          run.mass.shape[0] // (run.nbx * run.nby), run.degree, run.small_tol,
+                          out) < 0:
             run.stop = 1
     return impl
 
@@ -466,10 +482,11 @@ def _prepare_grid(run):
     def impl(run):
         """Consistent mass: gravity as the force m g, then the step's system."""
         run.gravity_into_force()
-        if not call(prepare_mass, run.cm, run.mass, run.mask, run.degree, run.nbx, run.nby,
-                    run.x.shape[1], prescribed,
-                    run.small_tol if run.small_count > 0 else 0.0):
-            run.stop = 4  # a merged row outgrew the lists: the general grid system
+        # 4: a merged row outgrew the lists (the general grid system takes
+        # the step); 6: the merge kernels are not compiled yet
+        run.stop = call(prepare_mass, run.cm, run.mass, run.mask, run.degree, run.nbx,
+                        run.nby, run.x.shape[1], prescribed,
+                        run.small_tol if run.small_count > 0 else 0.0)
     return impl
 
 
@@ -839,20 +856,29 @@ def _stage_rates(run, state, particles, c, reactions=False):
     return impl
 
 
+@njit(cache=True)
+def _stage_weights(run, rates, weights):
+    """run.stage_weights = dt w_s at the rates' slots (0 elsewhere)."""
+    c = run.stage_weights
+    for s in range(c.shape[0]):
+        c[s] = 0.0
+    for s in range(len(rates)):
+        c[rates[s]] += weights[s] * run.dt
+
+
 @overload_method(RunType, "combine_into")
-def _combine_into(run, rates, weights, x, u, v, stress, V, F):
+def _combine_into(run, x, u, v, stress, V, F):
     point_law = _point_law(run)
 
-    def impl(run, rates, weights, x, u, v, stress, V, F):
-        """(x, u, v, stress, V) = y_n + dt sum_s w_s k_s (kernels.staging);
+    def impl(run, x, u, v, stress, V, F):
+        """(x, u, v, stress, V) = y_n + sum_s c_s k_s with c =
+        run.stage_weights (kernels.staging; one compiled body for the
+        stages and the step, whatever their number of rates);
         a finite-strain point law: F likewise, then sigma = law(F) and
         V = V0 det F (the constitutive kernel with dt = 0, as the
         executor's CompiledRungeKutta._law_stage); J <= 0 stops. Returns
         the nanoseconds of the law (the constitutive phase)."""
         c = run.stage_weights
-        c[:] = 0.0
-        for s in range(len(rates)):
-            c[rates[s]] += weights[s] * run.dt
         finite = point_law and run.finite
         COMBINE_STAGES(c, run.x, run.u, run.v, run.stress, run.V,
                        run.F if finite else run.L, run.rate_x, run.rate_v, run.rate_stress,
@@ -879,8 +905,9 @@ def _stage(run, state, rates, weights):
         if run.stop:
             return stage
         t0 = monotonic_ns()
-        law = run.combine_into(rates, weights, run.x_stage, run.u_stage, run.v_stage,
-                               run.stress_stage, run.V_stage, run.F_stage)
+        _stage_weights(run, rates, weights)
+        law = run.combine_into(run.x_stage, run.u_stage, run.v_stage, run.stress_stage,
+                               run.V_stage, run.F_stage)
         for i in range(run.V_stage.shape[0]):
             if not run.V_stage[i] > 0.0:
                 run.stop = 2
@@ -900,8 +927,9 @@ def _combine(run, state, rates, weights):
         if run.stop:
             return 0.0
         t0 = monotonic_ns()
-        law = run.combine_into(rates, weights, run.x_new, run.u_new, run.v_new,
-                               run.stress_new, run.V_new, run.F_new)
+        _stage_weights(run, rates, weights)
+        law = run.combine_into(run.x_new, run.u_new, run.v_new, run.stress_new, run.V_new,
+                               run.F_new)
         if not _valid_state(run.x_new, run.v_new, run.stress_new, run.V_new, run.grid[0]):
             run.stop = 2
         run.phase_ns[2] += monotonic_ns() - t0 - law

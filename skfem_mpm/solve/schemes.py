@@ -108,9 +108,9 @@ def step_usf(ops, state):
 @register_jitable
 def step_rk4(ops, state):
     k1 = ops.stage_rates(state, state.particles, 0.0, True)
-    k2 = ops.stage_rates(state, ops.stage(state, (k1,), (0.5,)), 0.5)
-    k3 = ops.stage_rates(state, ops.stage(state, (k2,), (0.5,)), 0.5)
-    k4 = ops.stage_rates(state, ops.stage(state, (k3,), (1.0,)), 1.0)
+    k2 = ops.stage_rates(state, ops.stage(state, (k1,), (0.5,)), 0.5, False)
+    k3 = ops.stage_rates(state, ops.stage(state, (k2,), (0.5,)), 0.5, False)
+    k4 = ops.stage_rates(state, ops.stage(state, (k3,), (1.0,)), 1.0, False)
     step = ops.combine(state, (k1, k2, k3, k4), (1 / 6, 1 / 3, 1 / 3, 1 / 6))
     ops.commit(state, step)
     return step

@@ -81,7 +81,8 @@ def warm_up(state, fast, loop=None):
     t0 = time.perf_counter()
     warm_up_kernels(state.grid, fast=fast, materials=state.materials, method=state.method,
                     parallel=state.particles.n >= serial.SERIAL_BELOW,
-                    grid_rules=bool(state.force_modifiers or state.velocity_modifiers))
+                    grid_rules=bool(state.force_modifiers or state.velocity_modifiers),
+                    merge=loop is None)
     if loop is not None:
         loop.compile()
     return time.perf_counter() - t0
@@ -164,9 +165,16 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
     threads = ThreadPolicy(ops.kernels.nthreads) if fast else None
     t0 = time.perf_counter()
 
+    def result_now():
+        """The recorded result so far: the compiled loop's compiles at a
+        first need (StepLoop.compile_seconds) count as compile time."""
+        late = loop.compile_seconds if loop is not None else 0.0
+        return recorder.result(state, time.perf_counter() - t0 - late, jit_time + late,
+                               extra={"path": path})
+
     def failed(exc, last_good):
         state.particles = last_good
-        result = recorder.result(state, time.perf_counter() - t0, jit_time, extra={"path": path})
+        result = result_now()
         return SimulationError(
             f"step {state.step + 1} (t = {state.t:.6g} -> {state.t + state.dt:.6g}) "
             f"failed: {exc}", result=result, step=state.step + 1, time=state.t,
@@ -204,8 +212,7 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
                 try:
                     write_checkpoint(checkpoint[0], state, recorder)
                 except OSError as exc:  # e.g. a full disk: the run itself is good
-                    result = recorder.result(state, time.perf_counter() - t0, jit_time,
-                                             extra={"path": path})
+                    result = result_now()
                     raise SimulationError(
                         f"writing the checkpoint after step {state.step} failed: {exc}",
                         result=result, step=state.step, time=state.t) from exc
@@ -216,8 +223,7 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
                 bad = non_finite(state.particles)
                 if bad is not None:
                     state.particles = before
-                    result = recorder.result(state, time.perf_counter() - t0, jit_time,
-                                             extra={"path": path})
+                    result = result_now()
                     raise SimulationError(
                         f"the callback left {bad} after step {state.step} (t = {state.t:.6g}); "
                         f"the result holds the state the callback was given",
@@ -229,8 +235,9 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
             threads.restore()
         if bar is not None:
             bar.close()
-    wall = time.perf_counter() - t0
+    end = time.perf_counter()
+    late = loop.compile_seconds if loop is not None else 0.0
     loop = None  # its spare particle arrays and grid copies go before the last save
     if recorder.last_step_saved != state.step:
         recorder.save(state, share=True)  # no step writes the final arrays again
-    return recorder.result(state, wall, jit_time, extra={"path": path})
+    return recorder.result(state, end - t0 - late, jit_time + late, extra={"path": path})

@@ -6,7 +6,7 @@ __all__ = ["warm_up_kernels"]
 
 
 def warm_up_kernels(grid, fast=False, materials=(), method=None, parallel=True,
-                    grid_rules=False):
+                    grid_rules=False, merge=True):
     """Compile on a small grid of the same dimension and degree (the machine
     code does not depend on the grid's size, and no grid-sized buffer is
     allocated); with ``fast``, also the constitutive kernel and the point
@@ -18,7 +18,9 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None, parallel=True,
     hybrid mass, the MUSL re-projection only for MUSL, the one-pass USL grid
     step only for USL and CD, the g2p kernel for every scheme but RK4, whose
     stage rates and combination only it, the tiny-mass scan only when the
-    merge is on, the grid modifiers' rules (damping, walls) only with
+    merge is on (and its lumped merge unless ``merge`` is False: a run on
+    the compiled loop, which compiles its merge at its first step with
+    tiny-mass dofs), the grid modifiers' rules (damping, walls) only with
     ``grid_rules``."""
     if not hasattr(grid, "breakpoints"):
         return
@@ -79,6 +81,7 @@ def warm_up_kernels(grid, fast=False, materials=(), method=None, parallel=True,
                        k.nthreads)
     if needs("small_mass"):
         k.small_mass(np.ones(grid.ndofs), 1e-3)
+    if needs("small_mass") and merge:
         for values in (None, zeros):
             k.merged_solve(np.ones(grid.ndofs), zeros, np.zeros(dim),
                            np.zeros((grid.ndofs, dim), dtype=bool), values, 1e-3,
