@@ -34,11 +34,14 @@ TLS (CompiledReconstruction.rule, reconstruct and project):
                          in the cells a free surface cuts (the box is not
                          the whole cell), whose particles are points of the
                          rule themselves (``own``, after the Gauss points,
-                         with weight V_p and their own values); the TLS fit
-                         at the Gauss points (kernels.tls.tls_reconstruct);
-                         the points as quadrature particles, as above
-    tls_project          MUSL: the TLS fit of rho v^new at the Gauss points,
-                         the particles' own rho v^new at the particle points
+                         with weight V_p and their own values); the position
+                         half of the TLS fits (kernels.tls.tls_factor, kept
+                         for the step) and the fit at the Gauss points
+                         (kernels.tls.tls_apply); the points as quadrature
+                         particles, as above
+    tls_project          MUSL: the TLS fit of rho v^new at the Gauss points
+                         on the step's factor, the particles' own rho v^new
+                         at the particle points
 
 A step whose fitted density is 0 at a point (the executor then integrates
 the momentum apart) stops the loop: the executor takes it.
@@ -170,22 +173,27 @@ def project_points(rc, x, v_new):
                       rc.piece_points, rc.xg, rc.momentum_fit)
 
 
-# ------------------------------------------------------------------- tls
-# The published TLS (kernels.tls, default options) in 1D and 2D: a run's
-# Reconstruction of its own type, so that a run compiles only its kind's
-# functions (compiled_loop_ops: _tls).
+# ------------------------------------------- the rule's fits: tls, mls, 2D spline
+# The reconstructions on the rule of CompiledReconstruction.rule (in 1D the
+# body's Gauss rule, in 2D the cells' rule with the particles of cut cells
+# as points): the published TLS (kernels.tls, default options) in 1D and
+# 2D, mls (kernels.mls) in 1D and 2D, the 2D spline (kernels.spline_2d,
+# the direct solve). One type whose kind-specific fields (``factor``,
+# ``alpha``, ``spline``) are None in the other kinds: the fit
+# (:func:`fit_points`) is chosen from those fields' types, so that a run
+# compiles only its kind's functions (compiled_loop_ops: _ruled).
 @structref.register
-class TLSReconstructionType(types.StructRef):
+class RuleReconstructionType(types.StructRef):
     def preprocess_fields(self, fields):
         return tuple((name, types.unliteral(t)) for name, t in fields)
 
 
-TLSReconstructionType.__name__ = TLSReconstructionType.__qualname__ = \
-    f"TLSReconstructionType_{VARIANT}"
-globals()[TLSReconstructionType.__name__] = TLSReconstructionType
+RuleReconstructionType.__name__ = RuleReconstructionType.__qualname__ = \
+    f"RuleReconstructionType_{VARIANT}"
+globals()[RuleReconstructionType.__name__] = RuleReconstructionType
 
 
-TLS_FIELDS = (
+RULED_FIELDS = (
     # the rule: Gauss-Legendre points and weights on [0, 1], the largest
     # gap inside one piece of the 1D body, the breakpoints per axis (1D:
     # breaks1 is breaks) and whether each axis is uniform (locate_cells)
@@ -197,6 +205,13 @@ TLS_FIELDS = (
     # rule themselves (2D: those in cells a free surface cuts; after the
     # Gauss points, in particle order)
     "pcell", "xg", "wg", "gcell", "own",
+    # what a fit keeps for the next fit on the same particles and rule (a
+    # step's MUSL projection), None in the other kinds: tls the position
+    # half of its fits (kernels.tls.tls_factor); mls the kernel radius and
+    # the points' M_g^-1 e_0 (kernels.mls.mls_fit); the 2D spline the cubic
+    # space's axes and sizes, its penalty and the stencil, band and banded
+    # Cholesky factor of A + P (SplineLeastSquares, BandedCholesky)
+    "factor", "radius", "alpha", "spline",
     # the points as quadrature particles (x, v, m, V, stress)
     "xq", "vq", "mq", "Vq", "sq",
     # the MUSL projection: rho v^new per particle, its fit at the points,
@@ -205,24 +220,25 @@ TLS_FIELDS = (
 )
 
 
-class TLSReconstruction(structref.StructRefProxy):
-    """The TLS reconstruction data of a compiled run."""
+class RuleReconstruction(structref.StructRefProxy):
+    """The reconstruction data of a compiled run on the rule of
+    CompiledReconstruction.rule (tls, mls, the 2D spline)."""
 
     def __new__(cls, *fields):
         return structref.StructRefProxy.__new__(cls, *fields)
 
 
-structref.define_proxy(TLSReconstruction, TLSReconstructionType, list(TLS_FIELDS))
+structref.define_proxy(RuleReconstruction, RuleReconstructionType, list(RULED_FIELDS))
 
 
 @njit(cache=True)
-def new_tls_reconstruction(*fields):
-    """A TLSReconstruction with ``fields`` in the order of TLS_FIELDS."""
-    return TLSReconstruction(*fields)
+def new_rule_reconstruction(*fields):
+    """A RuleReconstruction with ``fields`` in the order of RULED_FIELDS."""
+    return RuleReconstruction(*fields)
 
 
 @njit(cache=True)
-def _tls_rule_1d(rc, x, V):
+def _rule_1d(rc, x, V):
     """The body's Gauss rule (kernels.gauss_rule.gauss_rule_1d) and the
     particles' cells, as CompiledReconstruction.rule."""
     n = x.shape[0]
@@ -235,7 +251,7 @@ def _tls_rule_1d(rc, x, V):
 
 
 @njit(cache=True)
-def _tls_rule_2d(rc, x, V):
+def _rule_2d(rc, x, V):
     """The rule of CompiledReconstruction.rule in 2D: the tensor Gauss rule
     on the body's box of each cell holding particles
     (kernels.gauss_rule.body_boxes_2d, gauss_rule_cells), except the cells
@@ -254,24 +270,70 @@ def _tls_rule_2d(rc, x, V):
     rc.own = own
 
 
-_TLS_RULE = _tls_rule_1d if DIM == 1 else _tls_rule_2d
+_RULE = _rule_1d if DIM == 1 else _rule_2d
+
+
+def fit_points(rc, x, V, values, out, fresh):
+    """out = the fit of ``values`` at the rule's Gauss points rc.xg; with
+    ``fresh`` the position half first (kept in rc for the next fits on the
+    same particles and rule). False when the fit cannot be made here (the
+    2D spline: a pivot of the banded Cholesky not positive; the executor
+    then factorises by SuperLU)."""
+
+
+@overload(fit_points)
+def _fit_points(rc, x, V, values, out, fresh):
+    fields = rc.field_dict
+    if not isinstance(fields["factor"], types.NoneType):
+        def tls(rc, x, V, values, out, fresh):  # CompiledReconstruction._fit's tls
+            if fresh:
+                rc.factor = TLS_FACTOR(x, V, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.breaks,
+                                       rc.breaks1)
+            TLS_APPLY(x, V, values, rc.xg, rc.factor, out)
+            return True
+        return tls
+    if not isinstance(fields["alpha"], types.NoneType):
+        def mls(rc, x, V, values, out, fresh):  # CompiledReconstruction._fit's mls
+            if fresh:
+                rc.alpha = np.empty((rc.xg.shape[0], x.shape[1] + 1))
+            MLS_FIT(x, values, rc.xg, rc.radius, rc.alpha, out, fresh)
+            return True
+        return mls
+
+    def spline(rc, x, V, values, out, fresh):  # SplineLeastSquares.__call__, BandedCholesky
+        axes, nbx, nby, penalty, A, band, L = rc.spline
+        rhs = np.empty((nbx * nby, values.shape[1]))
+        SPLINE_LS_SYSTEM(x, V, values, axes[0], axes[1], nbx, nby, penalty, fresh, A, rhs)
+        if fresh:
+            SPLINE_BAND(A, nbx, band)
+            L[:] = 0.0
+            BANDED_CHOLESKY_INTO(band, 0, A.shape[0], L)
+            for i in range(L.shape[0]):
+                if not L[i, 0] > 0.0:
+                    return False
+        BAND_SOLVE(L, rhs)
+        SPLINE_EVALUATE(rc.xg, rhs, axes[0], axes[1], nbx, out)
+        return True
+    return spline
 
 
 @njit(cache=True)
-def tls_points(rc, x, v, m, V, stress):
-    """The step's rule, the TLS fit of the per-volume fields at its Gauss
-    points (kernels.tls.tls_reconstruct), the particles' own values at its
-    particle points, and the points as quadrature particles (see
-    reconstruct_points); False when the density is 0 at a point."""
+def rule_points(rc, x, v, m, V, stress):
+    """The step's rule, the fit of the per-volume fields at its Gauss
+    points (fit_points, fresh), the particles' own values at its particle
+    points, and the points as quadrature particles (see
+    reconstruct_points); False when the fit cannot be made here or the
+    density is 0 at a point."""
     dim = x.shape[1]
     values = _per_volume_fields(rc, v, m, V, stress)
     k = values.shape[1]
-    _TLS_RULE(rc, x, V)
+    _RULE(rc, x, V)
     xg, wg, own = rc.xg, rc.wg, rc.own
     ngauss = wg.shape[0]
     ng = ngauss + own.shape[0]
     fit = np.empty((ngauss, k))
-    TLS_RECONSTRUCT(x, V, values, rc.pcell, xg, wg, rc.gcell, rc.breaks, rc.breaks1, fit)
+    if not fit_points(rc, x, V, values, fit, True):
+        return False
     if own.shape[0] == 0:
         rc.xq = xg
         rc.Vq = wg
@@ -299,22 +361,21 @@ def tls_points(rc, x, v, m, V, stress):
 
 
 @njit(cache=True)
-def tls_project(rc, x, V, v_new):
-    """MUSL: the TLS fit of rho v^new at the step's Gauss points, the
-    particles' own rho v^new at its particle points (rc.momentum_fit)."""
+def rule_project(rc, x, V, v_new):
+    """MUSL: the fit of rho v^new at the step's Gauss points on what the
+    step's fit kept (fit_points, not fresh), the particles' own rho v^new
+    at its particle points (rc.momentum_fit)."""
     n, dim = v_new.shape
     for i in range(n):
         for c in range(dim):
             rc.momentum_values[i, c] = rc.rho[i] * v_new[i, c]
     own = rc.own
     if own.shape[0] == 0:
-        TLS_RECONSTRUCT(x, V, rc.momentum_values, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.breaks,
-                        rc.breaks1, rc.momentum_fit)
+        fit_points(rc, x, V, rc.momentum_values, rc.momentum_fit, False)
         return
     ngauss = rc.wg.shape[0]
     fit = np.empty((ngauss, dim))
-    TLS_RECONSTRUCT(x, V, rc.momentum_values, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.breaks,
-                    rc.breaks1, fit)
+    fit_points(rc, x, V, rc.momentum_values, fit, False)
     for g in range(ngauss):
         for c in range(dim):
             rc.momentum_fit[g, c] = fit[g, c]
