@@ -15,7 +15,7 @@ from skfem_mpm import reconstruct
 from skfem_mpm.kernels import tls as tls_kernel
 from skfem_mpm.kernels.gauss_rule import (body_boxes_2d, gauss_rule_1d, gauss_rule_cells,
                                          locate_cells)
-from skfem_mpm.kernels.mls import mls_reconstruct
+from skfem_mpm.kernels import mls as mls_kernel
 from skfem_mpm.kernels.spline_2d import WIDTH
 from skfem_mpm.kernels.spline_1d import not_a_knot_spline
 from skfem_mpm.kernels.serial import serial
@@ -31,6 +31,7 @@ from test_executors import scene_for
 tls_reconstruct = serial(tls_kernel.tls_reconstruct)
 tls_factor = serial(tls_kernel.tls_factor)
 tls_apply = serial(tls_kernel.tls_apply)
+mls_reconstruct = serial(mls_kernel.mls_reconstruct)
 
 
 def layouts_1d():

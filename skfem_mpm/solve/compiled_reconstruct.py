@@ -346,7 +346,8 @@ class CompiledReconstruction:
             alpha = getattr(rule, "alpha", None)
             if alpha is None:
                 rule.alpha = np.empty((rule.x.shape[0], self.dim + 1))
-            mls_fit(p.x, values, rule.x, self.radius, rule.alpha, out, alpha is None)
+            for_threads(mls_fit, parallel)(p.x, values, rule.x, self.radius, rule.alpha, out,
+                                           alpha is None)
             return out
         if self.dim == 2:  # spline: one factorisation per rule (the particles' positions)
             rule.lu = self.spline_ls(p.x, p.V, values, rule.x, out, getattr(rule, "lu", None))
