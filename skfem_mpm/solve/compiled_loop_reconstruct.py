@@ -7,9 +7,12 @@ The compiled executor's reconstructed particles-to-grid
 formulas), in the same order on the same kernels (called by symbol, with
 the argument types of the executor's calls), so that a run gives the same
 bits on either path. Covered: the particle-knot spline in 1D
-(:class:`Reconstruction`) and the published TLS with its default options
-in 1D and 2D (:class:`TLSReconstruction`); the run's reconstruction type
-says which, so a run compiles only its own kind's functions.
+(:class:`Reconstruction`), and on the rule of CompiledReconstruction.rule
+(:class:`RuleReconstruction`) the published TLS with its default options
+and mls in 1D and 2D and the 2D spline with its direct solve; the run's
+reconstruction type (and in a RuleReconstruction the types of its
+kind-specific fields) says which, so a run compiles only its own kind's
+functions.
 
 The 1D spline:
 
@@ -25,26 +28,33 @@ The 1D spline:
                          points of mass w_g and velocity (rho v^new)_h (the
                          g2p2g kernel with a = 0 integrates their momentum)
 
-TLS (CompiledReconstruction.rule, reconstruct and project):
+tls, mls, the 2D spline (CompiledReconstruction.rule, reconstruct and
+project):
 
-    tls_points           the particles' cells (kernels.gauss_rule.locate_cells)
+    rule_points          the particles' cells (kernels.gauss_rule.locate_cells)
                          and the step's rule: in 1D gauss_rule_1d; in 2D the
                          tensor rule on the body's box of each cell holding
                          particles (body_boxes_2d, gauss_rule_cells), except
                          in the cells a free surface cuts (the box is not
                          the whole cell), whose particles are points of the
                          rule themselves (``own``, after the Gauss points,
-                         with weight V_p and their own values); the position
-                         half of the TLS fits (kernels.tls.tls_factor, kept
-                         for the step) and the fit at the Gauss points
-                         (kernels.tls.tls_apply); the points as quadrature
+                         with weight V_p and their own values); the fit at
+                         the Gauss points (fit_points), which first computes
+                         and keeps for the step what depends on the
+                         positions alone (tls: kernels.tls.tls_factor, then
+                         tls_apply; mls: M_g^-1 e_0 in kernels.mls.mls_fit;
+                         the 2D spline: kernels.spline_2d's system, band and
+                         banded Cholesky factor, then band_solve and
+                         spline_evaluate); the points as quadrature
                          particles, as above
-    tls_project          MUSL: the TLS fit of rho v^new at the Gauss points
-                         on the step's factor, the particles' own rho v^new
-                         at the particle points
+    rule_project         MUSL: the fit of rho v^new at the Gauss points on
+                         what the step's fit kept, the particles' own
+                         rho v^new at the particle points
 
 A step whose fitted density is 0 at a point (the executor then integrates
-the momentum apart) stops the loop: the executor takes it.
+the momentum apart), or whose 2D spline system the banded Cholesky refuses
+(the executor then factorises by SuperLU), stops the loop: the executor
+takes it.
 """
 
 
@@ -95,7 +105,7 @@ def new_reconstruction(*fields):
 def _per_volume_fields(rc, v, m, V, stress):
     """rc.values = the fitted per-volume fields [rho, rho v, sigma] of the
     particles (n, 1 + dim + dim^2) and rc.rho = rho = m / V; returns
-    rc.values (a Reconstruction or a TLSReconstruction)."""
+    rc.values (a Reconstruction or a RuleReconstruction)."""
     n, dim = v.shape
     values = rc.values
     for i in range(n):
