@@ -19,7 +19,7 @@ from skfem_mpm import (Body, DruckerPrager, Fixed, Gravity, LinearElastic, Metho
                        NeoHookean, Particles, Scene, SimulationError, SplineGrid, Traction,
                        VonMises, simulate)
 from skfem_mpm.kernels import serial
-from skfem_mpm.solve import compiled_loop
+from skfem_mpm.solve import compiled_loop, compiled_reconstruct
 from skfem_mpm.solve.compiled import CompiledExecutor
 from skfem_mpm.solve.state import prepare
 from skfem_mpm.solve.stencil_system import StencilSystem, preconditioned_with
@@ -520,6 +520,59 @@ def test_tls_reconstruction_gives_the_executors_bits(monkeypatch, case):
     assert looped.phase_table()["reconstruct"] > 0.0
 
 
+# The 2D spline (its direct solve: the banded Cholesky, kept for the step's
+# MUSL projection) and mls (M_g^-1 e_0 kept likewise) on the rule TLS
+# uses, in the loop: the same bits as the executor. The default tier runs
+# the 2D spline with consistent MUSL on the aligned body (issue 18's
+# configuration) and mls with lumped MUSL on the unaligned one (particle
+# points); the slow tier every other scheme, mass kind, degree, 1D mls and
+# the spline's cut cells.
+RULED_CASES = [
+    dict(reconstruction="spline", dim=2, scheme="musl", mass="consistent", degree=2,
+         effect="gravity", aligned=True),
+    dict(reconstruction="mls", dim=2, scheme="musl", mass="lumped", degree=2, effect="gravity",
+         aligned=False),
+]
+SLOW_RULED_CASES = [
+    dict(reconstruction="spline", dim=2, scheme="musl", mass="lumped", degree=2,
+         effect="gravity", aligned=False),
+    dict(reconstruction="spline", dim=2, scheme="musl", mass="hybrid", degree=3,
+         effect="gravity", aligned=True),
+    dict(reconstruction="spline", dim=2, scheme="usl", mass="consistent", degree=3,
+         effect="none", aligned=True),
+    dict(reconstruction="spline", dim=2, scheme="cd", mass="lumped", degree=2, effect="gravity",
+         aligned=True),
+    dict(reconstruction="spline", dim=2, scheme="rk4", mass="consistent", degree=2,
+         effect="gravity", aligned=True),
+    dict(reconstruction="mls", dim=2, scheme="musl", mass="consistent", degree=2,
+         effect="gravity", aligned=True),
+    dict(reconstruction="mls", dim=2, scheme="usl", mass="lumped", degree=3, effect="none",
+         aligned=True),
+    dict(reconstruction="mls", dim=2, scheme="cd", mass="consistent", degree=2,
+         effect="gravity", aligned=True),
+    dict(reconstruction="mls", dim=2, scheme="rk4", mass="lumped", degree=2, effect="gravity",
+         aligned=False),
+    dict(reconstruction="mls", dim=1, scheme="musl", mass="hybrid", degree=2, effect="gravity",
+         aligned=False),
+    dict(reconstruction="mls", dim=1, scheme="rk4", mass="consistent", degree=3,
+         effect="gravity", aligned=False),
+]
+
+
+@pytest.mark.parametrize("case", RULED_CASES + [
+    pytest.param(c, marks=pytest.mark.slow(reason="one more compiled loop variant"))
+    for c in SLOW_RULED_CASES], ids=_case_id)
+def test_spline_and_mls_on_the_rule_give_the_executors_bits(monkeypatch, case):
+    full = dict(case, material="linear", ppc=3)
+    scene = scene_for(full, steps=23)
+    method = Method(scheme=case["scheme"], mass=case["mass"],
+                    reconstruction=case["reconstruction"])
+    looped, stepped = looped_and_stepped(monkeypatch, scene, method)
+    assert stepped.path == f"fast (reconstruction {case['reconstruction']})"
+    assert looped.counts["compiled_loop_steps"] >= 18
+    assert looped.phase_table()["reconstruct"] > 0.0
+
+
 def test_the_unaligned_2d_tls_rule_has_particle_points():
     """The unaligned 2D cases integrate cut cells with their particles
     (CompiledReconstruction.rule's particle_points), the aligned ones not."""
@@ -803,7 +856,7 @@ def test_a_traction_of_x_and_t_stays_with_the_executor():
     assert not ok and "traction on a side of the body with tau(t)" in why
 
 
-def test_what_the_loop_leaves_to_the_executor():
+def test_what_the_loop_leaves_to_the_executor(monkeypatch):
     case = mass_case(MASS_CASES[0])
     scene = scene_for(case, steps=5)
     state = prepare(scene, Method(scheme="musl", mass="consistent", mass_solver="direct"))
@@ -815,8 +868,15 @@ def test_what_the_loop_leaves_to_the_executor():
     assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == (True, "")
     dim = scene.grid.dim
     state = prepare(scene, Method(scheme="musl", reconstruction="mls"))
+    assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == (True, "")
+    plate = scene_for(mass_case(MASS_CASES[4]), steps=5)
+    state = prepare(plate, Method(scheme="musl", reconstruction="spline"))
+    assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == (True, "")
+    monkeypatch.setattr(compiled_reconstruct, "DIRECT_DOFS", 0)
+    state = prepare(plate, Method(scheme="musl", reconstruction="spline"))
     assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == \
-        (False, f"reconstruction mls in {dim}D")
+        (False, "reconstruction spline in 2D with its Kronecker-preconditioned CG "
+         "(DIRECT_DOFS cubic dofs or more)")
     state = prepare(scene, Method(scheme="musl", reconstruction="tls"))
     assert compiled_loop.loop_applies(state, CompiledExecutor(state)) == (True, "")
     grid, effects = scene.grid, scene.effects

@@ -15,10 +15,10 @@ from skfem_mpm import reconstruct
 from skfem_mpm.kernels import tls as tls_kernel
 from skfem_mpm.kernels.gauss_rule import (body_boxes_2d, gauss_rule_1d, gauss_rule_cells,
                                          locate_cells)
-from skfem_mpm.kernels.mls import mls_reconstruct
+from skfem_mpm.kernels import mls as mls_kernel
 from skfem_mpm.kernels.spline_2d import WIDTH
 from skfem_mpm.kernels.spline_1d import not_a_knot_spline
-from skfem_mpm.kernels.tls import tls_reconstruct
+from skfem_mpm.kernels.serial import serial
 from skfem_mpm.reconstruct import (integration_rule, reconstruct_mls, reconstruct_spline,
                                    reconstruct_tls)
 from skfem_mpm.solve.compiled import compiled_executor_applies
@@ -26,6 +26,12 @@ from skfem_mpm.solve.compiled_reconstruct import (BandedCholesky, CompiledRecons
                                                   SplineLeastSquares)
 from skfem_mpm.solve.state import prepare
 from test_executors import scene_for
+
+# the serial copies (what runs below SERIAL_BELOW particles: the same bits)
+tls_reconstruct = serial(tls_kernel.tls_reconstruct)
+tls_factor = serial(tls_kernel.tls_factor)
+tls_apply = serial(tls_kernel.tls_apply)
+mls_reconstruct = serial(mls_kernel.mls_reconstruct)
 
 
 def layouts_1d():
@@ -166,6 +172,27 @@ def test_compiled_tls_agrees_with_the_reference(name, grid, p):
     expected = reconstruct_tls(grid, p, values, rule)
     out = compiled_tls(grid, p, values, rule)
     assert np.abs(out - expected).max() <= 1e-12 * np.abs(expected).max()
+
+
+@pytest.mark.parametrize("name, grid, p", [c for c in layouts_tls() if c[1].dim == 2],
+                         ids=lambda v: v if isinstance(v, str) else "")
+def test_one_tls_factor_serves_every_field_fitted_on_it(name, grid, p):
+    """The position half of the fit (tls_factor: the cells' factorised
+    Lagrange systems), computed once, gives each field the bits of a fit of
+    that field alone (tls_reconstruct), also when it is used again (a
+    step's MUSL projection reuses the step's): tls_apply does not change
+    it."""
+    rng = np.random.default_rng(5)
+    rule = kernel_rule(grid, p)
+    b0, b1 = grid.breakpoints
+    pcell = locate_cells(p.x, b0, b1, grid._uniform[0], grid._uniform[-1])
+    factor = tls_factor(p.x, p.V, pcell, rule.x, rule.w, rule.cell, b0, b1)
+    for k in (5, 2, 5):
+        values = rng.normal(size=(p.n, k))
+        alone = compiled_tls(grid, p, values, rule)
+        reused = np.empty_like(alone)
+        tls_apply(p.x, p.V, values, rule.x, factor, reused)
+        assert np.array_equal(reused, alone)
 
 
 @pytest.mark.parametrize("radius", (1.5, 0.7))

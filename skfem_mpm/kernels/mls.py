@@ -43,7 +43,7 @@ the boxes that the ball of radius r reaches, given the row's distance from
 x_g on the other axes.
 """
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from .cholesky import cholesky
 
@@ -51,6 +51,8 @@ __all__ = ["MLS_RANK_TOL", "mls_fit", "mls_reconstruct"]
 
 MLS_RANK_TOL = 1e-6  # the reference's threshold (eigvalsh(M / scale)[0] > 1e-6; a test checks)
 MAX_DIM = 3
+POINTS_PER_BLOCK = 64
+"""Gauss points per block of :func:`mls_fit` (each block its own work arrays)."""
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -151,7 +153,7 @@ def _constant_row(M, m, L, scaled, a):
         a[0] = 1.0 / M[0, 0]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def mls_fit(x, values, xg, r, alpha, out, with_coefficients):
     """out[g] (ng, k) = the linear MLS fit of the particle ``values`` (n, k)
     at the point xg[g] (see the module docstring), ``x`` (n, d) particle
@@ -165,7 +167,10 @@ def mls_fit(x, values, xg, r, alpha, out, with_coefficients):
     branch that fails at random costs more than the test), then tested;
     the loops are written out here rather than in helpers, which would
     take the arrays (see :mod:`skfem_mpm.kernels.stencil`: counted
-    references per call)."""
+    references per call). The values are read in box order (a copy, made
+    once), as the positions: the particles of a row of boxes are adjacent
+    in memory. The points run in blocks of POINTS_PER_BLOCK (prange in the
+    parallel kernel; each point's sums are the same in any block)."""
     dim = x.shape[1]
     k = values.shape[1]
     m = dim + 1
@@ -179,99 +184,108 @@ def mls_fit(x, values, xg, r, alpha, out, with_coefficients):
     nbox0 = nbox[0]
     nbox1 = nbox[1] if dim > 1 else 1
     nbox2 = nbox[2] if dim > 2 else 1
-    cand = np.empty(most, dtype=np.int64)
-    hits = np.empty(most, dtype=np.int64)
-    phi = np.empty((most, 4))  # (x_q - x_g) / r per axis (0 beyond dim), W
-    M = np.zeros((MAX_DIM + 1, MAX_DIM + 1))
-    L = np.empty((MAX_DIM + 1, MAX_DIM + 1))
-    scaled = np.empty((MAX_DIM + 1, MAX_DIM + 1))
-    a = np.zeros(MAX_DIM + 1)
-    for g in range(xg.shape[0]):
-        y0 = xg[g, 0]
-        y1 = xg[g, 1] if dim > 1 else 0.0
-        y2 = xg[g, 2] if dim > 2 else 0.0
-        lo1 = hi1 = lo2 = hi2 = 0  # the rows: two boxes either side on axes 1, 2
-        if dim > 1:
-            c = int(np.floor((y1 - lower1) / side))
-            lo1, hi1 = max(c - 2, 0), min(c + 2, nbox1 - 1)
-        if dim > 2:
-            c = int(np.floor((y2 - lower2) / side))
-            lo2, hi2 = max(c - 2, 0), min(c + 2, nbox2 - 1)
-        count = 0
-        for j2 in range(lo2, hi2 + 1):
-            e2 = max(lower2 + j2 * side - y2, y2 - (lower2 + (j2 + 1) * side), 0.0) \
-                if dim > 2 else 0.0
-            for j1 in range(lo1, hi1 + 1):
-                e1 = max(lower1 + j1 * side - y1, y1 - (lower1 + (j1 + 1) * side), 0.0) \
-                    if dim > 1 else 0.0
-                gap2 = e1 * e1 + e2 * e2  # the row's distance from x_g
-                if gap2 > reach2:
-                    continue
-                half = np.sqrt(reach2 - gap2)  # the ball's extent along axis 0
-                first = max(int(np.floor((y0 - half - lower[0]) / side)), 0)
-                last = min(int(np.floor((y0 + half - lower[0]) / side)), nbox0 - 1)
-                row = (j2 * nbox1 + j1) * nbox0
-                for i in range(start[row + first], start[row + last + 1] if last >= first
-                               else start[row + first]):
-                    d0 = xb[i, 0] - y0
-                    d1 = xb[i, 1] - y1
-                    d2 = xb[i, 2] - y2
-                    cand[count] = i
-                    count += 1 if d0 * d0 + d1 * d1 + d2 * d2 <= reach2 else 0
-        kept = 0
-        m00 = m10 = m11 = m20 = m21 = m22 = m30 = m31 = m32 = m33 = 0.0
-        for j in range(count):
-            i = cand[j]
-            d0 = xb[i, 0] - y0
-            d1 = xb[i, 1] - y1
-            d2 = xb[i, 2] - y2
-            dist = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-            if not dist < r:
-                continue
-            w = _kernel(dist * inv_r)
-            p1 = d0 * inv_r
-            p2 = d1 * inv_r
-            p3 = d2 * inv_r
-            hits[kept] = order[i]
-            phi[kept, 0] = p1
-            phi[kept, 1] = p2
-            phi[kept, 2] = p3
-            phi[kept, 3] = w
-            kept += 1
-            if with_coefficients:  # the lower triangle of M: sum_p (w_p phi_s) phi_t
-                w1 = w * p1
-                w2 = w * p2
-                w3 = w * p3
-                m00 += w
-                m10 += w1
-                m11 += w1 * p1
-                m20 += w2
-                m21 += w2 * p1
-                m22 += w2 * p2
-                m30 += w3
-                m31 += w3 * p1
-                m32 += w3 * p2
-                m33 += w3 * p3
-        if with_coefficients:
-            if m00 > 0.0:
-                M[0, 0], M[1, 0], M[1, 1], M[2, 0], M[2, 1], M[2, 2] = m00, m10, m11, m20, m21, m22
-                M[3, 0], M[3, 1], M[3, 2], M[3, 3] = m30, m31, m32, m33
-                _constant_row(M, m, L, scaled, a)
-            else:  # no particle in reach
-                a[:] = 0.0
-            for q in range(m):
-                alpha[g, q] = a[q]
-        a0 = alpha[g, 0]
-        a1 = alpha[g, 1]
-        a2 = alpha[g, 2] if dim > 1 else 0.0
-        a3 = alpha[g, 3] if dim > 2 else 0.0
+    n = x.shape[0]
+    vb = np.empty((n, k))  # the values in box order
+    for i in range(n):
         for col in range(k):
-            out[g, col] = 0.0
-        for j in range(kept):  # out = sum_p w_p (alpha . phi_p) f_p
-            c = phi[j, 3] * (a0 + a1 * phi[j, 0] + a2 * phi[j, 1] + a3 * phi[j, 2])
-            q = hits[j]
+            vb[i, col] = values[order[i], col]
+    ng = xg.shape[0]
+    nblocks = (ng + POINTS_PER_BLOCK - 1) // POINTS_PER_BLOCK
+    for block in prange(nblocks):
+        cand = np.empty(most, dtype=np.int64)
+        hits = np.empty(most, dtype=np.int64)
+        phi = np.empty((most, 4))  # (x_q - x_g) / r per axis (0 beyond dim), W
+        M = np.zeros((MAX_DIM + 1, MAX_DIM + 1))
+        L = np.empty((MAX_DIM + 1, MAX_DIM + 1))
+        scaled = np.empty((MAX_DIM + 1, MAX_DIM + 1))
+        a = np.zeros(MAX_DIM + 1)
+        for g in range(block * POINTS_PER_BLOCK, min(ng, (block + 1) * POINTS_PER_BLOCK)):
+            y0 = xg[g, 0]
+            y1 = xg[g, 1] if dim > 1 else 0.0
+            y2 = xg[g, 2] if dim > 2 else 0.0
+            lo1 = hi1 = lo2 = hi2 = 0  # the rows: two boxes either side on axes 1, 2
+            if dim > 1:
+                c = int(np.floor((y1 - lower1) / side))
+                lo1, hi1 = max(c - 2, 0), min(c + 2, nbox1 - 1)
+            if dim > 2:
+                c = int(np.floor((y2 - lower2) / side))
+                lo2, hi2 = max(c - 2, 0), min(c + 2, nbox2 - 1)
+            count = 0
+            for j2 in range(lo2, hi2 + 1):
+                e2 = max(lower2 + j2 * side - y2, y2 - (lower2 + (j2 + 1) * side), 0.0) \
+                    if dim > 2 else 0.0
+                for j1 in range(lo1, hi1 + 1):
+                    e1 = max(lower1 + j1 * side - y1, y1 - (lower1 + (j1 + 1) * side), 0.0) \
+                        if dim > 1 else 0.0
+                    gap2 = e1 * e1 + e2 * e2  # the row's distance from x_g
+                    if gap2 > reach2:
+                        continue
+                    half = np.sqrt(reach2 - gap2)  # the ball's extent along axis 0
+                    first = max(int(np.floor((y0 - half - lower[0]) / side)), 0)
+                    last = min(int(np.floor((y0 + half - lower[0]) / side)), nbox0 - 1)
+                    row = (j2 * nbox1 + j1) * nbox0
+                    for i in range(start[row + first], start[row + last + 1] if last >= first
+                                   else start[row + first]):
+                        d0 = xb[i, 0] - y0
+                        d1 = xb[i, 1] - y1
+                        d2 = xb[i, 2] - y2
+                        cand[count] = i
+                        count += 1 if d0 * d0 + d1 * d1 + d2 * d2 <= reach2 else 0
+            kept = 0
+            m00 = m10 = m11 = m20 = m21 = m22 = m30 = m31 = m32 = m33 = 0.0
+            for j in range(count):
+                i = cand[j]
+                d0 = xb[i, 0] - y0
+                d1 = xb[i, 1] - y1
+                d2 = xb[i, 2] - y2
+                dist = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                if not dist < r:
+                    continue
+                w = _kernel(dist * inv_r)
+                p1 = d0 * inv_r
+                p2 = d1 * inv_r
+                p3 = d2 * inv_r
+                hits[kept] = i  # box order
+                phi[kept, 0] = p1
+                phi[kept, 1] = p2
+                phi[kept, 2] = p3
+                phi[kept, 3] = w
+                kept += 1
+                if with_coefficients:  # the lower triangle of M: sum_p (w_p phi_s) phi_t
+                    w1 = w * p1
+                    w2 = w * p2
+                    w3 = w * p3
+                    m00 += w
+                    m10 += w1
+                    m11 += w1 * p1
+                    m20 += w2
+                    m21 += w2 * p1
+                    m22 += w2 * p2
+                    m30 += w3
+                    m31 += w3 * p1
+                    m32 += w3 * p2
+                    m33 += w3 * p3
+            if with_coefficients:
+                if m00 > 0.0:
+                    M[0, 0], M[1, 0], M[1, 1] = m00, m10, m11
+                    M[2, 0], M[2, 1], M[2, 2] = m20, m21, m22
+                    M[3, 0], M[3, 1], M[3, 2], M[3, 3] = m30, m31, m32, m33
+                    _constant_row(M, m, L, scaled, a)
+                else:  # no particle in reach
+                    a[:] = 0.0
+                for q in range(m):
+                    alpha[g, q] = a[q]
+            a0 = alpha[g, 0]
+            a1 = alpha[g, 1]
+            a2 = alpha[g, 2] if dim > 1 else 0.0
+            a3 = alpha[g, 3] if dim > 2 else 0.0
             for col in range(k):
-                out[g, col] += c * values[q, col]
+                out[g, col] = 0.0
+            for j in range(kept):  # out = sum_p w_p (alpha . phi_p) f_p
+                c = phi[j, 3] * (a0 + a1 * phi[j, 0] + a2 * phi[j, 1] + a3 * phi[j, 2])
+                q = hits[j]
+                for col in range(k):
+                    out[g, col] += c * vb[q, col]
 
 
 @njit(cache=True, error_model="numpy")

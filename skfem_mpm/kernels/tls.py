@@ -35,13 +35,26 @@ by Gaussian elimination with partial pivoting.
 Particles are binned to their cells by a counting sort (stable: each
 cell's sums run in particle order, as the oracle's np.add.at does), the
 Gauss points likewise; the fit of cell e is then evaluated at its points.
+
+A, G, the eigenvalue tests and the factorisation P K = L U of each level's
+Lagrange matrix depend on the positions alone: :func:`tls_factor` computes
+them once for a set of particles and a rule, and :func:`tls_apply` fits
+each field on them (b, S, the solves with the stored factors, the bound
+test); a step fits [rho, rho v, sigma] and its MUSL projection fits
+rho v^new on one factor. Each row of the right-hand side takes the
+operations of eliminating [K | R] at once, in the same order, so the fit
+has the bits of a solve of the whole system (:func:`tls_reconstruct`, both
+halves, is the one-call form). The loops over cells run in blocks of
+CELLS_PER_BLOCK cells (prange in the parallel kernels; each cell's
+arithmetic is the same in any block, so the bits are too).
 """
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from .cholesky import cholesky
 
-__all__ = ["TLS_BOUND_ABS", "TLS_BOUND_TOL", "TLS_RANK_TOL", "tls_reconstruct"]
+__all__ = ["TLS_BOUND_ABS", "TLS_BOUND_TOL", "TLS_RANK_TOL", "empty_factor", "tls_apply",
+           "tls_factor", "tls_reconstruct"]
 
 TLS_RANK_TOL = 1e-8  # the value of skfem_mpm.reconstruct.TLS_RANK_TOL (a test checks)
 TLS_BOUND_TOL = 1.0  # skfem_mpm.reconstruct.TLS_BOUND_TOL and TLS_BOUND_ABS (a test checks)
@@ -77,25 +90,45 @@ def _well_posed(A, n, tol, work):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve(K, R, n):
-    """K[:n, :n] X = R[:n] in place (X in R) by Gaussian elimination with
-    partial pivoting."""
-    k = R.shape[1]
+def _factor(K, n, pivot):
+    """K[:n, :n] = P^T L U in place by Gaussian elimination with partial
+    pivoting (Golub & Van Loan, Alg. 3.4.1): U on and above the diagonal,
+    the multipliers of L below it (moved with their rows by later
+    interchanges), pivot[j] the row swapped with row j at step j."""
     for j in range(n):
         best = j
         for i in range(j + 1, n):
             if abs(K[i, j]) > abs(K[best, j]):
                 best = i
+        pivot[j] = best
         if best != j:
             for q in range(n):
                 K[j, q], K[best, q] = K[best, q], K[j, q]
-            for c in range(k):
-                R[j, c], R[best, c] = R[best, c], R[j, c]
         for i in range(j + 1, n):
             f = K[i, j] / K[j, j]
+            K[i, j] = f
             if f != 0.0:
                 for q in range(j + 1, n):
                     K[i, q] -= f * K[j, q]
+
+
+@njit(cache=True, error_model="numpy")
+def _solve(K, pivot, R, n):
+    """R[:n] := K^-1 R[:n] for K factorised by :func:`_factor`: the
+    interchanges, then forward and backward substitution. Each row of R
+    takes the operations of eliminating [K | R] at once, in the same order
+    (the multipliers of step j applied to the rows as they stand after
+    step j's interchange), so the same bits."""
+    k = R.shape[1]
+    for j in range(n):
+        best = pivot[j]
+        if best != j:
+            for c in range(k):
+                R[j, c], R[best, c] = R[best, c], R[j, c]
+    for j in range(n):
+        for i in range(j + 1, n):
+            f = K[i, j]
+            if f != 0.0:
                 for c in range(k):
                     R[i, c] -= f * R[j, c]
     for j in range(n - 1, -1, -1):
@@ -127,19 +160,36 @@ def _bins(cell, slot, nslots):
     return order, start
 
 
-@njit(cache=True, error_model="numpy")
-def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
-    """out[g] (ng, k) = the TLS fit of the particle ``values`` (n, k) of the
-    cell gcell[g] at the Gauss point xg[g] (see the module docstring).
+CELLS_PER_BLOCK = 32
+"""Cells per block of the loops over cells (each block its own work
+arrays; prange over the blocks in the parallel kernels)."""
 
-    ``x`` (n, d) particle positions, ``V`` (n,) volumes, ``pcell`` (n,) the
-    cell of each particle (scikit-fem numbering: ix + nx iy), ``xg`` (ng, d),
-    ``wg`` (ng,), ``gcell`` (ng,) the rule; ``breaks0``/``breaks1`` the
-    grid's breakpoints per axis (``breaks1`` unused in 1D)."""
+
+@njit(cache=True, error_model="numpy")
+def _frame(xg, gorder, g0, ng, dim, centre, size):
+    """centre, size: the box spanned by the cell's Gauss points
+    gorder[g0:g0 + ng] per axis (the oracle's frame)."""
+    for a in range(dim):
+        lo = np.inf
+        hi = -np.inf
+        for i in range(ng):
+            lo = min(lo, xg[gorder[g0 + i], a])
+            hi = max(hi, xg[gorder[g0 + i], a])
+        centre[a] = 0.5 * (lo + hi)
+        size[a] = hi - lo
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def tls_factor(x, V, pcell, xg, wg, gcell, breaks0, breaks1):
+    """The half of the TLS fit that depends on the positions alone (the
+    particles' x, V and the rule), computed once for every field fitted on
+    them (:func:`tls_apply`): the cells' bins, frames, G, whether each
+    level is well posed and the factorised Lagrange matrices
+    K = [[A, G], [G^T, 0]] of both levels. Arguments as
+    :func:`tls_reconstruct`'s; returns the tuple :func:`tls_apply` takes."""
     dim = x.shape[1]
     two = dim == 2
     last = dim - 1  # the second coordinate's column (1D: read, not used)
-    k = values.shape[1]
     nx = breaks0.shape[0] - 1
     ncells = nx * (breaks1.shape[0] - 1 if two else 1)
     m = 1 + dim + dim * (dim + 1) // 2
@@ -151,103 +201,187 @@ def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
             nact += 1
     porder, pstart = _bins(pcell, slot, nact)
     gorder, gstart = _bins(gcell, slot, nact)
+    frame = np.zeros((nact, 4))  # centre (2), size (2) per cell
+    G = np.zeros((nact, m))
+    posed = np.zeros((nact, 2), dtype=np.bool_)
+    lu = np.zeros((nact, 2, m + 1, m + 1))  # K of the level's n + 1 rows, factorised
+    pivots = np.zeros((nact, 2, m + 1), dtype=np.int64)
+    nblocks = (nact + CELLS_PER_BLOCK - 1) // CELLS_PER_BLOCK
+    for block in prange(nblocks):
+        phi = np.zeros(6)
+        centre = np.zeros(2)
+        size = np.ones(2)
+        A = np.empty((m, m))
+        work = np.empty((m + 1, m + 1))
+        for s in range(block * CELLS_PER_BLOCK, min(nact, (block + 1) * CELLS_PER_BLOCK)):
+            g0 = gstart[s]
+            ng = gstart[s + 1] - g0
+            _frame(xg, gorder, g0, ng, dim, centre, size)
+            frame[s, 0], frame[s, 1], frame[s, 2], frame[s, 3] = \
+                centre[0], centre[1], size[0], size[1]
+            A[:] = 0.0
+            for i in range(pstart[s], pstart[s + 1]):
+                q = porder[i]
+                phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = _monomials(
+                    x[q, 0], x[q, last], centre[0], centre[1], size[0], size[1], two)
+                for r in range(m):
+                    wr = V[q] * phi[r]
+                    for t in range(m):
+                        A[r, t] += wr * phi[t]
+            for i in range(ng):
+                g = gorder[g0 + i]
+                phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = _monomials(
+                    xg[g, 0], xg[g, last], centre[0], centre[1], size[0], size[1], two)
+                for r in range(m):
+                    G[s, r] += wg[g] * phi[r]
+            for level in range(2):
+                n = m if level == 0 else 1 + dim
+                if not _well_posed(A, n, TLS_RANK_TOL, work):
+                    continue
+                posed[s, level] = True
+                K = lu[s, level]
+                for r in range(n):
+                    for t in range(n):
+                        K[r, t] = A[r, t]
+                    K[r, n] = G[s, r]
+                    K[n, r] = G[s, r]
+                K[n, n] = 0.0
+                _factor(K, n + 1, pivots[s, level])
+    return porder, pstart, gorder, gstart, frame, G, posed, lu, pivots
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def tls_apply(x, V, values, xg, factor, out):
+    """out[g] (ng, k) = the TLS fit of the particle ``values`` (n, k) at
+    the Gauss point xg[g], with the position half ``factor`` of
+    :func:`tls_factor` on the same particles and rule (see the module
+    docstring): the sums b and S, the solves of both levels' factorised
+    Lagrange systems, the bound test."""
+    porder, pstart, gorder, gstart, frame, G, posed, lu, pivots = factor
+    dim = x.shape[1]
+    two = dim == 2
+    last = dim - 1
+    k = values.shape[1]
+    m = G.shape[1]
+    nact = G.shape[0]
     most = 0  # the most Gauss points of one cell
     for s in range(nact):
         most = max(most, gstart[s + 1] - gstart[s])
-    phig = np.zeros((most, 6))  # the monomials at the cell's Gauss points
-    fit = np.empty((most, k))  # a level's fit at them
-    phi = np.zeros(6)
-    centre = np.zeros(2)
-    size = np.ones(2)
-    A = np.empty((m, m))
-    b = np.empty((m, k))
-    G = np.empty(m)
-    S = np.empty(k)
-    work = np.empty((m + 1, m + 1))
-    K = np.empty((m + 1, m + 1))
-    R = np.empty((m + 1, k))
-    fmin = np.empty(k)
-    fmax = np.empty(k)
-    slack = np.empty(k)
-    low = np.empty(k)
-    high = np.empty(k)
-    pending = np.empty(k, dtype=np.bool_)
-    for s in range(nact):  # serial: a few microseconds per cell
-        g0 = gstart[s]
-        ng = gstart[s + 1] - g0
-        for a in range(dim):  # the frame: the box spanned by the cell's Gauss points
-            lo = np.inf
-            hi = -np.inf
+    nblocks = (nact + CELLS_PER_BLOCK - 1) // CELLS_PER_BLOCK
+    for block in prange(nblocks):
+        phig = np.zeros((most, 6))  # the monomials at the cell's Gauss points
+        fit = np.empty((most, k))  # a level's fit at them
+        phi = np.zeros(6)
+        b = np.empty((m, k))
+        S = np.empty(k)
+        R = np.empty((m + 1, k))
+        fmin = np.empty(k)
+        fmax = np.empty(k)
+        slack = np.empty(k)
+        low = np.empty(k)
+        high = np.empty(k)
+        pending = np.empty(k, dtype=np.bool_)
+        for s in range(block * CELLS_PER_BLOCK, min(nact, (block + 1) * CELLS_PER_BLOCK)):
+            c0, c1, s0, s1 = frame[s, 0], frame[s, 1], frame[s, 2], frame[s, 3]
+            g0 = gstart[s]
+            ng = gstart[s + 1] - g0
+            b[:] = 0.0
+            S[:] = 0.0
+            fmin[:] = np.inf
+            fmax[:] = -np.inf
+            for i in range(pstart[s], pstart[s + 1]):
+                q = porder[i]
+                phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = _monomials(
+                    x[q, 0], x[q, last], c0, c1, s0, s1, two)
+                for r in range(m):
+                    wr = V[q] * phi[r]
+                    for col in range(k):
+                        b[r, col] += wr * values[q, col]
+                for col in range(k):
+                    S[col] += V[q] * values[q, col]
+                    fmin[col] = min(fmin[col], values[q, col])
+                    fmax[col] = max(fmax[col], values[q, col])
             for i in range(ng):
-                lo = min(lo, xg[gorder[g0 + i], a])
-                hi = max(hi, xg[gorder[g0 + i], a])
-            centre[a] = 0.5 * (lo + hi)
-            size[a] = hi - lo
-        A[:] = 0.0
-        b[:] = 0.0
-        G[:] = 0.0
-        S[:] = 0.0
-        fmin[:] = np.inf
-        fmax[:] = -np.inf
-        for i in range(pstart[s], pstart[s + 1]):
-            q = porder[i]
-            phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = _monomials(
-                x[q, 0], x[q, last], centre[0], centre[1], size[0], size[1], two)
-            for r in range(m):
-                wr = V[q] * phi[r]
-                for t in range(m):
-                    A[r, t] += wr * phi[t]
-                for col in range(k):
-                    b[r, col] += wr * values[q, col]
+                g = gorder[g0 + i]
+                phig[i, 0], phig[i, 1], phig[i, 2], phig[i, 3], phig[i, 4], phig[i, 5] = \
+                    _monomials(xg[g, 0], xg[g, last], c0, c1, s0, s1, two)
             for col in range(k):
-                S[col] += V[q] * values[q, col]
-                fmin[col] = min(fmin[col], values[q, col])
-                fmax[col] = max(fmax[col], values[q, col])
-        for i in range(ng):
-            g = gorder[g0 + i]
-            phig[i, 0], phig[i, 1], phig[i, 2], phig[i, 3], phig[i, 4], phig[i, 5] = \
-                _monomials(xg[g, 0], xg[g, last], centre[0], centre[1], size[0], size[1], two)
-            for r in range(m):
-                G[r] += wg[g] * phig[i, r]
-        for col in range(k):
-            slack[col] = TLS_BOUND_TOL * (fmax[col] - fmin[col]) + TLS_BOUND_ABS * max(
-                abs(fmin[col]), abs(fmax[col]))
-            pending[col] = True
-        npending = k
-        for n in (m, 1 + dim):
-            if npending == 0 or not _well_posed(A, n, TLS_RANK_TOL, work):
-                continue
-            for r in range(n):
-                for t in range(n):
-                    K[r, t] = A[r, t]
-                K[r, n] = G[r]
-                K[n, r] = G[r]
+                slack[col] = TLS_BOUND_TOL * (fmax[col] - fmin[col]) + TLS_BOUND_ABS * max(
+                    abs(fmin[col]), abs(fmax[col]))
+                pending[col] = True
+            npending = k
+            for level in range(2):
+                if npending == 0 or not posed[s, level]:
+                    continue
+                n = m if level == 0 else 1 + dim
+                for r in range(n):
+                    for col in range(k):
+                        R[r, col] = b[r, col]
                 for col in range(k):
-                    R[r, col] = b[r, col]
-            K[n, n] = 0.0
-            for col in range(k):
-                R[n, col] = S[col]
-            _solve(K, R, n + 1)
-            for col in range(k):  # the level's fit at the points, for the bound test
-                low[col] = np.inf
-                high[col] = -np.inf
-            for i in range(ng):
-                for col in range(k):
-                    acc = 0.0
-                    for r in range(n):
-                        acc += phig[i, r] * R[r, col]
-                    fit[i, col] = acc
-                    low[col] = min(low[col], acc)
-                    high[col] = max(high[col], acc)
-            for col in range(k):  # the columns within their bounds keep this level's fit
-                if pending[col] and low[col] >= fmin[col] - slack[col] \
-                        and high[col] <= fmax[col] + slack[col]:
-                    for i in range(ng):
-                        out[gorder[g0 + i], col] = fit[i, col]
-                    pending[col] = False
-                    npending -= 1
-        for col in range(k):  # the conserving constant
-            if pending[col]:
-                constant = S[col] / G[0]
+                    R[n, col] = S[col]
+                # R := K^-1 R as _solve does, written out on lu[s, level] (no views)
+                for j in range(n + 1):
+                    best = pivots[s, level, j]
+                    if best != j:
+                        for col in range(k):
+                            R[j, col], R[best, col] = R[best, col], R[j, col]
+                for j in range(n + 1):
+                    for i in range(j + 1, n + 1):
+                        f = lu[s, level, i, j]
+                        if f != 0.0:
+                            for col in range(k):
+                                R[i, col] -= f * R[j, col]
+                for j in range(n, -1, -1):
+                    for col in range(k):
+                        acc = R[j, col]
+                        for q in range(j + 1, n + 1):
+                            acc -= lu[s, level, j, q] * R[q, col]
+                        R[j, col] = acc / lu[s, level, j, j]
+                for col in range(k):  # the level's fit at the points, for the bound test
+                    low[col] = np.inf
+                    high[col] = -np.inf
                 for i in range(ng):
-                    out[gorder[g0 + i], col] = constant
+                    for col in range(k):
+                        acc = 0.0
+                        for r in range(n):
+                            acc += phig[i, r] * R[r, col]
+                        fit[i, col] = acc
+                        low[col] = min(low[col], acc)
+                        high[col] = max(high[col], acc)
+                for col in range(k):  # the columns within their bounds keep this level's fit
+                    if pending[col] and low[col] >= fmin[col] - slack[col] \
+                            and high[col] <= fmax[col] + slack[col]:
+                        for i in range(ng):
+                            out[gorder[g0 + i], col] = fit[i, col]
+                        pending[col] = False
+                        npending -= 1
+            for col in range(k):  # the conserving constant
+                if pending[col]:
+                    constant = S[col] / G[s, 0]
+                    for i in range(ng):
+                        out[gorder[g0 + i], col] = constant
+
+
+def empty_factor(dim):
+    """A :func:`tls_factor` result of no cells, of the types the kernel
+    returns in ``dim`` dimensions (a placeholder for the compiled loop's
+    run data)."""
+    m = 1 + dim + dim * (dim + 1) // 2
+    index = np.zeros(0, dtype=np.int64)
+    start = np.zeros(1, dtype=np.int64)
+    return (index, start, index.copy(), start.copy(), np.zeros((0, 4)), np.zeros((0, m)),
+            np.zeros((0, 2), dtype=np.bool_), np.zeros((0, 2, m + 1, m + 1)),
+            np.zeros((0, 2, m + 1), dtype=np.int64))
+
+
+@njit(cache=True, error_model="numpy")
+def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
+    """out[g] (ng, k) = the TLS fit of the particle ``values`` (n, k) of the
+    cell gcell[g] at the Gauss point xg[g] (see the module docstring):
+    :func:`tls_apply` on :func:`tls_factor`.
+
+    ``x`` (n, d) particle positions, ``V`` (n,) volumes, ``pcell`` (n,) the
+    cell of each particle (scikit-fem numbering: ix + nx iy), ``xg`` (ng, d),
+    ``wg`` (ng,), ``gcell`` (ng,) the rule; ``breaks0``/``breaks1`` the
+    grid's breakpoints per axis (``breaks1`` unused in 1D)."""
+    tls_apply(x, V, values, xg, tls_factor(x, V, pcell, xg, wg, gcell, breaks0, breaks1), out)

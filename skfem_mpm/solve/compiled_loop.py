@@ -66,8 +66,9 @@ import numba
 import numpy as np
 
 from ..kernels import (band_factor, bbar, by_symbol, cholesky, constitutive, fast_dof,
-                       gauss_rule, grid_modifiers, kronecker, merged_mass, mpm, scatter,
-                       spline_1d, staging, step_size, tiny_mass, tls, traction, weights)
+                       gauss_rule, grid_modifiers, kronecker, merged_mass, mls, mpm, scatter,
+                       spline_1d, spline_2d, staging, step_size, tiny_mass, tls, traction,
+                       weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
@@ -120,7 +121,14 @@ _GRID_KERNELS = {
     "BODY_BOXES_2D": gauss_rule.body_boxes_2d,
     "GAUSS_RULE_CELLS": gauss_rule.gauss_rule_cells,
     "CUT_CELL_PARTICLES": gauss_rule.cut_cell_particles,
-    "TLS_RECONSTRUCT": tls.tls_reconstruct,
+    "TLS_FACTOR": tls.tls_factor,
+    "TLS_APPLY": tls.tls_apply,
+    "MLS_FIT": mls.mls_fit,
+    "SPLINE_LS_SYSTEM": spline_2d.spline_ls_system,
+    "SPLINE_BAND": spline_2d.spline_band,
+    "BANDED_CHOLESKY_INTO": kronecker.banded_cholesky_into,
+    "BAND_SOLVE": spline_2d.band_solve,
+    "SPLINE_EVALUATE": spline_2d.spline_evaluate,
     # a side traction (compiled_loop_traction)
     "SIDE_FACES": traction.side_faces,
     "LOADS_POWER": traction.loads_power,
@@ -171,9 +179,13 @@ def loop_applies(state, executor):
     reasons = (
         (not ENABLED, "the compiled loop is switched off (compiled_loop.ENABLED)"),
         (executor is None or not executor.path.startswith("fast"), "not the compiled executor"),
-        (recon is not None and (recon.name, recon.dim) not in (("spline", 1), ("tls", 1),
-                                                               ("tls", 2)),
+        (recon is not None and (recon.name, recon.dim) not in (
+            ("spline", 1), ("spline", 2), ("tls", 1), ("tls", 2), ("mls", 1), ("mls", 2)),
          f"reconstruction {m.reconstruction} in {state.grid.dim}D"),
+        (recon is not None and recon.name == "spline" and recon.dim == 2
+         and recon.spline_ls.iterative,
+         "reconstruction spline in 2D with its Kronecker-preconditioned CG (DIRECT_DOFS "
+         "cubic dofs or more)"),
         (m.scheme not in ("musl", "usl", "cd", "rk4"), f"scheme {m.scheme}"),
         (len(state.bodies) != 1 and not fused, "several bodies of different materials"),
         (not fused and not getattr(executor, "point_laws", False),
@@ -646,19 +658,29 @@ class StepLoop:
         the rule's constants of the executor's CompiledReconstruction."""
         n, dim = p.n, p.dim
         empty = np.empty
-        if recon.name == "tls":
+        if recon.name != "spline" or dim == 2:  # on CompiledReconstruction.rule's rule
             fields = dict(
                 ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
                 breaks1=recon.breaks1, uniform0=bool(recon.uniform[0]),
                 uniform1=bool(recon.uniform[1]), values=empty((n, 1 + dim + dim * dim)),
                 rho=empty(n), pcell=empty(0, dtype=np.int64), xg=empty((0, dim)), wg=empty(0),
                 gcell=empty(0, dtype=np.int64), own=empty(0, dtype=np.int64),
+                factor=None, radius=0.0, alpha=None, spline=None,
                 xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),
                 sq=empty((0, dim, dim)), momentum_values=empty((n, dim)),
                 momentum_fit=empty((0, dim)), no_stress=empty((0, dim, dim)),
                 point_velocities=empty((0, dim)))
-            return self.module.new_tls_reconstruction(
-                *(fields[name] for name in self.module.TLS_FIELDS))
+            if recon.name == "tls":
+                fields["factor"] = tls.empty_factor(dim)
+            elif recon.name == "mls":
+                fields.update(radius=float(recon.radius), alpha=empty((0, dim + 1)))
+            else:  # SplineLeastSquares' data, BandedCholesky's arrays
+                ls = recon.spline_ls
+                band = np.zeros((ls.ndofs, 3 * ls.nbx + 4))
+                fields["spline"] = (ls.axes, int(ls.nbx), int(ls.nby), float(ls.penalty),
+                                    np.zeros_like(ls.A), band, np.zeros_like(band))
+            return self.module.new_rule_reconstruction(
+                *(fields[name] for name in self.module.RULED_FIELDS))
         fields = dict(
             ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
             values=empty((n, 1 + dim + dim * dim)), rho=empty(n),

@@ -6,7 +6,7 @@ binds the kernel names used below (``P2G``, ``G2P2G``, ``G2P``,
 ``REDUCE_FIELDS``, ``REDUCE_COPIES``, ``LUMPED_SOLVE``, ``MERGED_SOLVE``, ``USL_GRID``,
 ``MASS_WEIGHTED_SUM``, ``WORK_INCREMENT``, ``SMALL_MASS``, ``MATERIAL_UPDATE``,
 ``monotonic_ns``; the
-reconstruction's ``GAUSS_RULE_1D``, ``LOCATE_CELLS``, ``TLS_RECONSTRUCT``...; ``DIM``, the
+reconstruction's ``GAUSS_RULE_1D``, ``LOCATE_CELLS``, ``TLS_FACTOR``...; ``DIM``, the
 grid dimension) to the compiled
 kernels of one grid dimension and threading (serial copies for small
 problems), into one generated file per variant that numba caches. The
@@ -31,10 +31,11 @@ the schemes MUSL, USL, CD and rk4 in 1D, 2D and 3D (the operations and
 kernels are the same source in every dimension); lumped, consistent and
 hybrid mass (``run.cm``: None, or the consistent-mass system of
 :mod:`skfem_mpm.solve.compiled_loop_mass`); particle quadrature, the 1D
-particle-knot spline reconstruction or the published TLS reconstruction
-(default options) in 1D and 2D (``run.rc``: None, or the data of
+particle-knot spline reconstruction, the published TLS reconstruction
+(default options) and mls in 1D and 2D, the 2D spline reconstruction
+with its direct solve (``run.rc``: None, or the data of
 :mod:`skfem_mpm.solve.compiled_loop_reconstruct`, a Reconstruction or a
-TLSReconstruction); a run of each kind compiles only its own operations;
+RuleReconstruction); a run of each kind compiles only its own operations;
 one body, or several of one linear elastic material: linear elastic (its stress update fused into g2p, its stress
 rate into the rk4 rates gather; ``run.law_at`` None), or with MUSL, USL
 and CD (rk4: finite strain, the law at each stage's F) a material with a
@@ -64,7 +65,8 @@ anything else stops the loop before it writes the current state
 <= 0 or a particle outside the grid (2), a tiny-mass merge the lumped kernel
 cannot do (1), a tiny-mass merge of consistent mass whose rows outgrow the
 compiled merge's lists (4), a CG run above
-its tolerance (3), a fitted density 0 at a Gauss point (5). The Python
+its tolerance (3), a fitted density 0 at a Gauss point or a 2D spline
+system whose banded Cholesky meets a pivot <= 0 (5). The Python
 step then takes that step and says what happened. A step with tiny-mass
 dofs before the merge kernels were compiled (6): the merge is called
 through addresses (``run.merged_solve_at``, ``run.cm.merge_at``), 0 until
@@ -78,7 +80,7 @@ Phase times (nanoseconds of the monotonic clock) add up in ``run.phase_ns``:
 """
 import numpy as np
 from numba import njit, types
-from numba.core.extending import overload_attribute, overload_method
+from numba.core.extending import overload, overload_attribute, overload_method
 from numba.experimental import structref
 
 from skfem_mpm.kernels.scatter import node_hull
@@ -200,10 +202,11 @@ def _cell_average(run):
     return not isinstance(run.field_dict["cell_average"], types.NoneType)
 
 
-def _tls(run):
-    """Whether the run (its numba type) reconstructs by TLS (else, when it
+def _ruled(run):
+    """Whether the run (its numba type) reconstructs on the rule of
+    CompiledReconstruction.rule (tls, mls, the 2D spline; else, when it
     reconstructs, by the 1D spline): see compiled_loop_reconstruct."""
-    return isinstance(run.field_dict["rc"], TLSReconstructionType)
+    return isinstance(run.field_dict["rc"], RuleReconstructionType)
 
 
 class Run(structref.StructRefProxy):
@@ -354,7 +357,7 @@ def _particles_to_grid(run, state):
 def _scatter(run, particles, column):
     consistent = _consistent(run)
     reconstructed = _reconstructed(run)
-    tls = _tls(run)
+    ruled = _ruled(run)
     traction = _traction(run)
 
     def impl(run, particles, column):
@@ -375,15 +378,15 @@ def _scatter(run, particles, column):
             REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, st.mass, st.momentum, st.force,
                           st.mass_range, st.occupied)
         if reconstructed:
-            if tls:
-                fitted = call(tls_points, run.rc, particles[0], particles[1], run.m,
+            if ruled:
+                fitted = call(rule_points, run.rc, particles[0], particles[1], run.m,
                               particles[4], particles[5])
             else:
                 fitted = call(reconstruct_points, run.rc, particles[0], particles[1], run.m,
                               particles[4], particles[5])
             if not fitted:
-                run.stop = 5  # a fitted density 0: the executor takes the step
-                return run
+                run.stop = 5  # a fitted density 0, a spline system the banded Cholesky
+                return run    # refuses: the executor takes the step
             rc = run.rc
             points = (rc.xq, rc.vq, rc.vq, rc.mq, rc.Vq, rc.sq)
             t_fit = monotonic_ns()
@@ -590,7 +593,7 @@ def _solve_projected_velocity(run):
 @overload_method(RunType, "project_velocity")
 def _project_velocity(run, state, grid):
     reconstructed = _reconstructed(run)
-    tls = _tls(run)
+    ruled = _ruled(run)
 
     def impl(run, state, grid):
         if run.stop:
@@ -600,8 +603,8 @@ def _project_velocity(run, state, grid):
               run.copies_g2p2g, run.touched_g2p2g)
         if reconstructed:  # the momentum of the fitted rho v^new at the step's points
             t_fit = monotonic_ns()
-            if tls:
-                call(tls_project, run.rc, run.x, run.V, run.v_new)
+            if ruled:
+                call(rule_project, run.rc, run.x, run.V, run.v_new)
             else:
                 call(project_points, run.rc, run.x, run.v_new)
             rc = run.rc

@@ -7,9 +7,12 @@ The compiled executor's reconstructed particles-to-grid
 formulas), in the same order on the same kernels (called by symbol, with
 the argument types of the executor's calls), so that a run gives the same
 bits on either path. Covered: the particle-knot spline in 1D
-(:class:`Reconstruction`) and the published TLS with its default options
-in 1D and 2D (:class:`TLSReconstruction`); the run's reconstruction type
-says which, so a run compiles only its own kind's functions.
+(:class:`Reconstruction`), and on the rule of CompiledReconstruction.rule
+(:class:`RuleReconstruction`) the published TLS with its default options
+and mls in 1D and 2D and the 2D spline with its direct solve; the run's
+reconstruction type (and in a RuleReconstruction the types of its
+kind-specific fields) says which, so a run compiles only its own kind's
+functions.
 
 The 1D spline:
 
@@ -25,23 +28,33 @@ The 1D spline:
                          points of mass w_g and velocity (rho v^new)_h (the
                          g2p2g kernel with a = 0 integrates their momentum)
 
-TLS (CompiledReconstruction.rule, reconstruct and project):
+tls, mls, the 2D spline (CompiledReconstruction.rule, reconstruct and
+project):
 
-    tls_points           the particles' cells (kernels.gauss_rule.locate_cells)
+    rule_points          the particles' cells (kernels.gauss_rule.locate_cells)
                          and the step's rule: in 1D gauss_rule_1d; in 2D the
                          tensor rule on the body's box of each cell holding
                          particles (body_boxes_2d, gauss_rule_cells), except
                          in the cells a free surface cuts (the box is not
                          the whole cell), whose particles are points of the
                          rule themselves (``own``, after the Gauss points,
-                         with weight V_p and their own values); the TLS fit
-                         at the Gauss points (kernels.tls.tls_reconstruct);
-                         the points as quadrature particles, as above
-    tls_project          MUSL: the TLS fit of rho v^new at the Gauss points,
-                         the particles' own rho v^new at the particle points
+                         with weight V_p and their own values); the fit at
+                         the Gauss points (fit_points), which first computes
+                         and keeps for the step what depends on the
+                         positions alone (tls: kernels.tls.tls_factor, then
+                         tls_apply; mls: M_g^-1 e_0 in kernels.mls.mls_fit;
+                         the 2D spline: kernels.spline_2d's system, band and
+                         banded Cholesky factor, then band_solve and
+                         spline_evaluate); the points as quadrature
+                         particles, as above
+    rule_project         MUSL: the fit of rho v^new at the Gauss points on
+                         what the step's fit kept, the particles' own
+                         rho v^new at the particle points
 
 A step whose fitted density is 0 at a point (the executor then integrates
-the momentum apart) stops the loop: the executor takes it.
+the momentum apart), or whose 2D spline system the banded Cholesky refuses
+(the executor then factorises by SuperLU), stops the loop: the executor
+takes it.
 """
 
 
@@ -92,7 +105,7 @@ def new_reconstruction(*fields):
 def _per_volume_fields(rc, v, m, V, stress):
     """rc.values = the fitted per-volume fields [rho, rho v, sigma] of the
     particles (n, 1 + dim + dim^2) and rc.rho = rho = m / V; returns
-    rc.values (a Reconstruction or a TLSReconstruction)."""
+    rc.values (a Reconstruction or a RuleReconstruction)."""
     n, dim = v.shape
     values = rc.values
     for i in range(n):
@@ -170,22 +183,27 @@ def project_points(rc, x, v_new):
                       rc.piece_points, rc.xg, rc.momentum_fit)
 
 
-# ------------------------------------------------------------------- tls
-# The published TLS (kernels.tls, default options) in 1D and 2D: a run's
-# Reconstruction of its own type, so that a run compiles only its kind's
-# functions (compiled_loop_ops: _tls).
+# ------------------------------------------- the rule's fits: tls, mls, 2D spline
+# The reconstructions on the rule of CompiledReconstruction.rule (in 1D the
+# body's Gauss rule, in 2D the cells' rule with the particles of cut cells
+# as points): the published TLS (kernels.tls, default options) in 1D and
+# 2D, mls (kernels.mls) in 1D and 2D, the 2D spline (kernels.spline_2d,
+# the direct solve). One type whose kind-specific fields (``factor``,
+# ``alpha``, ``spline``) are None in the other kinds: the fit
+# (:func:`fit_points`) is chosen from those fields' types, so that a run
+# compiles only its kind's functions (compiled_loop_ops: _ruled).
 @structref.register
-class TLSReconstructionType(types.StructRef):
+class RuleReconstructionType(types.StructRef):
     def preprocess_fields(self, fields):
         return tuple((name, types.unliteral(t)) for name, t in fields)
 
 
-TLSReconstructionType.__name__ = TLSReconstructionType.__qualname__ = \
-    f"TLSReconstructionType_{VARIANT}"
-globals()[TLSReconstructionType.__name__] = TLSReconstructionType
+RuleReconstructionType.__name__ = RuleReconstructionType.__qualname__ = \
+    f"RuleReconstructionType_{VARIANT}"
+globals()[RuleReconstructionType.__name__] = RuleReconstructionType
 
 
-TLS_FIELDS = (
+RULED_FIELDS = (
     # the rule: Gauss-Legendre points and weights on [0, 1], the largest
     # gap inside one piece of the 1D body, the breakpoints per axis (1D:
     # breaks1 is breaks) and whether each axis is uniform (locate_cells)
@@ -197,6 +215,13 @@ TLS_FIELDS = (
     # rule themselves (2D: those in cells a free surface cuts; after the
     # Gauss points, in particle order)
     "pcell", "xg", "wg", "gcell", "own",
+    # what a fit keeps for the next fit on the same particles and rule (a
+    # step's MUSL projection), None in the other kinds: tls the position
+    # half of its fits (kernels.tls.tls_factor); mls the kernel radius and
+    # the points' M_g^-1 e_0 (kernels.mls.mls_fit); the 2D spline the cubic
+    # space's axes and sizes, its penalty and the stencil, band and banded
+    # Cholesky factor of A + P (SplineLeastSquares, BandedCholesky)
+    "factor", "radius", "alpha", "spline",
     # the points as quadrature particles (x, v, m, V, stress)
     "xq", "vq", "mq", "Vq", "sq",
     # the MUSL projection: rho v^new per particle, its fit at the points,
@@ -205,24 +230,25 @@ TLS_FIELDS = (
 )
 
 
-class TLSReconstruction(structref.StructRefProxy):
-    """The TLS reconstruction data of a compiled run."""
+class RuleReconstruction(structref.StructRefProxy):
+    """The reconstruction data of a compiled run on the rule of
+    CompiledReconstruction.rule (tls, mls, the 2D spline)."""
 
     def __new__(cls, *fields):
         return structref.StructRefProxy.__new__(cls, *fields)
 
 
-structref.define_proxy(TLSReconstruction, TLSReconstructionType, list(TLS_FIELDS))
+structref.define_proxy(RuleReconstruction, RuleReconstructionType, list(RULED_FIELDS))
 
 
 @njit(cache=True)
-def new_tls_reconstruction(*fields):
-    """A TLSReconstruction with ``fields`` in the order of TLS_FIELDS."""
-    return TLSReconstruction(*fields)
+def new_rule_reconstruction(*fields):
+    """A RuleReconstruction with ``fields`` in the order of RULED_FIELDS."""
+    return RuleReconstruction(*fields)
 
 
 @njit(cache=True)
-def _tls_rule_1d(rc, x, V):
+def _rule_1d(rc, x, V):
     """The body's Gauss rule (kernels.gauss_rule.gauss_rule_1d) and the
     particles' cells, as CompiledReconstruction.rule."""
     n = x.shape[0]
@@ -235,7 +261,7 @@ def _tls_rule_1d(rc, x, V):
 
 
 @njit(cache=True)
-def _tls_rule_2d(rc, x, V):
+def _rule_2d(rc, x, V):
     """The rule of CompiledReconstruction.rule in 2D: the tensor Gauss rule
     on the body's box of each cell holding particles
     (kernels.gauss_rule.body_boxes_2d, gauss_rule_cells), except the cells
@@ -254,24 +280,70 @@ def _tls_rule_2d(rc, x, V):
     rc.own = own
 
 
-_TLS_RULE = _tls_rule_1d if DIM == 1 else _tls_rule_2d
+_RULE = _rule_1d if DIM == 1 else _rule_2d
+
+
+def fit_points(rc, x, V, values, out, fresh):
+    """out = the fit of ``values`` at the rule's Gauss points rc.xg; with
+    ``fresh`` the position half first (kept in rc for the next fits on the
+    same particles and rule). False when the fit cannot be made here (the
+    2D spline: a pivot of the banded Cholesky not positive; the executor
+    then factorises by SuperLU)."""
+
+
+@overload(fit_points)
+def _fit_points(rc, x, V, values, out, fresh):
+    fields = rc.field_dict
+    if not isinstance(fields["factor"], types.NoneType):
+        def tls(rc, x, V, values, out, fresh):  # CompiledReconstruction._fit's tls
+            if fresh:
+                rc.factor = TLS_FACTOR(x, V, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.breaks,
+                                       rc.breaks1)
+            TLS_APPLY(x, V, values, rc.xg, rc.factor, out)
+            return True
+        return tls
+    if not isinstance(fields["alpha"], types.NoneType):
+        def mls(rc, x, V, values, out, fresh):  # CompiledReconstruction._fit's mls
+            if fresh:
+                rc.alpha = np.empty((rc.xg.shape[0], x.shape[1] + 1))
+            MLS_FIT(x, values, rc.xg, rc.radius, rc.alpha, out, fresh)
+            return True
+        return mls
+
+    def spline(rc, x, V, values, out, fresh):  # SplineLeastSquares.__call__, BandedCholesky
+        axes, nbx, nby, penalty, A, band, L = rc.spline
+        rhs = np.empty((nbx * nby, values.shape[1]))
+        SPLINE_LS_SYSTEM(x, V, values, axes[0], axes[1], nbx, nby, penalty, fresh, A, rhs)
+        if fresh:
+            SPLINE_BAND(A, nbx, band)
+            L[:] = 0.0
+            BANDED_CHOLESKY_INTO(band, 0, A.shape[0], L)
+            for i in range(L.shape[0]):
+                if not L[i, 0] > 0.0:
+                    return False
+        BAND_SOLVE(L, rhs)
+        SPLINE_EVALUATE(rc.xg, rhs, axes[0], axes[1], nbx, out)
+        return True
+    return spline
 
 
 @njit(cache=True)
-def tls_points(rc, x, v, m, V, stress):
-    """The step's rule, the TLS fit of the per-volume fields at its Gauss
-    points (kernels.tls.tls_reconstruct), the particles' own values at its
-    particle points, and the points as quadrature particles (see
-    reconstruct_points); False when the density is 0 at a point."""
+def rule_points(rc, x, v, m, V, stress):
+    """The step's rule, the fit of the per-volume fields at its Gauss
+    points (fit_points, fresh), the particles' own values at its particle
+    points, and the points as quadrature particles (see
+    reconstruct_points); False when the fit cannot be made here or the
+    density is 0 at a point."""
     dim = x.shape[1]
     values = _per_volume_fields(rc, v, m, V, stress)
     k = values.shape[1]
-    _TLS_RULE(rc, x, V)
+    _RULE(rc, x, V)
     xg, wg, own = rc.xg, rc.wg, rc.own
     ngauss = wg.shape[0]
     ng = ngauss + own.shape[0]
     fit = np.empty((ngauss, k))
-    TLS_RECONSTRUCT(x, V, values, rc.pcell, xg, wg, rc.gcell, rc.breaks, rc.breaks1, fit)
+    if not fit_points(rc, x, V, values, fit, True):
+        return False
     if own.shape[0] == 0:
         rc.xq = xg
         rc.Vq = wg
@@ -299,22 +371,21 @@ def tls_points(rc, x, v, m, V, stress):
 
 
 @njit(cache=True)
-def tls_project(rc, x, V, v_new):
-    """MUSL: the TLS fit of rho v^new at the step's Gauss points, the
-    particles' own rho v^new at its particle points (rc.momentum_fit)."""
+def rule_project(rc, x, V, v_new):
+    """MUSL: the fit of rho v^new at the step's Gauss points on what the
+    step's fit kept (fit_points, not fresh), the particles' own rho v^new
+    at its particle points (rc.momentum_fit)."""
     n, dim = v_new.shape
     for i in range(n):
         for c in range(dim):
             rc.momentum_values[i, c] = rc.rho[i] * v_new[i, c]
     own = rc.own
     if own.shape[0] == 0:
-        TLS_RECONSTRUCT(x, V, rc.momentum_values, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.breaks,
-                        rc.breaks1, rc.momentum_fit)
+        fit_points(rc, x, V, rc.momentum_values, rc.momentum_fit, False)
         return
     ngauss = rc.wg.shape[0]
     fit = np.empty((ngauss, dim))
-    TLS_RECONSTRUCT(x, V, rc.momentum_values, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.breaks,
-                    rc.breaks1, fit)
+    fit_points(rc, x, V, rc.momentum_values, fit, False)
     for g in range(ngauss):
         for c in range(dim):
             rc.momentum_fit[g, c] = fit[g, c]

@@ -39,7 +39,8 @@ from ..kernels.mpm import ell_pcg
 from ..kernels.spline_1d import not_a_knot_spline
 from ..kernels.spline_2d import (WIDTH, band_solve, spline_band, spline_evaluate,
                                  spline_ls_system)
-from ..kernels.tls import tls_reconstruct
+from ..kernels.serial import SERIAL_BELOW, for_threads
+from ..kernels.tls import tls_apply, tls_factor
 
 TLS_DEFAULTS = {"degree": 2, "neighbour_weight": 0.0}
 
@@ -320,7 +321,7 @@ class CompiledReconstruction:
         gauss.x, gauss.w, gauss.cell = rule.x[:n], rule.w[:n], rule.cell[:n]
         gauss.particle_points = None
         out = np.concatenate((self._fit(p, values, gauss), values[own]))
-        for name in ("lu", "alpha"):  # what the fit keeps for this rule (see _fit)
+        for name in ("lu", "alpha", "tls"):  # what the fit keeps for this rule (see _fit)
             if hasattr(gauss, name):
                 setattr(rule, name, getattr(gauss, name))
         return out
@@ -330,17 +331,23 @@ class CompiledReconstruction:
         alone; what depends only on the particles' positions is kept on the
         rule for the next fit on it (a step's MUSL projection, a power
         iteration's products): the 2D spline's factorisation (``lu``), the
-        mls points' M_g^-1 e_0 (``alpha``)."""
+        mls points' M_g^-1 e_0 (``alpha``), the TLS cells' factorised
+        Lagrange systems (``tls``: kernels.tls.tls_factor)."""
         out = np.empty((rule.x.shape[0], values.shape[1]))
-        if self.name == "tls":
-            tls_reconstruct(p.x, p.V, values, rule.pcell, rule.x, rule.w, rule.cell,
-                            self.breaks, self.breaks1, out)
+        parallel = self.kernels.parallel if self.kernels is not None else p.n >= SERIAL_BELOW
+        if self.name == "tls":  # the position half once per rule
+            factor = getattr(rule, "tls", None)
+            if factor is None:
+                factor = rule.tls = for_threads(tls_factor, parallel)(
+                    p.x, p.V, rule.pcell, rule.x, rule.w, rule.cell, self.breaks, self.breaks1)
+            for_threads(tls_apply, parallel)(p.x, p.V, values, rule.x, factor, out)
             return out
         if self.name == "mls":  # M_g^-1 e_0 once per rule (the particles' positions)
             alpha = getattr(rule, "alpha", None)
             if alpha is None:
                 rule.alpha = np.empty((rule.x.shape[0], self.dim + 1))
-            mls_fit(p.x, values, rule.x, self.radius, rule.alpha, out, alpha is None)
+            for_threads(mls_fit, parallel)(p.x, values, rule.x, self.radius, rule.alpha, out,
+                                           alpha is None)
             return out
         if self.dim == 2:  # spline: one factorisation per rule (the particles' positions)
             rule.lu = self.spline_ls(p.x, p.V, values, rule.x, out, getattr(rule, "lu", None))
