@@ -1255,9 +1255,10 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
             if kron is not None:  # the preconditioners' work space
                 kron_now = narrow_kron(kron, kron_now, n)
             if fringe is not None:
-                fringe_now = fringe[:11] + (_narrow(fringe_now[11], n),
-                                            _narrow(fringe_now[12], n),
-                                            _narrow(fringe_now[13], (n + 1) // 2))
+                fringe_now = fringe[:12] + (_narrow(fringe_now[12], n),
+                                            _narrow(fringe_now[13], n),
+                                            _narrow(fringe_now[14], (n + 1) // 2),
+                                            _narrow(fringe_now[15], n))
         if it >= maxiter:
             break
         width = n
