@@ -316,13 +316,13 @@ class CompiledExecutor(CompiledRungeKutta):
     def _consistent_solves(self, state, system, mass, problems, outs):
         """Consistent M x = rhs for each (rhs, values or None, kind) into
         ``outs``; a stencil system solves them in one CG run."""
-        problems = [(rhs, np.zeros_like(rhs) if values is None else values, kind)
-                    for rhs, values, kind in problems]
         if isinstance(system, StencilSystem):
             xs = system.solve_many(problems)
             for (_, _, kind), x in zip(problems, xs):
-                system.remember(kind, x)
+                system.keep(kind, x)  # x is the system's own new array
         else:
+            problems = [(rhs, np.zeros_like(rhs) if values is None else values, kind)
+                        for rhs, values, kind in problems]
             xs = [system.solve(rhs, values, kind) for rhs, values, kind in problems]
             if state.method.mass_solver == "cg":
                 for (_, _, kind), x in zip(problems, xs):
