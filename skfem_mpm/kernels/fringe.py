@@ -34,7 +34,7 @@ positive definite); its triangular factors are applied by a compiled kernel
 import numpy as np
 from numba import njit, prange
 
-from .kronecker import apply_kronecker
+from .kronecker import apply_kronecker_replaced
 from .weights import FAST
 
 __all__ = ["fringe_rows", "FringePattern", "FringeFactor", "fringe_solve", "apply_corrected"]
@@ -88,6 +88,9 @@ class FringePattern:
         touches = np.zeros(n, dtype=bool)
         touches[self.fringe] = True
         self.near = np.flatnonzero(touches[cols].any(axis=1)).astype(np.int64)
+        # the near rows' columns as fringe positions, nf (a zero row) off the fringe
+        self.near_cols = np.where(position[cols[self.near]] >= 0, position[cols[self.near]],
+                                  nf).astype(np.int64)
         self.key = rows.tobytes()
         self.layers = layers
         self.factor = None
@@ -127,12 +130,14 @@ class FringeFactor:
 
     def args(self, nc):
         """The arguments of :func:`apply_corrected` after the Kronecker ones:
-        fringe and near rows, L and U (CSC), 1 / U_jj, the permutations and
-        work space for ``nc`` right-hand sides."""
+        fringe and near rows, the near rows' columns in the fringe, L and U
+        (CSC), 1 / U_jj, the permutations and work space for ``nc``
+        right-hand sides."""
         nf = self.pattern.fringe.size
-        return (self.pattern.fringe, self.pattern.near, *self.L, *self.U, self.inv_udiag,
-                self.perm_r, self.perm_c, np.empty((nf, nc)), np.empty((nf, nc)),
-                np.empty((2, nf, (nc + 1) // 2)))
+        return (self.pattern.fringe, self.pattern.near, self.pattern.near_cols, *self.L,
+                *self.U, self.inv_udiag, self.perm_r, self.perm_c, np.empty((nf, nc)),
+                np.empty((nf + 1, nc)), np.empty((2, nf, (nc + 1) // 2)),
+                np.empty((self.pattern.near.size, nc)))
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
@@ -187,80 +192,65 @@ def fringe_solve(Lp, Li, Lx, Up, Ui, Ux, inv_udiag, perm_r, perm_c, y, b, x):
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _residual_rows(A, cols, which, r, z, out, scatter):
-    """For each row i = which[k]: r_i - (A z)_i, into out[i] (``scatter``)
-    or out[k]."""
+def _residual_rows(A, cols, which, by_position, r, z, out):
+    """out[k] = r_i - (A z)_i for the rows i = which[k]; the columns into z
+    of row i are cols[k] (``by_position``: the near rows' columns into the
+    fringe) or cols[i] (A's own)."""
     ns = A.shape[1]
     nc = r.shape[1]
     for k in prange(which.shape[0]):
         i = which[k]
-        o = i if scatter else np.int64(k)
+        row = np.int64(k) if by_position else i  # (k may be typed unsigned)
         if nc == 4:  # two 2D problems: four running sums
             s0, s1, s2, s3 = r[i, 0], r[i, 1], r[i, 2], r[i, 3]
             for q in range(ns):
                 a = A[i, q]
-                j = cols[i, q]
+                j = cols[row, q]
                 s0 -= a * z[j, 0]
                 s1 -= a * z[j, 1]
                 s2 -= a * z[j, 2]
                 s3 -= a * z[j, 3]
-            out[o, 0] = s0
-            out[o, 1] = s1
-            out[o, 2] = s2
-            out[o, 3] = s3
+            out[k, 0] = s0
+            out[k, 1] = s1
+            out[k, 2] = s2
+            out[k, 3] = s3
         else:
             for c in range(nc):
                 s = r[i, c]
                 for q in range(ns):
-                    s -= A[i, q] * z[cols[i, q], c]
-                out[o, c] = s
-
-
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _start(r, z, t):
-    """z = 0, t = r."""
-    nr, nc = r.shape
-    for i in prange(nr):
-        for c in range(nc):
-            z[i, c] = 0.0
-            t[i, c] = r[i, c]
-
-
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _add(z, t):
-    """z += t."""
-    nr, nc = z.shape
-    for i in prange(nr):
-        for c in range(nc):
-            z[i, c] += t[i, c]
+                    s -= A[i, q] * z[cols[row, q], c]
+                out[k, c] = s
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def apply_corrected(A, cols, Lx, Ly, local, inv_scale, box, nblocks, fringe, near, Lp, Li,
-                    Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, rf, zf, yf, r, z, t):
+def apply_corrected(A, cols, Lx, Ly, local, inv_scale, box, nblocks, fringe, near, near_cols,
+                    Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, rf, zf, yf, tn, r, z, t):
     """z = B r, the Kronecker preconditioner with the fringe correction (see
     the module docstring); A, cols the compact matrix (ELL), Lx ... nblocks
     the arguments of :func:`~skfem_mpm.kernels.kronecker.apply_kronecker`,
-    fringe ... yf those of :class:`FringeFactor`; ``t`` is work space
-    shaped like r."""
+    fringe ... tn those of :class:`FringeFactor`; ``t`` is not used (the
+    work space of the other preconditioners). z1 lives on the fringe only
+    (zf, with a zero row nf that the near rows' other columns read), and
+    r - M z1 differs from r on the near rows only (tn), which the
+    Kronecker step takes in place of r's."""
     nc = r.shape[1]
     nf = fringe.shape[0]
     # z1 = R^T M_FF^-1 R r
     for k in range(nf):
         for c in range(nc):
             rf[k, c] = r[fringe[k], c]
-    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf)
-    _start(r, z, t)
+    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf[:nf])
+    for c in range(nc):
+        zf[nf, c] = 0.0
+    # z2 = z1 + P^-1 (r - M z1); M z1 is nonzero only on the rows near F
+    _residual_rows(A, near_cols, near, True, r, zf, tn)
+    apply_kronecker_replaced(Lx, Ly, local, inv_scale, box, nblocks, r, near, tn, z)
     for k in range(nf):
         for c in range(nc):
-            z[fringe[k], c] = zf[k, c]
-    # z2 = z1 + P^-1 (r - M z1); M z1 is nonzero only on the rows near F
-    _residual_rows(A, cols, near, r, z, t, True)
-    apply_kronecker(Lx, Ly, local, inv_scale, box, nblocks, t, t)  # in place: reads t first
-    _add(z, t)
+            z[fringe[k], c] += zf[k, c]
     # z = z2 + R^T M_FF^-1 R (r - M z2)
-    _residual_rows(A, cols, fringe, r, z, rf, False)
-    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf)
+    _residual_rows(A, cols, fringe, False, r, z, rf)
+    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf[:nf])
     for k in range(nf):
         for c in range(nc):
             z[fringe[k], c] += zf[k, c]

@@ -52,8 +52,8 @@ from numba import njit, prange
 from .weights import FAST
 
 __all__ = ["axis_mass_bands", "banded_cholesky", "coupled_components", "fit_kronecker",
-           "KroneckerData", "apply_kronecker", "apply_kronecker_axes", "kronecker_boxes",
-           "BOX_FIELDS", "MAX_BOXES"]
+           "KroneckerData", "apply_kronecker", "apply_kronecker_replaced", "apply_kronecker_axes",
+           "kronecker_boxes", "BOX_FIELDS", "MAX_BOXES"]
 
 
 def axis_mass_bands(grid, axis):
@@ -518,84 +518,77 @@ NO_BAND = np.empty((0, 1))
 """The band factor of ``ell_pcg``'s 2D Kronecker arguments when it is off."""
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+@njit(cache=True, error_model="numpy", fastmath=FAST)
 def apply_kronecker(Lx, Ly, local, inv_scale, box, nt, r, z):
     """z = S^-1 R (M_y (x) M_x)^-1 R^T S^-1 r (see the module docstring);
     Lx, Ly are the banded Cholesky factors with 1 / L_ii in column 0,
     ``box`` (ny, nx, nc) is work space, nt the number of column blocks."""
+    apply_kronecker_replaced(Lx, Ly, local, inv_scale, box, nt, r, _NO_ROWS, _NO_VALUES, z)
+
+
+_NO_ROWS = np.empty(0, dtype=np.int64)
+_NO_VALUES = np.empty((0, 1))
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def apply_kronecker_replaced(Lx, Ly, local, inv_scale, box, nt, r, rows, values, z):
+    """:func:`apply_kronecker` of u, the vector r with its rows ``rows[k]``
+    replaced by ``values[k]`` (the fringe correction's r - M z1, which
+    differs from r on a few rows only), without forming u. Three parallel
+    regions: each thread fills its block of box rows (zeroing it, scaling
+    the rows of u that fall in it) and solves along x there; the y solves
+    by blocks of box columns; z from the box."""
     ny, nx, nc = box.shape
-    p = Lx.shape[1] - 1
-    nr = r.shape[0]
-    for j in prange(ny):
-        for i in range(nx):
-            for c in range(nc):
-                box[j, i, c] = 0.0
     flat = box.reshape((ny * nx, nc))  # entry li of the box (no division by nx)
-    for q in prange(nr):
-        li = local[q]
-        if li >= 0:
-            for c in range(nc):
-                flat[li, c] = r[q, c] * inv_scale[q]
-    # x direction: each box row is one banded system. Each thread takes a
-    # block of rows and advances all of them together, one column i (and
-    # one band d) at a time: the recurrence along a row is a latency chain,
-    # the rows of a block are independent.
     for t in prange(nt):
-        lo = t * ny // nt
-        hi = (t + 1) * ny // nt
-        for i in range(nx):
-            for d in range(1, min(p, i) + 1):
-                coef = Lx[i, d]
-                for j in range(lo, hi):
-                    for c in range(nc):
-                        box[j, i, c] -= coef * box[j, i - d, c]
-            scale = Lx[i, 0]
-            for j in range(lo, hi):
-                for c in range(nc):
-                    box[j, i, c] *= scale
-        for i in range(nx - 1, -1, -1):
-            for d in range(1, min(p, nx - 1 - i) + 1):
-                coef = Lx[i + d, d]
-                for j in range(lo, hi):
-                    for c in range(nc):
-                        box[j, i, c] -= coef * box[j, i + d, c]
-            scale = Lx[i, 0]
-            for j in range(lo, hi):
-                for c in range(nc):
-                    box[j, i, c] *= scale
-    # y direction: each thread takes a block of box columns and runs the
-    # banded solves for all of them row by row (contiguous inner loops)
+        _fill_rows(local, inv_scale, r, rows, values, flat, t * ny // nt * nx,
+                   (t + 1) * ny // nt * nx)
+        _along_rows(Lx, box, t * ny // nt, (t + 1) * ny // nt)
     if ny > 1:
         for t in prange(nt):
-            lo = t * nx // nt
-            hi = (t + 1) * nx // nt
-            for j in range(ny):
-                for d in range(1, min(p, j) + 1):
-                    coef = Ly[j, d]
-                    for i in range(lo, hi):
-                        for c in range(nc):
-                            box[j, i, c] -= coef * box[j - d, i, c]
-                scale = Ly[j, 0]
-                for i in range(lo, hi):
-                    for c in range(nc):
-                        box[j, i, c] *= scale
-            for j in range(ny - 1, -1, -1):
-                for d in range(1, min(p, ny - 1 - j) + 1):
-                    coef = Ly[j + d, d]
-                    for i in range(lo, hi):
-                        for c in range(nc):
-                            box[j, i, c] -= coef * box[j + d, i, c]
-                scale = Ly[j, 0]
-                for i in range(lo, hi):
-                    for c in range(nc):
-                        box[j, i, c] *= scale
-    for q in prange(nr):
+            _along_columns(Ly, box, t * nx // nt, (t + 1) * nx // nt)
+    _from_box(local, inv_scale, r, rows, values, flat, z)
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _fill_rows(local, inv_scale, r, rows, values, flat, first, last):
+    """Box entries first..last-1 (a thread's block of box rows) = S^-1 u on
+    the rows of u in them, 0 elsewhere; u = r with rows[k] replaced by
+    values[k]."""
+    nc = flat.shape[1]
+    for li in range(first, last):
+        for c in range(nc):
+            flat[li, c] = 0.0
+    for q in range(r.shape[0]):
+        li = local[q]
+        if li >= first and li < last:
+            for c in range(nc):
+                flat[li, c] = r[q, c] * inv_scale[q]
+    for k in range(rows.shape[0]):
+        q = rows[k]
+        li = local[q]
+        if li >= first and li < last:
+            for c in range(nc):
+                flat[li, c] = values[k, c] * inv_scale[q]
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def _from_box(local, inv_scale, r, rows, values, flat, z):
+    """z = S^-1 R box; a row outside the box (a lumped row) takes its own
+    diagonal, z = S^-1 u there (u = r with rows[k] replaced by values[k])."""
+    nc = z.shape[1]
+    for q in prange(r.shape[0]):
         li = local[q]
         for c in range(nc):
             if li >= 0:
                 z[q, c] = flat[li, c] * inv_scale[q]
             else:  # a lumped row: its own diagonal
                 z[q, c] = r[q, c] * inv_scale[q]
+    for k in range(rows.shape[0]):
+        q = rows[k]
+        if local[q] < 0:
+            for c in range(nc):
+                z[q, c] = values[k, c] * inv_scale[q]
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)

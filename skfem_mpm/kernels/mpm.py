@@ -395,20 +395,12 @@ def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim,
                 K[k] = sk
                 for s in range(nh):
                     M[k, centre + s] = _take(mass_copies, threads, count, k, s)
-    width = 2 * p + 1
-    pb = p if dim >= 2 else 0
     nbz = M.shape[0] // (nbx * nby)
+    offsets = _slot_offsets(p, dim, ns)
     for k in prange(lo, hi):
-        a = k % nbx
-        b = k // nbx
-        c = 0
-        if dim == 3:
-            b, c = b % nby, b // nby
+        a, b, c = _row_indices(k, nbx, nby, dim)
         for s in range(centre):
-            if dim == 3:
-                j = _slot_dof3(a, b, c, s, p, width, nbx, nby, nbz)
-            else:
-                j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
+            j = _offset_dof(a, b, c, offsets, s, nbx, nby, nbz)
             M[k, s] = M[j, ns - 1 - s] if j >= 0 else 0.0
 
 
@@ -816,24 +808,41 @@ class Kernels:
 # entry, so the product needs no branches).
 
 
-@njit(cache=True, inline="always")
-def _slot_dof(a, b, s, p, pb, width, nbx, nby):
-    """Dof at stencil slot s of the dof (a, b) (slot (db + pb) width + da + p;
-    pb = p in 2D, 0 in 1D), or -1 outside the grid."""
-    aa = a + s % width - p
-    bb = b + s // width - pb
-    if aa < 0 or aa >= nbx or bb < 0 or bb >= nby:
-        return -1
-    return bb * nbx + aa
+@njit(cache=True, error_model="numpy")
+def _slot_offsets(p, dim, ns):
+    """The index offsets (da, db, dc) of each stencil slot s = ((dc + pc) w
+    + db + pb) w + da + p (w = 2p + 1; pb = p from 2D on, pc = p in 3D,
+    else 0): shape (ns, 3), computed once per call so that the row loops
+    need no integer division per slot."""
+    width = 2 * p + 1
+    pb = p if dim >= 2 else 0
+    pc = p if dim == 3 else 0
+    out = np.empty((ns, 3), dtype=np.int64)
+    for s in range(ns):
+        out[s, 0] = s % width - p
+        out[s, 1] = (s // width) % width - pb if dim >= 2 else 0
+        out[s, 2] = s // (width * width) - pc if dim == 3 else 0
+    return out
 
 
 @njit(cache=True, inline="always")
-def _slot_dof3(a, b, c, s, p, width, nbx, nby, nbz):
-    """Dof at stencil slot s = ((dc + p) width + db + p) width + da + p of
-    the dof (a, b, c) of a 3D grid, or -1 outside the grid."""
-    aa = a + s % width - p
-    bb = b + (s // width) % width - p
-    cc = c + s // (width * width) - p
+def _row_indices(k, nbx, nby, dim):
+    """(a, b, c) of dof k (k = (c nby + b) nbx + a)."""
+    a = k % nbx
+    b = k // nbx
+    c = 0
+    if dim == 3:
+        b, c = b % nby, b // nby
+    return a, b, c
+
+
+@njit(cache=True, inline="always")
+def _offset_dof(a, b, c, offsets, s, nbx, nby, nbz):
+    """Dof at stencil slot s of the dof (a, b, c) (``offsets`` from
+    :func:`_slot_offsets`), or -1 outside the grid."""
+    aa = a + offsets[s, 0]
+    bb = b + offsets[s, 1]
+    cc = c + offsets[s, 2]
     if aa < 0 or aa >= nbx or bb < 0 or bb >= nby or cc < 0 or cc >= nbz:
         return -1
     return (cc * nby + bb) * nbx + aa
@@ -855,17 +864,12 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
     nr = rows.shape[0]
     ns = M.shape[1]
     centre = (ns - 1) // 2
-    width = 2 * p + 1
-    pb = p if dim >= 2 else 0
     nbz = M.shape[0] // (nbx * nby)
+    offsets = _slot_offsets(p, dim, ns)
     for r in prange(nr):
         k = rows[r]
         diag = M[k, centre]
-        a = k % nbx
-        b = k // nbx
-        c = 0
-        if dim == 3:
-            b, c = b % nby, b // nby
+        a, b, c = _row_indices(k, nbx, nby, dim)
         for s in range(ns):
             A[r, s] = 0.0
             if write_cols:
@@ -875,10 +879,7 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
                 fcols[r, s] = k
             if s == centre:
                 continue
-            if dim == 3:
-                j = _slot_dof3(a, b, c, s, p, width, nbx, nby, nbz)
-            else:
-                j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
+            j = _offset_dof(a, b, c, offsets, s, nbx, nby, nbz)
             if j < 0:
                 continue
             mks = M[k, s]
@@ -892,6 +893,21 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
                 F[r, s] = (1.0 - theta) * mks
                 fcols[r, s] = j
         A[r, centre] = diag
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def covered_stiffness(stiffness, stencil, mass, weights, mass_ratios, moving, lo, hi, out):
+    """out_k = K_k (c_k moving_k): the fast-dof guard's stiffness weights
+    scaled by :func:`skfem_mpm.solve.timestep.covered_weights`,
+    c_k = 1 - (1 - w_k) s_k, s_k = smoothstep over (lo, hi) of
+    tau_k = M_kk / (m_k mu_k), and zero on the dofs that never move (the
+    same operations as the NumPy function, so the same bits)."""
+    centre = (stencil.shape[1] - 1) // 2
+    for k in prange(mass.shape[0]):
+        tau = stencil[k, centre] / (max(mass[k], 1e-300) * mass_ratios[k])
+        s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
+        w = 1.0 - (1.0 - weights[k]) * (s * s * (3.0 - 2.0 * s))
+        out[k] = stiffness[k] * (w * moving[k])
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
@@ -947,26 +963,18 @@ def stencil_rows_product(M, p, nbx, nby, dim, rows, inactive, fast, x, y):
     ns = M.shape[1]
     nc = x.shape[1]
     centre = (ns - 1) // 2
-    width = 2 * p + 1
-    pb = p if dim >= 2 else 0
     nbz = M.shape[0] // (nbx * nby)
+    offsets = _slot_offsets(p, dim, ns)
     for r in prange(rows.shape[0]):
         k = rows[r]
         diag = M[k, centre]
-        a = k % nbx
-        b = k // nbx
-        cz = 0
-        if dim == 3:
-            b, cz = b % nby, b // nby
+        a, b, cz = _row_indices(k, nbx, nby, dim)
         for c in range(nc):
             y[r, c] = 0.0
         for s in range(ns):
             if s == centre:
                 continue
-            if dim == 3:
-                j = _slot_dof3(a, b, cz, s, p, width, nbx, nby, nbz)
-            else:
-                j = _slot_dof(a, b, s, p, pb, width, nbx, nby)
+            j = _offset_dof(a, b, cz, offsets, s, nbx, nby, nbz)
             if j < 0:
                 continue
             theta = fast[k] if fast[k] > fast[j] else fast[j]
@@ -1267,9 +1275,10 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
             if kron is not None:  # the preconditioners' work space
                 kron_now = narrow_kron(kron, kron_now, n)
             if fringe is not None:
-                fringe_now = fringe[:11] + (_narrow(fringe_now[11], n),
-                                            _narrow(fringe_now[12], n),
-                                            _narrow(fringe_now[13], (n + 1) // 2))
+                fringe_now = fringe[:12] + (_narrow(fringe_now[12], n),
+                                            _narrow(fringe_now[13], n),
+                                            _narrow(fringe_now[14], (n + 1) // 2),
+                                            _narrow(fringe_now[15], n))
         if it >= maxiter:
             break
         width = n

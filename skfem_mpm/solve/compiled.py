@@ -48,7 +48,7 @@ from ..kernels.constitutive import material_update
 from ..kernels.records import grid_record
 from ..kernels import serial
 from ..kernels.fast_dof import limit_by_effective_mass
-from ..kernels.mpm import Kernels, fast_row_fractions
+from ..kernels.mpm import Kernels, covered_stiffness, fast_row_fractions
 from ..kernels.pages import lazy_zeros
 from ..kernels.step_size import guard_limit
 from ..kernels.traction import loads_power, side_faces
@@ -61,7 +61,7 @@ from .compiled_modifiers import CompiledModifiers
 from .compiled_runge_kutta import CompiledRungeKutta
 from .grid_system import GridSystem
 from .stencil_system import StencilSystem
-from .timestep import effective_mass_ratio, fast_dof_limit, lumping_fraction
+from .timestep import COVERED, effective_mass_ratio, fast_dof_limit, lumping_fraction
 
 __all__ = ["compiled_executor_applies", "CompiledExecutor", "side_traction"]
 
@@ -162,6 +162,7 @@ class CompiledExecutor(CompiledRungeKutta):
         self._owned_F = []  # F arrays the constitutive kernel may write
         self._owned = set()
         self._acc = None
+        self._guard_arrays = None  # the fast-dof guard's (w, mu, moving) as the kernel takes them
         nd, dim = state.grid.ndofs, state.grid.dim
         self._v_old = np.empty((nd, dim))
         # the grid velocity and acceleration: the one-pass USL grid step
@@ -318,13 +319,13 @@ class CompiledExecutor(CompiledRungeKutta):
     def _consistent_solves(self, state, system, mass, problems, outs):
         """Consistent M x = rhs for each (rhs, values or None, kind) into
         ``outs``; a stencil system solves them in one CG run."""
-        problems = [(rhs, np.zeros_like(rhs) if values is None else values, kind)
-                    for rhs, values, kind in problems]
         if isinstance(system, StencilSystem):
             xs = system.solve_many(problems)
             for (_, _, kind), x in zip(problems, xs):
-                system.remember(kind, x)
+                system.keep(kind, x)  # x is the system's own new array
         else:
+            problems = [(rhs, np.zeros_like(rhs) if values is None else values, kind)
+                        for rhs, values, kind in problems]
             xs = [system.solve(rhs, values, kind) for rhs, values, kind in problems]
             if state.method.mass_solver == "cg":
                 for (_, _, kind), x in zip(problems, xs):
@@ -351,9 +352,12 @@ class CompiledExecutor(CompiledRungeKutta):
         if guard > 0:
             limit = guard_limit(guard * fast_dof_limit(state.grid.degree, state.method.scheme),
                                 state.dt, state.wave_speed_now)
-            centre = (stencil.shape[1] - 1) // 2
-            guarded = np.multiply(K, state.guard_weights(mass, stencil[:, centre]),
-                                  out=self.kernels.scratch("guard_K", K.size))
+            guarded = self.kernels.scratch("guard_K", K.size)
+            if self._guard_arrays is None:  # (w, mu, moving as 1.0 / 0.0), fixed for the run
+                weights, ratios, moving = state.fast_dof_guard_arrays()
+                self._guard_arrays = (weights, ratios, moving.astype(np.float64))
+            self.kernels.kernel(covered_stiffness)(K, stencil, mass, *self._guard_arrays,
+                                                   *COVERED, guarded)
             grid = state.grid
             nbx, nby = (grid.ndofs, 1) if grid.dim == 1 else tuple(grid.basis_per_axis[:2])
             self.kernels.kernel(limit_by_effective_mass)(

@@ -142,6 +142,7 @@ _GRID_KERNELS = {
     "REDUCE_STENCIL": mpm.reduce_stencil,
     "COMPACT_SYSTEM": mpm.compact_system,
     "FAST_ROW_FRACTIONS": mpm.fast_row_fractions,
+    "COVERED_STIFFNESS": mpm.covered_stiffness,
     "LIMIT_BY_EFFECTIVE_MASS": fast_dof.limit_by_effective_mass,
     "COMPACT_PROBLEM": mpm.compact_problem,
     "EXPAND_PROBLEM": mpm.expand_problem,

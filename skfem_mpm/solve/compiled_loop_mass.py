@@ -261,15 +261,9 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
     (``cm.merge_at``: StepLoop.run compiles them and takes the step again)."""
     stencil = cm.stencil
     nd, ns = stencil.shape
-    centre = (ns - 1) // 2
     if cm.guard:  # K_k covered_weights_k moving_k (timestep.guarded_stiffness), then theta
-        lo = cm.covered[0]
-        hi = cm.covered[1]
-        for k in range(nd):
-            tau = stencil[k, centre] / (max(mass[k], 1e-300) * cm.mass_ratios[k])
-            s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
-            w = 1.0 - (1.0 - cm.weights[k]) * (s * s * (3.0 - 2.0 * s))
-            cm.guarded[k] = cm.stiffness[k] * (w * cm.moving[k])
+        COVERED_STIFFNESS(cm.stiffness, stencil, mass, cm.weights, cm.mass_ratios, cm.moving,
+                          cm.covered[0], cm.covered[1], cm.guarded)
         LIMIT_BY_EFFECTIVE_MASS(cm.guarded, cm.stiffness, stencil, mass, cm.limit,
                                 cm.effective_ratio, p, nbx, nby, dim)
         FAST_ROW_FRACTIONS(cm.guarded, stencil, mass, cm.limit, cm.fast)

@@ -317,14 +317,14 @@ class StencilSystem:
 
     def solve_many(self, problems):
         """Several solves with this matrix in one CG run: ``problems`` is a
-        list of (rhs, values, kind) (kind names the warm start); returns the
-        solutions in order."""
-
-        outs = []
-        for rhs, values, kind in problems:
-            out = np.array(values, dtype=np.float64, copy=True)  # fixed dofs keep theirs
-            outs.append(out)
-        has_values = [bool(values.any()) for _, values, _ in problems]
+        list of (rhs, values, kind) (kind names the warm start; values None:
+        all 0); returns the solutions in order (new arrays)."""
+        outs = [np.zeros(rhs.shape) if values is None  # fixed dofs keep their values
+                else np.array(values, dtype=np.float64, copy=True) for rhs, values, _ in problems]
+        has_values = [values is not None and bool(values.any()) for _, values, _ in problems]
+        # compact_problem reads values only when has_values: rhs stands in for None
+        problems = [(rhs, rhs if values is None else values, kind)
+                    for rhs, values, kind in problems]
         for g, group in enumerate(self.groups.values()):
             comps, rows, index, _, merge = group
             A, cols, F, fcols, inv_diag, kron, fringe, _ = self._compact(group, any(has_values))
@@ -391,6 +391,11 @@ class StencilSystem:
 
     def remember(self, kind, x):
         self.warm[kind] = x.copy()
+
+    def keep(self, kind, x):
+        """:meth:`remember` of an array nothing else writes (a solution
+        :meth:`solve_many` returned): kept without a copy."""
+        self.warm[kind] = x
 
     def shift_guess(self, kind, dx):
         shift_guess(self.warm, kind, dx)
