@@ -507,11 +507,13 @@ class KroneckerData:
         return self.Lx, self.Ly, self.local, self.inv_scale, box, max(1, min(nt, self.shape[1]))
 
     def pcg_args(self, nc, nt):
-        """``ell_pcg``'s Kronecker arguments: :meth:`args`, in 1D and 2D
+        """``ell_pcg``'s Kronecker arguments: :meth:`args`, in 2D
         followed by an empty band factor and False (the band factor of
-        :mod:`skfem_mpm.kernels.band_factor` switched off); in 3D :meth:`args`."""
+        :mod:`skfem_mpm.kernels.band_factor` switched off)."""
         args = self.args(nc, nt)
-        return args if len(args) == 8 else args + (NO_BAND, False)  # 3D: eight, no band
+        if len(args) == 8 or self.geometry[3] == 1:  # 3D and 1D: no band factor
+            return args
+        return args + (NO_BAND, False)
 
 
 NO_BAND = np.empty((0, 1))

@@ -1087,9 +1087,9 @@ def _dots(r, z, partial):
 
 def apply_kron(kron, r, z):
     """z = P^-1 r with the Kronecker arguments ``kron``: those of
-    :func:`~skfem_mpm.kernels.kronecker.apply_kronecker` (two factors, 1D
-    and 2D) followed by a band factor and whether to apply it instead
-    (:func:`~skfem_mpm.kernels.band_factor.apply_band_factor`), or, a
+    :func:`~skfem_mpm.kernels.kronecker.apply_kronecker` (two factors; in
+    2D followed by a band factor and whether to apply it instead:
+    :func:`~skfem_mpm.kernels.band_factor.apply_band_factor`), or, a
     tuple of eight ending in the boxes' rows, those of
     ``apply_kronecker_axes`` (three factors per box, 3D). Compiled code only
     (chosen by the type of the tuple's last item)."""
@@ -1100,6 +1100,8 @@ def apply_kron(kron, r, z):
 def _apply_kron_typed(kron, r, z):
     if isinstance(kron[-1], types.Array):  # 3D: the boxes' rows last
         return lambda kron, r, z: apply_kronecker_axes(*kron, r, z)
+    if len(kron) == 6:  # 1D: no band factor
+        return lambda kron, r, z: apply_kronecker(*kron, r, z)
 
     def apply(kron, r, z):
         if kron[7]:
@@ -1119,6 +1121,9 @@ def narrow_kron(kron, now, n):
 def _narrow_kron_typed(kron, now, n):
     if isinstance(kron[-1], types.Array):  # 3D: apply_kronecker_axes reads nc from r
         return lambda kron, now, n: now
+    if len(kron) == 6:  # 1D
+        return lambda kron, now, n: (kron[0], kron[1], kron[2], kron[3], _narrow(now[4], n),
+                                     kron[5])
     return lambda kron, now, n: (kron[0], kron[1], kron[2], kron[3], _narrow(now[4], n),
                                  kron[5], kron[6], kron[7])
 

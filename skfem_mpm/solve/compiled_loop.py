@@ -334,6 +334,9 @@ def _prelude(dim, parallel, window, variant):
     kronecker = ("return (cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz], cm.box_index[g, :n], "
                  "cm.inv_scale[g, :n], cm.box, nt, cm.boxes[g, :cm.n_boxes[g]])"
                  if dim == 3 else
+                 "return (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n], "
+                 "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)))"
+                 if dim == 1 else  # (the band factor is 2D's)
                  "w = cm.band_width[g]\n"
                  "    m = n if w >= 0 else 0  # the band factor's rows (none: Kronecker)\n"
                  "    band = cm.band[g, :m * (w + 1)].reshape((m, max(w, 0) + 1))\n"
