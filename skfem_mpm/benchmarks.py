@@ -977,7 +977,18 @@ class StripFooting(Benchmark):
     N_c = q / c_u at a settlement of ``read_at`` B (q the mean footing
     pressure over the steps within 0.01 B of it) and gives the
     load-settlement curve (``curve``: settlement / B against q / c_u, one
-    point per 0.005 B)."""
+    point per 0.005 B).
+
+    Past the limit load the pressure keeps rising: the footing sinks into
+    the ground and the ground beside it heaves, so its base lies
+    D = s + heave below the ground beside it, and an embedded footing
+    carries N_c d_c (the depth factor, :func:`hansen_depth_factor`). When
+    the run saved particle positions (``save_every``), :meth:`checks` also
+    gives ``embedment`` (settlement / B against D / B, D from
+    :func:`footing_embedment`) and ``curve_depth_corrected`` (q / (c_u
+    d_c(D / B)), the pressure with the embedment divided out: flat once
+    the soil has yielded), with its value at ``read_at``
+    (``bearing_capacity_depth_corrected``)."""
 
     name = "strip-footing"
     title = "G1 strip footing on undrained clay (Prandtl)"
@@ -1025,6 +1036,20 @@ class StripFooting(Benchmark):
         curve = [[float(0.005 * (k + 0.5)), float(sums[k] / counts[k])]
                  for k in np.flatnonzero(keep)]
         end = s >= s.max() - 0.01
+        extra = {}
+        if len(result.times) > 2 and len(result.history.get("x", ())) == len(result.times):
+            settled = np.array([self.footing.settlement_at(t) for t in result.times])
+            depth = np.array([footing_embedment(x, X, self.B, d) for x, X, d in
+                              zip(result.history["x"], result.history["X"], settled)])
+            at = np.array([c[0] for c in curve])
+            factor = hansen_depth_factor(np.interp(at, settled / self.B, depth / self.B))
+            corrected = np.array([c[1] for c in curve]) / factor
+            extra = {"embedment": [[float(a), float(d)] for a, d in
+                                   zip(settled / self.B, depth / self.B)],
+                     "curve_depth_corrected": [[float(a), float(v)]
+                                               for a, v in zip(at, corrected)],
+                     "bearing_capacity_depth_corrected": float(np.interp(self.read_at, at,
+                                                                         corrected))}
         return {"bearing_capacity_factor": float(q[near].mean()) if near.any() else None,
                 "bearing_capacity_prandtl": 2 + np.pi,
                 "bearing_capacity_error": (float(q[near].mean()) / (2 + np.pi) - 1)
@@ -1035,7 +1060,28 @@ class StripFooting(Benchmark):
                 "cells_across_width": self._cells,
                 "cells_under_half_footing": int(round(0.5 * self.B * self._cells
                                                       / (self.width * self.B))),
-                "curve": curve}
+                "curve": curve, **extra}
+
+
+def footing_embedment(x, X, B, settlement):
+    """The depth D of a strip footing's base below the ground beside it:
+    D = s + heave, the heave being how far the highest particle within
+    B/2 <= x <= B (the ground beside the footing, whose centre line is
+    x = 0) stands above the highest particle of the initial ground (the
+    highest reference position X). ``x``, ``X``: (n, 2) positions."""
+    beside = (x[:, 0] >= 0.5 * B) & (x[:, 0] <= B)
+    return float(settlement + x[beside, 1].max() - X[:, 1].max())
+
+
+def hansen_depth_factor(depth_over_width):
+    """Brinch Hansen's (1970) depth factor of the cohesion term of an
+    embedded footing, d_c = 1 + 0.4 D/B for D/B <= 1 and
+    1 + 0.4 arctan(D/B) beyond (Brinch Hansen 1970, "A revised and
+    extended formula for bearing capacity", Danish Geotechnical Institute
+    Bulletin 28; the form in Das, Principles of Foundation Engineering):
+    q_ult = N_c c_u d_c for a footing whose base lies D below the ground."""
+    k = np.asarray(depth_over_width, dtype=np.float64)
+    return 1.0 + 0.4 * np.where(k <= 1.0, k, np.arctan(k))
 
 
 def _mirror_index(X):
