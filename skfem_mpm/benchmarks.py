@@ -892,6 +892,18 @@ class ColumnCollapse(Benchmark):
         ``runout_ratio`` divides ``runout_thickness_front`` by the
         experiments' scaling of the regime (1.2 a for a < 1.8, 1.9 a^(2/3)
         for a > 2.8, the nearer one between; Lube et al. 2005).
+        The experiments' runout is (d_inf - d_i) / d_i, d the distance
+        from the back wall to the front of the deposit (its maximum
+        horizontal extension; Lube et al. 2005, abstract): the form of
+        every front here; where the experiments' front is one or two grains
+        thick, a continuum deposit thins without end, hence the thickness
+        criterion. ``runout_friction_model`` = a / tan(phi): the runout a
+        purely frictional flow of friction coefficient mu = tan(phi) would
+        reach at small a (the energy released, g rho (L - L0) H0^2 / 6,
+        equals the work of friction over the flowing wedge,
+        mu g rho (L - L0)^2 H0 / 6, so mu (L - L0) = H0: Staron and Hinch
+        2005, J. Fluid Mech. 545; Kumar 2015, PhD thesis, Cambridge, ch. 4);
+        Lube's 1.2 a is that of mu = 0.83 (40 deg).
         ``final_height_ratio`` is the highest particle within L0 of the wall
         (plus half a spacing) over H0. ``kinetic_grid_over_released``: the
         kinetic energy of the grid velocity (lumped mass m_i = sum_p N_ip m_p,
@@ -928,6 +940,7 @@ class ColumnCollapse(Benchmark):
                 "final_height_ratio": float(top / self.H0),
                 "runout_lube_low_1.2a": low,
                 "runout_lube_high_1.9a^(2/3)": high,
+                "runout_friction_model": self.a / np.tan(np.radians(self.phi)),
                 "runout_ratio": float((thick - L0) / L0) / law,
                 "kinetic_grid_over_released": kinetic_grid / released if released > 0
                 else float("inf"),

@@ -43,6 +43,7 @@ def test_the_fronts_of_a_made_up_deposit():
     assert checks["final_height_ratio"] == pytest.approx((0.4 + 1 / 16) / 0.5)
     assert checks["runout_thickness_front"] == pytest.approx(131 / 64 - 1)
     assert checks["runout_ratio"] == pytest.approx((131 / 64 - 1) / 0.6)
+    assert checks["runout_friction_model"] == pytest.approx(0.5 * np.sqrt(3))  # a / tan 30
     assert checks["kinetic_grid_over_released"] == 0.0
 
 
