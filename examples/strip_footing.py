@@ -22,8 +22,8 @@ particles per cell, E = 300 c_u, nu = 0.3, footing speed 0.05 B/s reached
 over 0.4 s (the kinetic energy stays far below the plastic work), pushed
 to a settlement of 0.25 B.
 
-    python examples/strip_footing.py          # 40 cells over 5 B (4 under B/2), a few minutes
-    python examples/strip_footing.py 20       # 2 under B/2 (coarse: no plateau yet), ~1 min
+    python examples/strip_footing.py          # 40 cells over 5 B (4 under B/2), about a minute
+    python examples/strip_footing.py 20       # 2 under B/2 (coarse: no plateau yet), ~10 s
 """
 import sys
 
