@@ -8,8 +8,11 @@ friction angle 30 deg, dilation 0, grains disconnected above J = 1.01, a
 frictional floor with mu = tan 30 deg, a smooth wall on the left; quadratic
 B-splines, lumped MUSL, the compiled step loop) and prints one row: the
 runout by the deposit's front at 0.05 L0 thickness, by the rightmost
-particle and by the fronts of 97% and 99% of the mass, its ratio to the
-experiments' law of the regime, the final height over H0, the kinetic
+particle and by the fronts of 97% and 99% of the mass, the experiments'
+laws and the runout of a purely frictional flow with mu = tan(phi),
+a / tan(phi) (Staron and Hinch 2005's energy balance; Lube's 1.2 a is
+that of mu = 0.83), its ratio to the experiments' law of the regime, the
+final height over H0, the kinetic
 energy left (of the grid's velocity and of the particles') over the
 potential energy released, how far the rightmost particle moved over the
 last quarter of the run (in cells), the grains thrown out of the grid
@@ -67,7 +70,7 @@ def main(argv=None):
     params = {k: float(v) for k, v in (s.split("=", 1) for s in args.set)}
     if not args.json:
         print(f"{'a':>4} {'front':>6} {'last':>6} {'97%':>6} {'99%':>6} {'1.2a':>5} "
-              f"{'1.9a^2/3':>8} {'ratio':>5} {'H/H0':>5} {'KEgrid':>7} {'KEpart':>7} "
+              f"{'1.9a^2/3':>8} {'a/tanf':>6} {'ratio':>5} {'H/H0':>5} {'KEgrid':>7} {'KEpart':>7} "
               f"{'drift':>5} {'lost':>4} {'steps':>7} {'loop':>4} {'wall s':>6}")
     rows = []
     for a in args.a:
@@ -79,6 +82,7 @@ def main(argv=None):
             print(f"{a:4g} {r['runout_thickness_front']:6.2f} {r['runout']:6.2f} "
                   f"{r['runout_97pct_mass']:6.2f} {r['runout_99pct_mass']:6.2f} "
                   f"{r['runout_lube_low_1.2a']:5.2f} {r['runout_lube_high_1.9a^(2/3)']:8.2f} "
+                  f"{r['runout_friction_model']:6.2f} "
                   f"{r['runout_ratio']:5.2f} {r['final_height_ratio']:5.2f} "
                   f"{r['kinetic_grid_over_released']:7.1e} {r['kinetic_over_released']:7.1e} "
                   f"{r['front_drift_last_quarter_cells']:5.2f} {r['removed']:4d} "

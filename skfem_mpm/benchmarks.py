@@ -892,6 +892,18 @@ class ColumnCollapse(Benchmark):
         ``runout_ratio`` divides ``runout_thickness_front`` by the
         experiments' scaling of the regime (1.2 a for a < 1.8, 1.9 a^(2/3)
         for a > 2.8, the nearer one between; Lube et al. 2005).
+        The experiments' runout is (d_inf - d_i) / d_i, d the distance
+        from the back wall to the front of the deposit (its maximum
+        horizontal extension; Lube et al. 2005, abstract): the form of
+        every front here; where the experiments' front is one or two grains
+        thick, a continuum deposit thins without end, hence the thickness
+        criterion. ``runout_friction_model`` = a / tan(phi): the runout a
+        purely frictional flow of friction coefficient mu = tan(phi) would
+        reach at small a (the energy released, g rho (L - L0) H0^2 / 6,
+        equals the work of friction over the flowing wedge,
+        mu g rho (L - L0)^2 H0 / 6, so mu (L - L0) = H0: Staron and Hinch
+        2005, J. Fluid Mech. 545; Kumar 2015, PhD thesis, Cambridge, ch. 4);
+        Lube's 1.2 a is that of mu = 0.83 (40 deg).
         ``final_height_ratio`` is the highest particle within L0 of the wall
         (plus half a spacing) over H0. ``kinetic_grid_over_released``: the
         kinetic energy of the grid velocity (lumped mass m_i = sum_p N_ip m_p,
@@ -928,6 +940,7 @@ class ColumnCollapse(Benchmark):
                 "final_height_ratio": float(top / self.H0),
                 "runout_lube_low_1.2a": low,
                 "runout_lube_high_1.9a^(2/3)": high,
+                "runout_friction_model": self.a / np.tan(np.radians(self.phi)),
                 "runout_ratio": float((thick - L0) / L0) / law,
                 "kinetic_grid_over_released": kinetic_grid / released if released > 0
                 else float("inf"),
@@ -977,7 +990,18 @@ class StripFooting(Benchmark):
     N_c = q / c_u at a settlement of ``read_at`` B (q the mean footing
     pressure over the steps within 0.01 B of it) and gives the
     load-settlement curve (``curve``: settlement / B against q / c_u, one
-    point per 0.005 B)."""
+    point per 0.005 B).
+
+    Past the limit load the pressure keeps rising: the footing sinks into
+    the ground and the ground beside it heaves, so its base lies
+    D = s + heave below the ground beside it, and an embedded footing
+    carries N_c d_c (the depth factor, :func:`hansen_depth_factor`). When
+    the run saved particle positions (``save_every``), :meth:`checks` also
+    gives ``embedment`` (settlement / B against D / B, D from
+    :func:`footing_embedment`) and ``curve_depth_corrected`` (q / (c_u
+    d_c(D / B)), the pressure with the embedment divided out: flat once
+    the soil has yielded), with its value at ``read_at``
+    (``bearing_capacity_depth_corrected``)."""
 
     name = "strip-footing"
     title = "G1 strip footing on undrained clay (Prandtl)"
@@ -1025,6 +1049,20 @@ class StripFooting(Benchmark):
         curve = [[float(0.005 * (k + 0.5)), float(sums[k] / counts[k])]
                  for k in np.flatnonzero(keep)]
         end = s >= s.max() - 0.01
+        extra = {}
+        if len(result.times) > 2 and len(result.history.get("x", ())) == len(result.times):
+            settled = np.array([self.footing.settlement_at(t) for t in result.times])
+            depth = np.array([footing_embedment(x, X, self.B, d) for x, X, d in
+                              zip(result.history["x"], result.history["X"], settled)])
+            at = np.array([c[0] for c in curve])
+            factor = hansen_depth_factor(np.interp(at, settled / self.B, depth / self.B))
+            corrected = np.array([c[1] for c in curve]) / factor
+            extra = {"embedment": [[float(a), float(d)] for a, d in
+                                   zip(settled / self.B, depth / self.B)],
+                     "curve_depth_corrected": [[float(a), float(v)]
+                                               for a, v in zip(at, corrected)],
+                     "bearing_capacity_depth_corrected": float(np.interp(self.read_at, at,
+                                                                         corrected))}
         return {"bearing_capacity_factor": float(q[near].mean()) if near.any() else None,
                 "bearing_capacity_prandtl": 2 + np.pi,
                 "bearing_capacity_error": (float(q[near].mean()) / (2 + np.pi) - 1)
@@ -1035,7 +1073,28 @@ class StripFooting(Benchmark):
                 "cells_across_width": self._cells,
                 "cells_under_half_footing": int(round(0.5 * self.B * self._cells
                                                       / (self.width * self.B))),
-                "curve": curve}
+                "curve": curve, **extra}
+
+
+def footing_embedment(x, X, B, settlement):
+    """The depth D of a strip footing's base below the ground beside it:
+    D = s + heave, the heave being how far the highest particle within
+    B/2 <= x <= B (the ground beside the footing, whose centre line is
+    x = 0) stands above the highest particle of the initial ground (the
+    highest reference position X). ``x``, ``X``: (n, 2) positions."""
+    beside = (x[:, 0] >= 0.5 * B) & (x[:, 0] <= B)
+    return float(settlement + x[beside, 1].max() - X[:, 1].max())
+
+
+def hansen_depth_factor(depth_over_width):
+    """Brinch Hansen's (1970) depth factor of the cohesion term of an
+    embedded footing, d_c = 1 + 0.4 D/B for D/B <= 1 and
+    1 + 0.4 arctan(D/B) beyond (Brinch Hansen 1970, "A revised and
+    extended formula for bearing capacity", Danish Geotechnical Institute
+    Bulletin 28; the form in Das, Principles of Foundation Engineering):
+    q_ult = N_c c_u d_c for a footing whose base lies D below the ground."""
+    k = np.asarray(depth_over_width, dtype=np.float64)
+    return 1.0 + 0.4 * np.where(k <= 1.0, k, np.arctan(k))
 
 
 def _mirror_index(X):

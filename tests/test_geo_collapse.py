@@ -43,6 +43,7 @@ def test_the_fronts_of_a_made_up_deposit():
     assert checks["final_height_ratio"] == pytest.approx((0.4 + 1 / 16) / 0.5)
     assert checks["runout_thickness_front"] == pytest.approx(131 / 64 - 1)
     assert checks["runout_ratio"] == pytest.approx((131 / 64 - 1) / 0.6)
+    assert checks["runout_friction_model"] == pytest.approx(0.5 * np.sqrt(3))  # a / tan 30
     assert checks["kinetic_grid_over_released"] == 0.0
 
 
@@ -73,3 +74,26 @@ def test_the_thickness_front_of_a_wedge():
     x = np.arange(0.0005, 1.0, 0.001)
     front = thickness_front(x, (1 - x) * 0.001, 0.2, 1 / 8)
     assert 0.8 - 1 / 64 <= front <= 0.8 + 0.002
+
+
+@pytest.mark.slow
+def test_the_cost_script_times_both_materials_while_every_particle_yields(capsys):
+    """benchmarks/mohr_coulomb_cost.py at 4 cells across L0, 5 steps: both
+    runs go through the compiled loop on the same step, the ratio is the
+    medians', and from 0.9 K_a every particle yields in the timed steps."""
+    import importlib.util
+    import json
+    import pathlib
+
+    path = pathlib.Path(__file__).parent.parent / "benchmarks" / "mohr_coulomb_cost.py"
+    spec = importlib.util.spec_from_file_location("mohr_coulomb_cost", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    out = script.main(["--cells", "4", "--steps", "5", "--repeat", "1", "--json"])
+    assert json.loads(capsys.readouterr().out)["ratio"] == out["ratio"]
+    assert out["k0"] == pytest.approx(0.9 / 3)
+    assert out["fraction_yielding"] == 1.0
+    assert out["ratio"] == pytest.approx(out["us_per_step_mohr_coulomb"]
+                                         / out["us_per_step_linear_elastic"])
+    for run in out["paths"].values():
+        assert run["loop_steps"] == run["steps"] == 5

@@ -221,10 +221,31 @@ def test_the_vertex_projection_keeps_the_footings_load_curve_rising():
     bench = get_benchmark("strip-footing", settlement=0.25, width=1.5, depth=1.5)
     scene = bench.scene(12)
     assert scene.bodies[0].material.average == "vertex"
-    result = simulate(scene, Method())
-    q = np.array([point[1] for point in bench.checks(result)["curve"]])
+    result = simulate(scene, Method(), save_every=100)
+    checks = bench.checks(result)
+    q = np.array([point[1] for point in checks["curve"]])
     assert result.particles.state["plastic_strain"].max() > 0.05
     assert np.diff(q).min() >= -0.01 * q.max()
+    # the saved positions give the embedment and the pressure with it divided out
+    settled, depth = np.array(checks["embedment"]).T
+    assert settled[0] == 0.0 and depth[0] == 0.0 and depth[-1] > settled[-1]  # it heaved
+    s, corrected = np.array(checks["curve_depth_corrected"]).T
+    assert np.allclose(corrected * (1 + 0.4 * np.interp(s, settled, depth)), q, rtol=1e-12)
+
+
+def test_the_embedment_is_the_settlement_plus_the_heave_beside_the_footing():
+    """footing_embedment: D = s + (the highest particle within B/2 <= x <= B
+    minus the highest initial one); particles under the footing or farther
+    out do not count. hansen_depth_factor: 1 + 0.4 D/B up to D = B, then
+    1 + 0.4 arctan(D/B)."""
+    from skfem_mpm.benchmarks import footing_embedment, hansen_depth_factor
+
+    X = np.array([[0.2, 0.9], [0.7, 0.9], [0.9, 0.95], [1.5, 0.95], [3.0, 0.5]])
+    x = X + np.array([[0.0, -0.1], [0.05, 0.06], [0.02, 0.07], [0.0, 0.2], [0.0, 0.0]])
+    assert footing_embedment(x, X, 1.0, 0.1) == pytest.approx(0.1 + 1.02 - 0.95)
+    assert footing_embedment(x, X, 2.0, 0.1) == pytest.approx(0.1 + 1.15 - 0.95)  # up to x = B
+    assert hansen_depth_factor(0.5) == pytest.approx(1.2)
+    assert np.allclose(hansen_depth_factor([1.0, 2.0]), [1.4, 1 + 0.4 * np.arctan(2.0)])
 
 
 def test_bbar_runs_the_same_on_both_executors():
