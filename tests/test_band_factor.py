@@ -83,3 +83,28 @@ def test_loop_and_executor_take_the_band_factor_alike(plate, monkeypatch):
     executor = _run(plate)
     for name in ("x", "v", "stress"):
         assert np.array_equal(getattr(loop.particles, name), getattr(executor.particles, name))
+
+
+def test_kept_band_factor_crosses_calls_checkpoints_and_the_executor(plate, tmp_path):
+    """The band factor kept over steps (StencilSystem.BAND_KEEP) is warm
+    data: the loop in one call, the loop saving every 3 steps (the factor
+    handed out and back at each save), and a run whose first 10 steps the
+    executor took (a callback) and which was restarted from their
+    checkpoint on the loop give the same bits; on the executor's steps a
+    factor serves several steps."""
+    method = Method(scheme="musl", mass="consistent")
+    whole = simulate(plate, method)
+    saved = simulate(plate, method, save_every=3)
+    path = tmp_path / "run.npz"
+    factors = []  # the kept factor after each step (the arrays themselves: ids stay unique)
+    simulate(plate, method, checkpoint=(path, 10),
+             callback=lambda step, state: factors.append(state.warm.get("band0_factor")) or
+             step < 10)
+    resumed = simulate(plate, method, restart=path)
+    assert whole.path == resumed.path == "fast (compiled loop)"
+    kept = [f for f in factors if f is not None]
+    assert len(kept) >= 6 and len({id(f) for f in kept}) <= 2, len({id(f) for f in kept})
+    for other in (saved, resumed):
+        for name in ("x", "v", "stress"):
+            assert np.array_equal(getattr(whole.particles, name), getattr(other.particles, name)), \
+                name
