@@ -9,9 +9,11 @@ n_x the free dofs' box width). Its Cholesky factor L stays in that band
 (Golub & Van Loan, *Matrix Computations*, 4th ed., Thm. 4.3.1), costs
 about n w^2 / 2 multiply-adds, and each application of (L L^T)^-1 two
 banded triangular solves of n w each. With P = L L^T = A conjugate
-gradients stop after one iteration (its residual is round-off), so a
-factor made once per step serves every solve of the step (MUSL solves
-twice).
+gradients stop after one iteration (its residual is round-off); the
+particles move little in a step, so the factor of an earlier step's A
+still makes CG stop after two, and the consistent-mass systems keep a
+factor over the steps (StencilSystem.BAND_KEEP) instead of making one a
+step.
 
 Where the Kronecker preconditioner (:mod:`skfem_mpm.kernels.kronecker`)
 is already close to A (particles on a tensor layout, few lumped rows) it
