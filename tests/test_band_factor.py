@@ -108,3 +108,17 @@ def test_kept_band_factor_crosses_calls_checkpoints_and_the_executor(plate, tmp_
         for name in ("x", "v", "stress"):
             assert np.array_equal(getattr(whole.particles, name), getattr(other.particles, name)), \
                 name
+
+
+def test_band_factor_refitted_after_a_slow_run_alike(plate, monkeypatch):
+    """With BAND_KEEP = 0 every CG run with a kept factor counts as slow:
+    the next step factorises anew, on the loop as on the executor (the
+    same bits), and each solve takes one iteration again."""
+    monkeypatch.setattr(StencilSystem, "BAND_KEEP", 0)
+    loop = _run(plate)
+    assert loop.path == "fast (compiled loop)"
+    with preconditioned_with("kronecker+fringe") as iterations:
+        executor = _run(plate)  # (an iteration log: the executor takes every step)
+    assert max(iterations[8:]) <= 1, iterations
+    for name in ("x", "v", "stress"):
+        assert np.array_equal(getattr(loop.particles, name), getattr(executor.particles, name))
