@@ -14,6 +14,7 @@ import numpy as np
 
 from .fingerprint import fingerprint_differences, run_fingerprint
 from .solve.result import ENERGY_FIELDS, HISTORY_FIELDS, OUTPUT_FIELDS
+from .solve.stencil_system import StencilSystem
 
 __all__ = ["check_checkpoint", "checkpoint_size_bound", "state_fingerprint"]
 
@@ -202,7 +203,9 @@ def check_checkpoint(state, data):
                f"{sorted(fresh.state)}")
     for name in names:
         c.array(f"state.{name}", "f", (n,) + fresh.state[name].shape[1:])
-    bound_size = grid.ndofs * max(dim, 1) * (2 * grid.degree + 2) ** dim
+    # warm data: CG warm starts, fringe blocks, kept band factors (rows x (band + 1))
+    bound_size = grid.ndofs * max(max(dim, 1) * (2 * grid.degree + 2) ** dim,
+                                  StencilSystem.BAND_MAX + 1)
     for key in [k for k in data if k.startswith("warm_")]:
         a = data[key]
         if a.dtype not in (np.float64, np.int64) or a.ndim > 2 or a.size > bound_size or \

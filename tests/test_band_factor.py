@@ -83,3 +83,42 @@ def test_loop_and_executor_take_the_band_factor_alike(plate, monkeypatch):
     executor = _run(plate)
     for name in ("x", "v", "stress"):
         assert np.array_equal(getattr(loop.particles, name), getattr(executor.particles, name))
+
+
+def test_kept_band_factor_crosses_calls_checkpoints_and_the_executor(plate, tmp_path):
+    """The band factor kept over steps (StencilSystem.BAND_KEEP) is warm
+    data: the loop in one call, the loop saving every 3 steps (the factor
+    handed out and back at each save), and a run whose first 10 steps the
+    executor took (a callback) and which was restarted from their
+    checkpoint on the loop give the same bits; on the executor's steps a
+    factor serves several steps."""
+    method = Method(scheme="musl", mass="consistent")
+    whole = simulate(plate, method)
+    saved = simulate(plate, method, save_every=3)
+    path = tmp_path / "run.npz"
+    factors = []  # the kept factor after each step (the arrays themselves: ids stay unique)
+    simulate(plate, method, checkpoint=(path, 10),
+             callback=lambda step, state: factors.append(state.warm.get("band0_factor")) or
+             step < 10)
+    resumed = simulate(plate, method, restart=path)
+    assert whole.path == resumed.path == "fast (compiled loop)"
+    kept = [f for f in factors if f is not None]
+    assert len(kept) >= 6 and len({id(f) for f in kept}) <= 2, len({id(f) for f in kept})
+    for other in (saved, resumed):
+        for name in ("x", "v", "stress"):
+            assert np.array_equal(getattr(whole.particles, name), getattr(other.particles, name)), \
+                name
+
+
+def test_band_factor_refitted_after_a_slow_run_alike(plate, monkeypatch):
+    """With BAND_KEEP = 0 every CG run with a kept factor counts as slow:
+    the next step factorises anew, on the loop as on the executor (the
+    same bits), and each solve takes one iteration again."""
+    monkeypatch.setattr(StencilSystem, "BAND_KEEP", 0)
+    loop = _run(plate)
+    assert loop.path == "fast (compiled loop)"
+    with preconditioned_with("kronecker+fringe") as iterations:
+        executor = _run(plate)  # (an iteration log: the executor takes every step)
+    assert max(iterations[8:]) <= 1, iterations
+    for name in ("x", "v", "stress"):
+        assert np.array_equal(getattr(loop.particles, name), getattr(executor.particles, name))

@@ -9,9 +9,11 @@ n_x the free dofs' box width). Its Cholesky factor L stays in that band
 (Golub & Van Loan, *Matrix Computations*, 4th ed., Thm. 4.3.1), costs
 about n w^2 / 2 multiply-adds, and each application of (L L^T)^-1 two
 banded triangular solves of n w each. With P = L L^T = A conjugate
-gradients stop after one iteration (its residual is round-off), so a
-factor made once per step serves every solve of the step (MUSL solves
-twice).
+gradients stop after one iteration (its residual is round-off); the
+particles move little in a step, so the factor of an earlier step's A
+still makes CG stop after two, and the consistent-mass systems keep a
+factor over the steps (StencilSystem.BAND_KEEP) instead of making one a
+step.
 
 Where the Kronecker preconditioner (:mod:`skfem_mpm.kernels.kronecker`)
 is already close to A (particles on a tensor layout, few lumped rows) it
@@ -76,26 +78,36 @@ def fit_band_factor(A, cols, C):
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def apply_band_factor(C, r, z):
-    """z = (L L^T)^-1 r (all columns of r at once), L by columns from
-    :func:`fit_band_factor`: L y = r forward by columns, then L^T z = y
-    backward by rows of L^T (dot products along the columns of L)."""
-    n, nc = r.shape
+def _band_solve(C, y):
+    """y = (L L^T)^-1 y in place, one contiguous column: L y' = y forward by
+    columns of L, then L^T y = y' backward by rows of L^T (dot products
+    along the columns of L)."""
+    n = y.shape[0]
     w = C.shape[1] - 1
-    for i in range(n):
-        for c in range(nc):
-            z[i, c] = r[i, c]
     for k in range(n):
         m = min(w, n - 1 - k)
-        for c in range(nc):
-            y = z[k, c] * C[k, 0]
-            z[k, c] = y
-            for d in range(1, m + 1):
-                z[k + d, c] -= C[k, d] * y
+        v = y[k] * C[k, 0]
+        y[k] = v
+        for d in range(1, m + 1):
+            y[k + d] -= C[k, d] * v
     for k in range(n - 1, -1, -1):
         m = min(w, n - 1 - k)
-        for c in range(nc):
-            s = z[k, c]
-            for d in range(1, m + 1):
-                s -= C[k, d] * z[k + d, c]
-            z[k, c] = s * C[k, 0]
+        s = y[k]
+        for d in range(1, m + 1):
+            s -= C[k, d] * y[k + d]
+        y[k] = s * C[k, 0]
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def apply_band_factor(C, r, z):
+    """z = (L L^T)^-1 r, column by column of r, L by columns from
+    :func:`fit_band_factor` (each column copied into a contiguous one, so
+    that the inner loops run at unit stride)."""
+    n, nc = r.shape
+    y = np.empty(n)
+    for c in range(nc):
+        for i in range(n):
+            y[i] = r[i, c]
+        _band_solve(C, y)
+        for i in range(n):
+            z[i, c] = y[i]

@@ -170,7 +170,7 @@ def _mass_pairs(M, K, k, a, b, wx, dx, wy, dy, mi, p, width, nbx):
             M[k, base + a2] += wb2 * wx[a2]
 
 
-# Quadratic interior particles of one cell share its 3 x 3 nodes, so a run
+# Quadratic particles of one cell share its 3 x 3 nodes, so a run
 # of them (sorted particles come in runs) is summed in a small window and
 # written once per run, as in the 1D kernels. By the tensor structure,
 # N_(a,b) N_(a2,b2) = (wx_a wx_a2)(wy_b wy_b2): the window holds the 6 x 6
@@ -211,12 +211,13 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
     (db + p)(2p + 1) + da + p - centre) and the per-dof sum m_p |grad N_k|^2.
     Per-thread copies over touched node ranges, as :func:`consistent_1d`;
     :func:`reduce_stencil` mirrors the lower half (M is symmetric).
-    Quadratic interior particles are summed per run of a cell first (see
-    :func:`_flush_mass_window`)."""
+    Quadratic particles are summed per run of a cell first (see
+    :func:`_flush_mass_window`; interior cells of uniform axes with the
+    closed form of their weights)."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
     width = 2 * p + 1
-    quadratic = p == 2 and ux and uy
+    quadratic = p == 2
     x0, ncx, y0, ncy = bx[0], bx.shape[0] - 1, by[0], by.shape[0] - 1
     for t in prange(nt):
         M = mass_copies[t]
@@ -243,34 +244,39 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
                     x[i, 0], x0, ncx, ux, ihx, 2)
                 in_y, ey, wy0, wy1, wy2, _, dy0, dy1, dy2, _ = closed_axis_functions(
                     x[i, 1], y0, ncy, uy, ihy, 2)
-                if in_x and in_y:
-                    if ex != run_x or ey != run_y:
-                        _flush_mass_window(M, K, S, Kw, run_x, run_y, nbx)
-                        run_x = ex
-                        run_y = ey
-                        first = min(first, ey * nbx + ex)
-                        last = max(last, (ey + 2) * nbx + ex + 3)
-                    X[0] = wx0 * wx0
-                    X[1] = wx0 * wx1
-                    X[2] = wx0 * wx2
-                    X[3] = wx1 * wx1
-                    X[4] = wx1 * wx2
-                    X[5] = wx2 * wx2
-                    ys = (mi * wy0 * wy0, mi * wy0 * wy1, mi * wy0 * wy2, mi * wy1 * wy1,
-                          mi * wy1 * wy2, mi * wy2 * wy2)
-                    for j in range(6):
-                        yj = ys[j]
-                        for q in range(6):
-                            S[6 * j + q] += yj * X[q]
-                    # m |grad N_(a,b)|^2 = m (dx_a^2 wy_b^2 + wx_a^2 dy_b^2)
-                    gx = (mi * dx0 * dx0, mi * dx1 * dx1, mi * dx2 * dx2)
-                    sx = (mi * X[0], mi * X[3], mi * X[5])
-                    vy = (wy0 * wy0, wy1 * wy1, wy2 * wy2)
-                    hy = (dy0 * dy0, dy1 * dy1, dy2 * dy2)
-                    for b in range(3):
-                        for a in range(3):
-                            Kw[3 * b + a] += gx[a] * vy[b] + sx[a] * hy[b]
-                    continue
+                if not in_x:
+                    ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
+                    wx0, wx1, wx2, dx0, dx1, dx2 = wx[0], wx[1], wx[2], dx[0], dx[1], dx[2]
+                if not in_y:
+                    ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
+                    wy0, wy1, wy2, dy0, dy1, dy2 = wy[0], wy[1], wy[2], dy[0], dy[1], dy[2]
+                if ex != run_x or ey != run_y:
+                    _flush_mass_window(M, K, S, Kw, run_x, run_y, nbx)
+                    run_x = ex
+                    run_y = ey
+                    first = min(first, ey * nbx + ex)
+                    last = max(last, (ey + 2) * nbx + ex + 3)
+                X[0] = wx0 * wx0
+                X[1] = wx0 * wx1
+                X[2] = wx0 * wx2
+                X[3] = wx1 * wx1
+                X[4] = wx1 * wx2
+                X[5] = wx2 * wx2
+                ys = (mi * wy0 * wy0, mi * wy0 * wy1, mi * wy0 * wy2, mi * wy1 * wy1,
+                      mi * wy1 * wy2, mi * wy2 * wy2)
+                for j in range(6):
+                    yj = ys[j]
+                    for q in range(6):
+                        S[6 * j + q] += yj * X[q]
+                # m |grad N_(a,b)|^2 = m (dx_a^2 wy_b^2 + wx_a^2 dy_b^2)
+                gx = (mi * dx0 * dx0, mi * dx1 * dx1, mi * dx2 * dx2)
+                sx = (mi * X[0], mi * X[3], mi * X[5])
+                vy = (wy0 * wy0, wy1 * wy1, wy2 * wy2)
+                hy = (dy0 * dy0, dy1 * dy1, dy2 * dy2)
+                for b in range(3):
+                    for a in range(3):
+                        Kw[3 * b + a] += gx[a] * vy[b] + sx[a] * hy[b]
+                continue
             ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
             ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
             first = min(first, ey * nbx + ex)

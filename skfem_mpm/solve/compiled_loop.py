@@ -787,6 +787,8 @@ class StepLoop:
             band_from=int(cls.BAND_FROM), band_width=np.full(G, -1, dtype=np.int64),
             # (np.zeros: only the rows of a group whose factor is on are written)
             band=zeros((G, nd * (band_max + 1) if band_max > 0 else 1)),
+            band_keep=int(cls.BAND_KEEP), band_kept=np.full((G, 2), -1, dtype=np.int64),
+            band_rows=zeros((G, nd if band_max > 0 else 1), dtype=np.int64),
             warm=zeros((2, nd, dim)), has_warm=zeros(2, dtype=np.bool_),
             warm_good=zeros((2, nd, dim)), has_good=zeros(2, dtype=np.bool_),
             hybrid=hybrid,
@@ -849,6 +851,11 @@ class StepLoop:
         banded = np.array([f"banded{g}_on" in state.warm for g in range(self._groups)],
                           dtype=np.bool_)
         self.module.load_warm(cm, warm, has, banded)
+        for g in range(self._groups):  # the kept band factors (StencilSystem._band)
+            rows, factor = state.warm.get(f"band{g}_rows"), state.warm.get(f"band{g}_factor")
+            if rows is not None and factor is not None:
+                self.module.load_band(cm, g, np.ascontiguousarray(rows, dtype=np.int64),
+                                      np.ascontiguousarray(factor, dtype=np.float64))
 
     def _mass_results(self, state, handover):
         """The warm starts of the last step taken into the state (new
@@ -856,12 +863,21 @@ class StepLoop:
         switch, and the reactions of consistent mass (M a - f on the
         constrained rows)."""
         run = self.run_state
-        warm, has, fringe_on, stencil, fast, banded = self.module.mass_records(self.cm)
+        warm, has, fringe_on, stencil, fast, banded, kept, band_rows, band = \
+            self.module.mass_records(self.cm)
         for i, kind in enumerate(self.WARM_KINDS):
             if has[i]:
                 state.warm[kind] = warm[i].copy()
         for g in np.flatnonzero(banded):
             state.warm[f"banded{g}_on"] = np.array([1])
+        for g in range(self._groups):  # the kept band factors (StencilSystem._band)
+            n, w = (int(v) for v in kept[g])
+            if n >= 0:
+                state.warm[f"band{g}_rows"] = band_rows[g, :n].copy()
+                state.warm[f"band{g}_factor"] = band[g, :n * (w + 1)].reshape(n, w + 1).copy()
+            else:
+                state.warm.pop(f"band{g}_rows", None)
+                state.warm.pop(f"band{g}_factor", None)
         if handover:
             for g in np.flatnonzero(fringe_on):
                 state.warm[f"fringe{g}_on"] = np.array([1])
@@ -881,6 +897,7 @@ class StepLoop:
         """Compile (or load from numba's cache) everything ``run`` calls."""
         if self.cm is not None:
             nd, dim = self.executor.kernels.ndofs, self._arrays[0].shape[1]
+            self.module.load_band(self.cm, 0, np.zeros(0, dtype=np.int64), np.zeros((0, 1)))
             self.module.load_warm(self.cm, np.zeros((2, nd, dim)), np.zeros(2, dtype=np.bool_),
                                   np.zeros(self._groups, dtype=np.bool_))
             self.module.mass_records(self.cm)

@@ -33,7 +33,9 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
                     preconditioner fitted to that system's stencil part;
                     a group whose band factor is on (StencilSystem.BAND_FROM)
                     and whose system is narrow enough gets the band
-                    factor of its rows instead (kernels.band_factor)
+                    factor of its rows instead (kernels.band_factor),
+                    kept over the steps while its free rows stay and CG
+                    needs at most StencilSystem.BAND_KEEP iterations with it
                     in 3D one Kronecker box per coupled component of the
                     fitted rows (kernels.kronecker.kronecker_boxes), as
                     KroneckerData.of_system builds them
@@ -87,8 +89,11 @@ MASS_FIELDS = (
     # the band factor per group (kernels.band_factor): switched on (for the
     # rest of the run), the largest band it takes (0: never), the
     # iterations that switch it on, this step's band (-1: the Kronecker
-    # preconditioner), the factor (flat, rows x (band + 1))
-    "banded_on", "band_max", "band_from", "band_width", "band",
+    # preconditioner), the factor (flat, rows x (band + 1)); the kept
+    # factor (StencilSystem.BAND_KEEP): the most iterations it may need,
+    # its rows' count and band (count -1: none kept) and its rows
+    "banded_on", "band_max", "band_from", "band_width", "band", "band_keep", "band_kept",
+    "band_rows",
     # 3D: one box per coupled component (kernels.kronecker.kronecker_boxes):
     # the boxes' rows of apply_kronecker_axes and their count; box_shape
     # the concatenated factors' lengths, box_coords the rows' coordinates
@@ -141,13 +146,27 @@ def new_mass_system(*fields):
 @njit(cache=True)
 def load_warm(cm, warm, has_warm, banded_on):
     """Set the warm starts and the band factor's switches (the executor's,
-    when it took steps between calls)."""
+    when it took steps between calls); no band factor kept (see
+    load_band)."""
     copy_into(cm.banded_on, banded_on)
+    cm.band_kept[:, 0] = -1
     copy_into(cm.warm, warm)
     copy_into(cm.has_warm, has_warm)
     copy_into(cm.warm_good, warm)
     copy_into(cm.has_good, has_warm)
     cm.fringe_on[:] = False
+
+
+@njit(cache=True)
+def load_band(cm, g, rows, factor):
+    """Group g's kept band factor (the executor's, when it took steps
+    between calls): ``factor`` (rows x (band + 1)) made for the free
+    ``rows``."""
+    n, w1 = factor.shape
+    cm.band_kept[g, 0] = n
+    cm.band_kept[g, 1] = w1 - 1
+    copy_into(cm.band_rows[g, :n], rows)
+    copy_into(cm.band[g, :n * w1], factor.reshape(n * w1))
 
 
 @njit(cache=True)
@@ -166,9 +185,10 @@ def commit_mass(cm):
 def mass_records(cm):
     """The warm starts of the last step taken, the groups that turned the
     fringe correction on, the stencil and lumping fractions of the last
-    step's reactions, the groups whose band factor is on."""
+    step's reactions, the groups whose band factor is on, the kept band
+    factors (their rows' count and band, rows and factors)."""
     return (cm.warm_good, cm.has_good, cm.fringe_on, cm.reaction_stencil, cm.reaction_fast,
-            cm.banded_on)
+            cm.banded_on, cm.band_kept, cm.band_rows, cm.band)
 
 
 @njit(cache=True)
@@ -323,10 +343,17 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
                                             cm.box_index[g, :n], cm.boxes[g], cm.box_shape[g])
         else:
             if cm.banded_on[g] and not merged:
+                if _kept_band(cm, g, rows):
+                    cm.band_width[g] = cm.band_kept[g, 1]
+                    continue
+                cm.band_kept[g, 0] = -1
                 w = ELL_BAND_WIDTH(cm.cols[g, :n])
                 if w <= cm.band_max and FIT_BAND_FACTOR(cm.A[g, :n], cm.cols[g, :n],
                                                         cm.band[g, :n * (w + 1)].reshape((n, w + 1))):
                     cm.band_width[g] = w
+                    cm.band_kept[g, 0] = n
+                    cm.band_kept[g, 1] = w
+                    copy_into(cm.band_rows[g, :n], rows)
                     continue
             _kronecker_box(cm, g, rows, nbx, nby)
         nz = cm.box_shape[g, 0]
@@ -335,6 +362,19 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
         FIT_KRONECKER(fit, cm.box_coords[g, :n], cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz],
                       cm.inv_scale[g, :n], cm.fit_bands, cm.fit_sums)
     return 0
+
+
+@njit(cache=True)
+def _kept_band(cm, g, rows):
+    """Whether group g keeps a band factor made for the free ``rows``
+    within the band limit (StencilSystem._band)."""
+    n = rows.shape[0]
+    if cm.band_kept[g, 0] != n or cm.band_kept[g, 1] > cm.band_max:
+        return False
+    for r in range(n):
+        if cm.band_rows[g, r] != rows[r]:
+            return False
+    return True
 
 
 @njit(cache=True)
@@ -449,6 +489,8 @@ def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x):
     if cm.band_width[g] < 0 and not cm.merged[g] and cm.band_max > 0 \
             and its >= cm.band_from and ELL_BAND_WIDTH(cols) <= cm.band_max:
         cm.banded_on[g] = True
+    elif cm.band_width[g] >= 0 and its > cm.band_keep:
+        cm.band_kept[g, 0] = -1  # the next step factorises anew
     elif cm.fringe_layers > 0 and its >= cm.fringe_from and n >= cm.fringe_min_rows:
         cm.fringe_on[g] = True
     return True

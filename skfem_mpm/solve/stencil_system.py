@@ -50,8 +50,9 @@ class StencilSystem:
     group whose Kronecker-preconditioned CG needed ``BAND_FROM``
     iterations and whose system is banded within ``BAND_MAX`` switches, for
     the rest of the run, to the banded Cholesky factor of its system
-    (:mod:`skfem_mpm.kernels.band_factor`), made once per step for all
-    the step's solves (0: never).
+    (:mod:`skfem_mpm.kernels.band_factor`; 0: never), kept over the steps
+    while its free-dof set stays and CG needs at most ``BAND_KEEP``
+    iterations with it.
 
     Tiny masses (``small_mass`` > 0, the relative threshold of
     ``Method(small_mass=...)``): each constraint pattern with small dofs
@@ -207,7 +208,7 @@ class StencilSystem:
         inv_diag = 1.0 / self.lumped[rows]
         kron = fringe = None
         if self.preconditioner == "kronecker" and rows.size and f"banded{g}_on" in self.warm:
-            kron = self._band(g, A, cols)
+            kron = self._band(g, A, cols, rows)
         if self.preconditioner == "kronecker" and rows.size and kron is None:
             kron = KroneckerData.of_system(A, rows, self.geometry,
                                            previous=self.memo.get(f"kronecker{g}"), index=index)
@@ -258,21 +259,42 @@ class StencilSystem:
     # compiled loop follow it.
     BAND_FROM = 6
     BAND_MAX = 40
+    # The particles move little in a step, so the factor of an earlier
+    # step's system stays a close preconditioner of this step's: with it
+    # CG needs 2 iterations where the step's own factor needs 1 (D2 small
+    # at 16 x 16, 112 steps: 2.01 a solve with a factor never refitted),
+    # and the factorisation costs about as much as 10 iterations. The
+    # factor is kept while the free-dof set stays and a CG run with it
+    # needs at most BAND_KEEP iterations (the next step factorises anew
+    # after one that needed more); it is warm data (f"band{g}_rows", the
+    # rows it was made for, and f"band{g}_factor"), so restarts and the
+    # compiled loop continue with the same factor, bit for bit.
+    BAND_KEEP = 2
 
     def _band_width(self):
         """BAND_MAX on a 2D grid, else 0 (never the band factor)."""
         return self.BAND_MAX if self.geometry[-1] == 2 else 0
 
-    def _band(self, g, A, cols):
+    def _band(self, g, A, cols, rows):
         """Group g's band factor as ell_pcg's Kronecker arguments take it
-        (:class:`_BandFactor`), or None when its system is wider than the
-        band limit or not positive definite to round-off."""
+        (:class:`_BandFactor`): the kept one when it was made for the same
+        free rows ``rows`` (see BAND_KEEP), else that of A; None when its
+        system is wider than the band limit or not positive definite to
+        round-off."""
+        key = f"band{g}"
+        kept_rows, L = self.warm.get(key + "_rows"), self.warm.get(key + "_factor")
+        if kept_rows is not None and L is not None and np.array_equal(kept_rows, rows) \
+                and L.shape[0] == A.shape[0] and L.shape[1] <= self._band_width() + 1:
+            return _BandFactor(L)
+        self.warm.pop(key + "_rows", None)
+        self.warm.pop(key + "_factor", None)
         w = int(self.k.kernel(ell_band_width)(cols))
         if w > self._band_width():
             return None
-        L = self.k.scratch(f"band{g}", (A.shape[0], w + 1))
+        L = np.empty((A.shape[0], w + 1))  # (a new array: warm data may sit in a checkpoint)
         if not fit_band_factor(A, cols, L):
             return None
+        self.warm.update({key + "_rows": rows.copy(), key + "_factor": L})
         return _BandFactor(L)
 
     def _fringe(self, g, rows, A, cols):
@@ -373,6 +395,8 @@ class StencilSystem:
                         and its >= self.BAND_FROM and self._band_width() > 0 \
                         and self.k.kernel(ell_band_width)(cols) <= self._band_width():
                     self.warm[f"banded{g}_on"] = np.array([1])
+                elif isinstance(kron, _BandFactor) and its > self.BAND_KEEP:
+                    self.warm.pop(f"band{g}_rows", None)  # the next step factorises anew
                 elif kron is not None and fringe is None and self.fringe_layers > 0 \
                         and its >= self.FRINGE_FROM and rows.size >= self.FRINGE_MIN_ROWS:
                     self.warm[f"fringe{g}_on"] = np.array([1])
