@@ -124,6 +124,7 @@ _GRID_KERNELS = {
     "TLS_FACTOR": tls.tls_factor,
     "TLS_APPLY": tls.tls_apply,
     "MLS_FIT": mls.mls_fit,
+    "MLS_STORE": mls.mls_store,
     "SPLINE_LS_SYSTEM": spline_2d.spline_ls_system,
     "SPLINE_BAND": spline_2d.spline_band,
     "BANDED_CHOLESKY_INTO": kronecker.banded_cholesky_into,
@@ -385,8 +386,8 @@ def loop_module(dim, parallel, window):
     # sources go into the file's name (kernels.generated.load hashes it)
     depends = "".join(inspect.getsource(m) for m in (
         schemes, mpm, scatter, kronecker, band_factor, tiny_mass, merged_mass, fast_dof, staging, gauss_rule,
-        spline_1d, tls, cholesky, weights, traction, constitutive, grid_modifiers, bbar,
-        by_symbol, step_size))
+        spline_1d, spline_2d, tls, mls, cholesky, weights, traction, constitutive,
+        grid_modifiers, bbar, by_symbol, step_size))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -670,6 +671,7 @@ class StepLoop:
                 rho=empty(n), pcell=empty(0, dtype=np.int64), xg=empty((0, dim)), wg=empty(0),
                 gcell=empty(0, dtype=np.int64), own=empty(0, dtype=np.int64),
                 factor=None, radius=0.0, alpha=None, spline=None,
+                mls_store=mls.empty_mls_store(), mls_most=0,
                 xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),
                 sq=empty((0, dim, dim)), momentum_values=empty((n, dim)),
                 momentum_fit=empty((0, dim)), no_stress=empty((0, dim, dim)),
