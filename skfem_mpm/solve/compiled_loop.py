@@ -139,6 +139,7 @@ _GRID_KERNELS = {
     # consistent mass (compiled_loop_mass)
     "CONSISTENT_1D": mpm.consistent_1d,
     "CONSISTENT_2D": mpm.consistent_2d,
+    "CONSISTENT_CELLS_2D": mpm.consistent_cells_2d,
     "CONSISTENT_AXES": mpm.consistent_axes,
     "REDUCE_STENCIL": mpm.reduce_stencil,
     "COMPACT_SYSTEM": mpm.compact_system,
@@ -332,6 +333,10 @@ def _prelude(dim, parallel, window, variant):
                 3: "(b0, u0, ih0, C0), (b1, u1, ih1, C1), (b2, u2, ih2, C2) = axes\n"
                    "    CONSISTENT_AXES(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, "
                    "p, nbx, nby, copies, stiff, touched)"}[dim]
+    assemble_cells = ("(bx, ux, ihx, Cx), (by, uy, ihy, Cy) = axes\n"
+                      "    CONSISTENT_CELLS_2D(x, m, cells, k, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, "
+                      "nbx, copies, stiff, touched)" if dim == 2 else
+                      "raise ValueError('the cells rule is 2D')")
     kronecker = ("return (cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz], cm.box_index[g, :n], "
                  "cm.inv_scale[g, :n], cm.box, nt, cm.boxes[g, :cm.n_boxes[g]])"
                  if dim == 3 else
@@ -357,6 +362,13 @@ def SMALL_MASS(mass, tol, small, nbx, nby, p):
 def ASSEMBLE(x, m, axes, p, nbx, nby, copies, stiff, touched):
     """Per-thread copies of the consistent mass stencil (kernels.mpm.consistent_{dim}d)."""
     {assemble}
+
+
+@njit(cache=True)
+def ASSEMBLE_CELLS(x, m, axes, cells, k, p, nbx, copies, stiff, touched):
+    """2D: per-thread copies of the consistent mass stencil of points whose
+    first cells k x k blocks are cells' tensor rules (kernels.mpm.consistent_cells_2d)."""
+    {assemble_cells}
 
 
 @njit(cache=True)

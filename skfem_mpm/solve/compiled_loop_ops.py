@@ -359,6 +359,7 @@ def _scatter(run, particles, column):
     reconstructed = _reconstructed(run)
     ruled = _ruled(run)
     traction = _traction(run)
+    cells = ruled and DIM == 2  # the rule's tensor cells: CompiledReconstruction.tensor_cells
 
     def impl(run, particles, column):
         """Lumped mass, momentum, force (and the consistent mass) of
@@ -421,8 +422,13 @@ def _scatter(run, particles, column):
         t1 = monotonic_ns()
         run.phase_ns[0] += t1 - t0
         if consistent:
-            call(assemble_mass, run.cm, points[0], points[3], run.degree, run.nbx, run.nby,
-                 run.x.shape[1])
+            if cells:  # the rule's whole cells summed per axis (Kernels.consistent_stencil)
+                k = run.rc.ref.shape[0]
+                call(assemble_mass_cells, run.cm, points[0], points[3],
+                     run.rc.wg.shape[0] // (k * k), k, run.degree, run.nbx, run.nby)
+            else:
+                call(assemble_mass, run.cm, points[0], points[3], run.degree, run.nbx, run.nby,
+                     run.x.shape[1])
             run.phase_ns[3] += monotonic_ns() - t1
         return run
     return impl

@@ -393,8 +393,18 @@ class CompiledReconstruction:
         stencil = None
         if state.method.needs_consistent_mass:
             with state.timer("mass_matrix"):
-                stencil = k.consistent_stencil(points)
+                stencil = k.consistent_stencil(points, *self.tensor_cells(rule))
         return mass, momentum, force, stencil, (rule, rho)
+
+    def tensor_cells(self, rule):
+        """(cells, k): in 2D the rule's first ``cells`` blocks of k x k points
+        are whole cells' tensor rules (gauss_rule_cells), which the
+        consistent mass sums per axis (kernels.mpm.consistent_cells_2d);
+        (0, 0) in 1D."""
+        if self.dim != 2:
+            return 0, 0
+        k = self.ref.shape[0]
+        return getattr(rule, "ngauss", rule.w.shape[0]) // (k * k), k
 
     def _momentum(self, rule, momentum_density):
         """sum_g w_g (rho v)_h(x_g) N_i(x_g) by g2p2g (a = 0) on points of mass w_g."""
