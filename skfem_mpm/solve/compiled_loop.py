@@ -201,8 +201,6 @@ def loop_applies(state, executor):
         (not _side_tractions_only(executor), "particle forces other than gravity, one "
          "traction on a side of the body with tau(t) and forces of the reference "
          "configuration (reference_only: a BodyForce)"),
-        (recon is not None and bool(reference_forces(executor.other_forces)),
-         "a body force with reconstruction"),
         (_without_rule(executor) is not None,
          f"a grid modifier without a compiled rule ({_without_rule(executor)!r})"),
         (state.adaptive and state.bodies[0][0].point_wave_speed is None,
@@ -484,7 +482,7 @@ class StepLoop:
         self.forces = ForceTable(self.module, forces, state) if forces else None
         self.prescribed = PrescribedTable(self.module, state) \
             if state.constraints.prescribed else None
-        fields.update(rc=None if recon is None else self._reconstruction(recon, p),
+        fields.update(rc=None if recon is None else self._reconstruction(recon, p, bool(forces)),
                       no_acceleration=np.zeros((nd if recon is not None else 1, dim)),
                       displacement=empty((n if recon is not None or side or forces else 1,
                                           dim)),
@@ -670,22 +668,24 @@ class StepLoop:
         return self.module.new_side_traction(
             *(fields[name] for name in self.module.TRACTION_FIELDS))
 
-    def _reconstruction(self, recon, p):
+    def _reconstruction(self, recon, p, forces):
         """The reconstruction data of the run (compiled_loop_reconstruct), with
-        the rule's constants of the executor's CompiledReconstruction."""
+        the rule's constants of the executor's CompiledReconstruction;
+        ``forces``: whether a body force's density is fitted too."""
         n, dim = p.n, p.dim
         empty = np.empty
+        k = 1 + dim + dim * dim + (dim if forces else 0)  # the fitted fields
         if recon.name != "spline" or dim == 2:  # on CompiledReconstruction.rule's rule
             fields = dict(
                 ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
                 breaks1=recon.breaks1, uniform0=bool(recon.uniform[0]),
-                uniform1=bool(recon.uniform[1]), values=empty((n, 1 + dim + dim * dim)),
+                uniform1=bool(recon.uniform[1]), values=empty((n, k)),
                 rho=empty(n), pcell=empty(0, dtype=np.int64), xg=empty((0, dim)), wg=empty(0),
                 gcell=empty(0, dtype=np.int64), own=empty(0, dtype=np.int64),
                 factor=None, radius=0.0, alpha=None, spline=None,
                 mls_store=mls.empty_mls_store(), mls_most=0,
                 xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),
-                sq=empty((0, dim, dim)), momentum_values=empty((n, dim)),
+                sq=empty((0, dim, dim)), fq=empty((0, dim)), momentum_values=empty((n, dim)),
                 momentum_fit=empty((0, dim)), no_stress=empty((0, dim, dim)),
                 point_velocities=empty((0, dim)))
             if recon.name == "tls":
@@ -701,11 +701,11 @@ class StepLoop:
                 *(fields[name] for name in self.module.RULED_FIELDS))
         fields = dict(
             ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
-            values=empty((n, 1 + dim + dim * dim)), rho=empty(n),
+            values=empty((n, k)), rho=empty(n),
             order=empty(0, dtype=np.int64), piece_particles=empty(0, dtype=np.int64),
-            piece_points=empty(0, dtype=np.int64), xg=empty(0), fit=empty((0, 1 + dim + dim * dim)),
+            piece_points=empty(0, dtype=np.int64), xg=empty(0), fit=empty((0, k)),
             xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),
-            sq=empty((0, dim, dim)), momentum_values=empty((n, dim)),
+            sq=empty((0, dim, dim)), fq=empty((0, dim)), momentum_values=empty((n, dim)),
             momentum_fit=empty((0, dim)), no_stress=empty((0, dim, dim)),
             point_velocities=empty((0, dim)))
         return self.module.new_reconstruction(

@@ -378,24 +378,26 @@ def _scatter(run, particles, column):
             P2G(run.p2g_at, faces, run.grid, st.loads, True, run.copies_p2g, run.touched_p2g)
             REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, st.mass, st.momentum, st.force,
                           st.mass_range, st.occupied)
-        if reconstructed:
+        fext, has_fext = run.particle_forces(column)  # (a body force: compiled_loop_body_force)
+        if reconstructed:  # (a body force: its density rho b = f_p / V_p fitted too)
             if ruled:
                 fitted = call(rule_points, run.rc, particles[0], particles[1], run.m,
-                              particles[4], particles[5])
+                              particles[4], particles[5], fext)
             else:
                 fitted = call(reconstruct_points, run.rc, particles[0], particles[1], run.m,
-                              particles[4], particles[5])
+                              particles[4], particles[5], fext)
             if not fitted:
                 run.stop = 5  # a fitted density 0, a spline system the banded Cholesky
                 return run    # refuses: the executor takes the step
             rc = run.rc
             points = (rc.xq, rc.vq, rc.vq, rc.mq, rc.Vq, rc.sq)
+            if has_fext:  # the points' forces w_g (rho b)_h
+                fext = rc.fq
             t_fit = monotonic_ns()
             run.phase_ns[4] += t_fit - t0
             t0 = t_fit
         else:
             points = particles
-        fext, has_fext = run.particle_forces(column)  # (a body force: compiled_loop_body_force)
         P2G(run.p2g_at, points, run.grid, fext, has_fext, run.copies_p2g, run.touched_p2g)
         REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, run.mass, run.momentum, run.force,
                       run.mass_range, run.occupied)
