@@ -19,8 +19,8 @@ from skfem_mpm.solve.compiled_loop_tables import ForceTable
 from skfem_mpm.solve.state import prepare
 from skfem_mpm.solve.stencil_system import StencilSystem
 
-from test_compiled_loop import (_case_id, assert_same, box_scene, check_law_case, falling_block,
-                                law_scene, looped_and_stepped, without_loop)
+from test_compiled_loop import (_case_id, _ruled_coverage, assert_same, box_scene, check_law_case,
+                                falling_block, law_scene, looped_and_stepped, without_loop)
 from test_executors import scene_for
 
 
@@ -105,15 +105,9 @@ DEFAULT_RECONSTRUCTED_BODY_FORCE_CASES = {  # the default tier's cases (tests/ti
 }
 
 
-def _recon_coverage(case):
-    """Every reconstruction, dimension and mass kind (lumped, a mass system)."""
-    return dict(reconstruction=case["reconstruction"], dim=case["dim"],
-                mass="lumped" if case["mass"] == "lumped" else "system")
-
-
 @pytest.mark.parametrize("case", tiered(
     "body force with reconstruction in the loop", RECONSTRUCTED_BODY_FORCE_CASES, _case_id,
-    DEFAULT_RECONSTRUCTED_BODY_FORCE_CASES, paired=(), options=_recon_coverage), ids=_case_id)
+    DEFAULT_RECONSTRUCTED_BODY_FORCE_CASES, paired=(), options=_ruled_coverage), ids=_case_id)
 def test_a_body_force_with_reconstruction_gives_the_executors_bits(monkeypatch, case):
     scene = scene_for(dict(case, effect="body-force"), steps=23)
     method = Method(scheme=case["scheme"], mass=case["mass"],

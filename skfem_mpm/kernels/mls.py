@@ -179,6 +179,24 @@ def empty_mls_store():
     return np.empty((0, 0)), np.empty((0, 0), dtype=np.int32), np.empty(0, dtype=np.int64)
 
 
+@njit(cache=True, error_model="numpy")
+def _stored_sums(coef, hit, stored, values, out, lo, hi):
+    """out[g] = sum_j coef[g, j] values[hit[g, j]] for the points lo <= g < hi
+    whose pairs are stored (stored[g] >= 0; see :func:`mls_fit`): a call
+    per block of points, not inlined (arrays, see mls_fit)."""
+    k = values.shape[1]
+    for g in range(lo, hi):
+        if stored[g] < 0:
+            continue
+        for col in range(k):
+            out[g, col] = 0.0
+        for j in range(stored[g]):
+            c = coef[g, j]
+            q = hit[g, j]
+            for col in range(k):
+                out[g, col] += c * values[q, col]
+
+
 @njit(cache=True, error_model="numpy", parallel=True)
 def mls_fit(x, values, xg, r, alpha, out, with_coefficients, store):
     """out[g] (ng, k) = the linear MLS fit of the particle ``values`` (n, k)
@@ -220,15 +238,8 @@ def mls_fit(x, values, xg, r, alpha, out, with_coefficients, store):
                 search = True
         if not search:  # every point's pairs stored
             for block in prange(nblocks):
-                for g in range(block * POINTS_PER_BLOCK,
-                               min(ng, (block + 1) * POINTS_PER_BLOCK)):
-                    for col in range(k):
-                        out[g, col] = 0.0
-                    for j in range(stored[g]):
-                        c = coef[g, j]
-                        q = hit[g, j]
-                        for col in range(k):
-                            out[g, col] += c * values[q, col]
+                _stored_sums(coef, hit, stored, values, out, block * POINTS_PER_BLOCK,
+                             min(ng, (block + 1) * POINTS_PER_BLOCK))
             return 0
     use_store = slots > 0 and stored.shape[0] == ng
     side = 0.5 * r
@@ -255,15 +266,12 @@ def mls_fit(x, values, xg, r, alpha, out, with_coefficients, store):
         L = np.empty((MAX_DIM + 1, MAX_DIM + 1))
         scaled = np.empty((MAX_DIM + 1, MAX_DIM + 1))
         a = np.zeros(MAX_DIM + 1)
-        for g in range(block * POINTS_PER_BLOCK, min(ng, (block + 1) * POINTS_PER_BLOCK)):
+        lo_g = block * POINTS_PER_BLOCK
+        hi_g = min(ng, (block + 1) * POINTS_PER_BLOCK)
+        if use_store and not with_coefficients:  # the points stored (not all were)
+            _stored_sums(coef, hit, stored, values, out, lo_g, hi_g)
+        for g in range(lo_g, hi_g):
             if use_store and not with_coefficients and stored[g] >= 0:
-                for col in range(k):  # its stored pairs (another point was not stored)
-                    out[g, col] = 0.0
-                for j in range(stored[g]):
-                    c = coef[g, j]
-                    q = hit[g, j]
-                    for col in range(k):
-                        out[g, col] += c * values[q, col]
                 continue
             y0 = xg[g, 0]
             y1 = xg[g, 1] if dim > 1 else 0.0
