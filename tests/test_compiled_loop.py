@@ -521,19 +521,23 @@ def test_tls_reconstruction_gives_the_executors_bits(monkeypatch, case):
 
 
 # The 2D spline (its direct solve: the banded Cholesky, kept for the step's
-# MUSL projection) and mls (M_g^-1 e_0 kept likewise) on the rule TLS
-# uses, in the loop: the same bits as the executor. The default tier runs
-# the 2D spline with consistent MUSL on the aligned body (issue 18's
-# configuration) and mls with lumped MUSL on the unaligned one (particle
-# points); the slow tier every other scheme, mass kind, degree, 1D mls and
-# the spline's cut cells.
+# MUSL projection) and mls (M_g^-1 e_0 and each point's weighted particles
+# kept likewise) on the rule TLS uses, in the loop: the same bits as the
+# executor. Coverage rule (tests/tiers.py, checked by tests/test_tiers.py):
+# the default tier runs every reconstruction, every dimension and both mass
+# kinds (lumped; a mass system: consistent or hybrid), which the 2D spline
+# with consistent MUSL on the aligned body (issue 18's configuration) and
+# 1D mls with lumped MUSL give; the slow tier every other scheme, mass
+# kind, degree, 2D mls (particle points) and the spline's cut cells. (The
+# schemes and the effects are the other loop families' coverage: here each
+# would compile one more loop variant per reconstruction.)
 RULED_CASES = [
     dict(reconstruction="spline", dim=2, scheme="musl", mass="consistent", degree=2,
          effect="gravity", aligned=True),
+    dict(reconstruction="mls", dim=1, scheme="musl", mass="lumped", degree=2, effect="gravity",
+         aligned=False),
     dict(reconstruction="mls", dim=2, scheme="musl", mass="lumped", degree=2, effect="gravity",
          aligned=False),
-]
-SLOW_RULED_CASES = [
     dict(reconstruction="spline", dim=2, scheme="musl", mass="lumped", degree=2,
          effect="gravity", aligned=False),
     dict(reconstruction="spline", dim=2, scheme="musl", mass="hybrid", degree=3,
@@ -557,11 +561,23 @@ SLOW_RULED_CASES = [
     dict(reconstruction="mls", dim=1, scheme="rk4", mass="consistent", degree=3,
          effect="gravity", aligned=False),
 ]
+DEFAULT_RULED_CASES = {  # the default tier's cases (tests/tiers.py)
+    "spline-2-musl-consistent-2-gravity-True",
+    "mls-1-musl-lumped-2-gravity-False",
+}
 
 
-@pytest.mark.parametrize("case", RULED_CASES + [
-    pytest.param(c, marks=pytest.mark.slow(reason="one more compiled loop variant"))
-    for c in SLOW_RULED_CASES], ids=_case_id)
+def _ruled_coverage(case):
+    """What the default tier of the ruled family covers: every value of
+    the reconstruction, the dimension and the mass kind (lumped, or a mass
+    system: consistent and hybrid share the loop's MassSystem)."""
+    return dict(reconstruction=case["reconstruction"], dim=case["dim"],
+                mass="lumped" if case["mass"] == "lumped" else "system")
+
+
+@pytest.mark.parametrize("case", tiered(
+    "spline and mls on the rule in the loop", RULED_CASES, _case_id, DEFAULT_RULED_CASES,
+    paired=(), options=_ruled_coverage), ids=_case_id)
 def test_spline_and_mls_on_the_rule_give_the_executors_bits(monkeypatch, case):
     full = dict(case, material="linear", ppc=3)
     scene = scene_for(full, steps=23)

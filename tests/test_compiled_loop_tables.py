@@ -19,8 +19,8 @@ from skfem_mpm.solve.compiled_loop_tables import ForceTable
 from skfem_mpm.solve.state import prepare
 from skfem_mpm.solve.stencil_system import StencilSystem
 
-from test_compiled_loop import (_case_id, assert_same, box_scene, check_law_case, falling_block,
-                                law_scene, looped_and_stepped, without_loop)
+from test_compiled_loop import (_case_id, _ruled_coverage, assert_same, box_scene, check_law_case,
+                                falling_block, law_scene, looped_and_stepped, without_loop)
 from test_executors import scene_for
 
 
@@ -70,6 +70,54 @@ DEFAULT_BODY_FORCE_CASES = {  # the default tier's cases (tests/tiers.py)
                          ids=_case_id)
 def test_a_body_force_gives_the_executors_bits(monkeypatch, case):
     looped, _ = looped_case(monkeypatch, dict(case, effect="body-force"))
+    assert looped.energies["external_work"][-1] != 0.0  # the body force's work is counted
+
+
+# A body force with a reconstruction: its density rho b = f_p / V_p is
+# fitted with the other fields and integrated at the rule's points (the
+# executor's volume forces: CompiledExecutor._reconstructed_to_grid). Every
+# reconstruction, both dimensions, lumped and a mass system; the default
+# tier's spline and tls cases are test_executors' default body-force cases
+# with reconstruction (the same loop variants), 1D mls with consistent MUSL
+# is its one new variant.
+RECONSTRUCTED_BODY_FORCE_CASES = [
+    dict(reconstruction="spline", scheme="usl", mass="lumped", degree=2, dim=2,
+         material="custom-compiled", ppc=2, aligned=False),
+    dict(reconstruction="tls", scheme="usl", mass="lumped", degree=3, dim=2,
+         material="custom-compiled", ppc=2, aligned=True),
+    dict(reconstruction="mls", scheme="musl", mass="consistent", degree=2, dim=1,
+         material="linear", ppc=3, aligned=False),
+    dict(reconstruction="tls", scheme="musl", mass="consistent", degree=2, dim=2,
+         material="linear", ppc=3, aligned=True),
+    dict(reconstruction="spline", scheme="musl", mass="hybrid", degree=2, dim=1,
+         material="linear", ppc=3, aligned=False),
+    dict(reconstruction="mls", scheme="cd", mass="lumped", degree=2, dim=2,
+         material="linear", ppc=2, aligned=False),
+    dict(reconstruction="spline", scheme="rk4", mass="consistent", degree=2, dim=2,
+         material="linear", ppc=3, aligned=True),
+    dict(reconstruction="tls", scheme="rk4", mass="lumped", degree=3, dim=1,
+         material="linear", ppc=3, aligned=False),
+]
+DEFAULT_RECONSTRUCTED_BODY_FORCE_CASES = {  # the default tier's cases (tests/tiers.py)
+    "spline-usl-lumped-2-2-custom-compiled-2-False",
+    "tls-usl-lumped-3-2-custom-compiled-2-True",
+    "mls-musl-consistent-2-1-linear-3-False",
+}
+
+
+@pytest.mark.parametrize("case", tiered(
+    "body force with reconstruction in the loop", RECONSTRUCTED_BODY_FORCE_CASES, _case_id,
+    DEFAULT_RECONSTRUCTED_BODY_FORCE_CASES, paired=(), options=_ruled_coverage), ids=_case_id)
+def test_a_body_force_with_reconstruction_gives_the_executors_bits(monkeypatch, case):
+    scene = scene_for(dict(case, effect="body-force"), steps=23)
+    method = Method(scheme=case["scheme"], mass=case["mass"],
+                    reconstruction=case["reconstruction"])
+    ok, why = compiled_loop.loop_applies(prepare(scene, method),
+                                         CompiledExecutor(prepare(scene, method)))
+    assert ok, why
+    looped, stepped = looped_and_stepped(monkeypatch, scene, method)
+    assert stepped.path == f"fast (reconstruction {case['reconstruction']})"
+    assert looped.counts["compiled_loop_steps"] >= 18
     assert looped.energies["external_work"][-1] != 0.0  # the body force's work is counted
 
 

@@ -228,6 +228,73 @@ def test_compiled_mls_agrees_with_the_reference(name, grid, p, radius):
     assert np.abs(out - expected)[cond <= 100].max() <= 1e-12 * np.abs(expected).max()
 
 
+@pytest.mark.parametrize("parallel", (False, True), ids=("serial", "parallel"))
+@pytest.mark.parametrize("name, grid, p", [c for c in layouts_tls() if c[1].dim == 2],
+                         ids=lambda v: v if isinstance(v, str) else "")
+def test_the_cells_mass_summed_per_axis_is_the_point_sums(name, grid, p, parallel):
+    """The consistent mass of the step's 2D rule with its whole cells'
+    tensor rules summed per axis (Kernels.consistent_stencil with
+    CompiledReconstruction.tensor_cells: kernels.mpm.consistent_cells_2d)
+    equals the sum over its points one by one (consistent_2d) to rounding:
+    quadratic and cubic, uniform and graded grids (closed form and
+    extraction), cut cells' particle points after the cells."""
+    from skfem_mpm.kernels.mpm import Kernels
+    from skfem_mpm.solve.compiled_reconstruct import QuadraturePoints
+
+    recon = CompiledReconstruction.__new__(CompiledReconstruction)
+    recon._setup(grid, "tls", {})
+    rule = recon.rule(p)
+    cells, k = recon.tensor_cells(rule)
+    assert cells > 0 and k == grid.degree + 2
+    ng = rule.w.shape[0]
+    m = rule.w * np.random.default_rng(5).uniform(0.5, 2.0, ng)
+    points = QuadraturePoints(rule.x, np.zeros((ng, 2)), m, rule.w, np.zeros((ng, 2, 2)))
+    kernels = Kernels(grid, parallel=parallel)
+    by_point, K_point = (a.copy() for a in kernels.consistent_stencil(points))
+    by_cell, K_cell = kernels.consistent_stencil(points, cells, k)
+    assert np.abs(by_cell - by_point).max() <= 1e-14 * np.abs(by_point).max()
+    assert np.abs(K_cell - K_point).max() <= 1e-14 * np.abs(K_point).max()
+    assert np.abs(by_point).max() > 0.0
+
+
+@pytest.mark.parametrize("name, grid, p", layouts_tls(),
+                         ids=lambda v: v if isinstance(v, str) else "")
+def test_the_mls_pair_store_gives_the_searchs_bits(name, grid, p):
+    """A fit with coefficients keeps each point's weighted particles in the
+    store (kernels.mls.mls_store sizes it from the largest count in reach
+    of the last such fit): later fits on the same rule read them instead of
+    searching, with the same bits, also when some points' pairs did not fit
+    (those are searched again) and with the parallel kernel."""
+    rng = np.random.default_rng(4)
+    rule = kernel_rule(grid, p)
+    ng = rule.x.shape[0]
+    r = 1.5 * min(grid.h)
+    values = rng.normal(size=(p.n, 5))
+    empty = mls_kernel.empty_mls_store()
+    alpha = np.empty((ng, p.dim + 1))
+    fit = serial(mls_kernel.mls_fit)
+    first = np.empty((ng, 5))
+    most = fit(p.x, values, rule.x, r, alpha, first, True, empty)
+    assert most > 0
+    for kernel in (fit, mls_kernel.mls_fit):
+        for slots in (most, max(most - 2, 1)):  # every point stored; some not
+            store = mls_kernel.mls_store(empty, ng, slots)
+            assert store[0].shape == (ng, slots)
+            out = np.empty((ng, 5))
+            assert kernel(p.x, values, rule.x, r, alpha, out, True, store) == most
+            assert np.array_equal(out, first)
+            assert (store[2] >= 0).all() if slots == most else (store[2] < 0).any()
+            for k in (2, 5):
+                later = rng.normal(size=(p.n, k))
+                searched = np.empty((ng, k))
+                kernel(p.x, later, rule.x, r, alpha, searched, False, empty)
+                stored = np.empty((ng, k))
+                assert kernel(p.x, later, rule.x, r, alpha, stored, False, store) == 0
+                assert np.array_equal(stored, searched)
+    # more slots than the budget: none
+    assert mls_kernel.mls_store(empty, ng, mls_kernel.MLS_PAIR_BYTES)[0].shape == (ng, 0)
+
+
 @pytest.mark.parametrize("iterative", (False, True), ids=("lu", "cg"))
 @pytest.mark.parametrize("penalty", (1e-6, 1e-3))
 @pytest.mark.parametrize("name, grid, p", [c for c in layouts_tls() if c[1].dim == 2]

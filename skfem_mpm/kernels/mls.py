@@ -47,12 +47,15 @@ from numba import njit, prange
 
 from .cholesky import cholesky
 
-__all__ = ["MLS_RANK_TOL", "mls_fit", "mls_reconstruct"]
+__all__ = ["MLS_RANK_TOL", "empty_mls_store", "mls_fit", "mls_reconstruct", "mls_store"]
 
 MLS_RANK_TOL = 1e-6  # the reference's threshold (eigvalsh(M / scale)[0] > 1e-6; a test checks)
 MAX_DIM = 3
 POINTS_PER_BLOCK = 64
 """Gauss points per block of :func:`mls_fit` (each block its own work arrays)."""
+MLS_PAIR_BYTES = 32 << 20
+"""The most memory a pair store (:func:`mls_store`) takes; above it the
+fits without coefficients search the particles again."""
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -153,13 +156,63 @@ def _constant_row(M, m, L, scaled, a):
         a[0] = 1.0 / M[0, 0]
 
 
+@njit(cache=True, error_model="numpy")
+def mls_store(store, ng, most):
+    """The pair store for the next fit with coefficients on ``ng`` points
+    (see :func:`mls_fit`): ``store`` (coef, hit, kept) itself when it has
+    ng rows and at least ``most`` slots (the last such fit's largest count
+    of particles in reach of a point), else new arrays of ng rows and max
+    (most, slots) slots, or none (0 slots) where they would exceed
+    MLS_PAIR_BYTES."""
+    coef, hit, kept = store
+    slots = max(most, coef.shape[1])
+    if coef.shape[0] == ng and coef.shape[1] == slots:
+        return store
+    if ng * slots * 12 > MLS_PAIR_BYTES:
+        slots = 0
+    return np.empty((ng, slots)), np.empty((ng, slots), dtype=np.int32), \
+        np.full(ng, -1, dtype=np.int64)
+
+
+def empty_mls_store():
+    """A pair store of no slots (:func:`mls_store` sizes it)."""
+    return np.empty((0, 0)), np.empty((0, 0), dtype=np.int32), np.empty(0, dtype=np.int64)
+
+
+@njit(cache=True, error_model="numpy")
+def _stored_sums(coef, hit, stored, values, out, lo, hi):
+    """out[g] = sum_j coef[g, j] values[hit[g, j]] for the points lo <= g < hi
+    whose pairs are stored (stored[g] >= 0; see :func:`mls_fit`): a call
+    per block of points, not inlined (arrays, see mls_fit)."""
+    k = values.shape[1]
+    for g in range(lo, hi):
+        if stored[g] < 0:
+            continue
+        for col in range(k):
+            out[g, col] = 0.0
+        for j in range(stored[g]):
+            c = coef[g, j]
+            q = hit[g, j]
+            for col in range(k):
+                out[g, col] += c * values[q, col]
+
+
 @njit(cache=True, error_model="numpy", parallel=True)
-def mls_fit(x, values, xg, r, alpha, out, with_coefficients):
+def mls_fit(x, values, xg, r, alpha, out, with_coefficients, store):
     """out[g] (ng, k) = the linear MLS fit of the particle ``values`` (n, k)
     at the point xg[g] (see the module docstring), ``x`` (n, d) particle
     positions, ``r`` the kernel radius: with ``with_coefficients`` it
     computes alpha[g] (ng, d + 1) = M_g^-1 e_0 first, else it takes them
     from an earlier call on the same particles and points.
+
+    ``store`` (coef, hit, kept), arrays of ng rows (:func:`mls_store`):
+    a call with coefficients writes there each point's weights
+    c_p = w_p (alpha . phi_p) and particles p, in the order of the sum
+    (kept[g] = their count, or -1 where they exceed the slots); a call
+    without takes a point's stored pairs where it has them (the same
+    products in the same order: the same bits) and searches the particles
+    only for the others. Returns the largest count of particles in reach
+    of a point (0 without coefficients).
 
     Per point, the particles in reach (sqrt(|x_q - x_g|^2) < r, the
     reference's test) are gathered row of boxes by row (box order within a
@@ -174,6 +227,21 @@ def mls_fit(x, values, xg, r, alpha, out, with_coefficients):
     dim = x.shape[1]
     k = values.shape[1]
     m = dim + 1
+    ng = xg.shape[0]
+    coef, hit, stored = store
+    slots = coef.shape[1]
+    nblocks = (ng + POINTS_PER_BLOCK - 1) // POINTS_PER_BLOCK
+    if not with_coefficients and slots > 0 and stored.shape[0] == ng:
+        search = False
+        for g in range(ng):
+            if stored[g] < 0:
+                search = True
+        if not search:  # every point's pairs stored
+            for block in prange(nblocks):
+                _stored_sums(coef, hit, stored, values, out, block * POINTS_PER_BLOCK,
+                             min(ng, (block + 1) * POINTS_PER_BLOCK))
+            return 0
+    use_store = slots > 0 and stored.shape[0] == ng
     side = 0.5 * r
     inv_r = 1.0 / r
     reach = r * (1.0 + 1e-9)  # the candidates: a margin over rounding
@@ -189,8 +257,7 @@ def mls_fit(x, values, xg, r, alpha, out, with_coefficients):
     for i in range(n):
         for col in range(k):
             vb[i, col] = values[order[i], col]
-    ng = xg.shape[0]
-    nblocks = (ng + POINTS_PER_BLOCK - 1) // POINTS_PER_BLOCK
+    largest = np.zeros(nblocks, dtype=np.int64)
     for block in prange(nblocks):
         cand = np.empty(most, dtype=np.int64)
         hits = np.empty(most, dtype=np.int64)
@@ -199,7 +266,13 @@ def mls_fit(x, values, xg, r, alpha, out, with_coefficients):
         L = np.empty((MAX_DIM + 1, MAX_DIM + 1))
         scaled = np.empty((MAX_DIM + 1, MAX_DIM + 1))
         a = np.zeros(MAX_DIM + 1)
-        for g in range(block * POINTS_PER_BLOCK, min(ng, (block + 1) * POINTS_PER_BLOCK)):
+        lo_g = block * POINTS_PER_BLOCK
+        hi_g = min(ng, (block + 1) * POINTS_PER_BLOCK)
+        if use_store and not with_coefficients:  # the points stored (not all were)
+            _stored_sums(coef, hit, stored, values, out, lo_g, hi_g)
+        for g in range(lo_g, hi_g):
+            if use_store and not with_coefficients and stored[g] >= 0:
+                continue
             y0 = xg[g, 0]
             y1 = xg[g, 1] if dim > 1 else 0.0
             y2 = xg[g, 2] if dim > 2 else 0.0
@@ -281,11 +354,20 @@ def mls_fit(x, values, xg, r, alpha, out, with_coefficients):
             a3 = alpha[g, 3] if dim > 2 else 0.0
             for col in range(k):
                 out[g, col] = 0.0
+            keep = with_coefficients and use_store and kept <= slots
             for j in range(kept):  # out = sum_p w_p (alpha . phi_p) f_p
                 c = phi[j, 3] * (a0 + a1 * phi[j, 0] + a2 * phi[j, 1] + a3 * phi[j, 2])
                 q = hits[j]
+                if keep:
+                    coef[g, j] = c
+                    hit[g, j] = order[q]
                 for col in range(k):
                     out[g, col] += c * vb[q, col]
+            if with_coefficients:
+                largest[block] = max(largest[block], kept)
+                if use_store:
+                    stored[g] = kept if keep else -1
+    return largest.max() if nblocks > 0 else 0
 
 
 @njit(cache=True, error_model="numpy")
@@ -294,4 +376,5 @@ def mls_reconstruct(x, values, xg, r, out):
     at the point xg[g] (see the module docstring); ``x`` (n, d) particle
     positions, ``r`` the kernel radius."""
     alpha = np.empty((xg.shape[0], x.shape[1] + 1))
-    mls_fit(x, values, xg, r, alpha, out, True)
+    mls_fit(x, values, xg, r, alpha, out, True,
+            (np.empty((0, 0)), np.empty((0, 0), dtype=np.int32), np.empty(0, dtype=np.int64)))

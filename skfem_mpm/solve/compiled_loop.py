@@ -124,6 +124,7 @@ _GRID_KERNELS = {
     "TLS_FACTOR": tls.tls_factor,
     "TLS_APPLY": tls.tls_apply,
     "MLS_FIT": mls.mls_fit,
+    "MLS_STORE": mls.mls_store,
     "SPLINE_LS_SYSTEM": spline_2d.spline_ls_system,
     "SPLINE_BAND": spline_2d.spline_band,
     "BANDED_CHOLESKY_INTO": kronecker.banded_cholesky_into,
@@ -138,6 +139,7 @@ _GRID_KERNELS = {
     # consistent mass (compiled_loop_mass)
     "CONSISTENT_1D": mpm.consistent_1d,
     "CONSISTENT_2D": mpm.consistent_2d,
+    "CONSISTENT_CELLS_2D": mpm.consistent_cells_2d,
     "CONSISTENT_AXES": mpm.consistent_axes,
     "REDUCE_STENCIL": mpm.reduce_stencil,
     "COMPACT_SYSTEM": mpm.compact_system,
@@ -199,8 +201,6 @@ def loop_applies(state, executor):
         (not _side_tractions_only(executor), "particle forces other than gravity, one "
          "traction on a side of the body with tau(t) and forces of the reference "
          "configuration (reference_only: a BodyForce)"),
-        (recon is not None and bool(reference_forces(executor.other_forces)),
-         "a body force with reconstruction"),
         (_without_rule(executor) is not None,
          f"a grid modifier without a compiled rule ({_without_rule(executor)!r})"),
         (state.adaptive and state.bodies[0][0].point_wave_speed is None,
@@ -331,6 +331,10 @@ def _prelude(dim, parallel, window, variant):
                 3: "(b0, u0, ih0, C0), (b1, u1, ih1, C1), (b2, u2, ih2, C2) = axes\n"
                    "    CONSISTENT_AXES(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, "
                    "p, nbx, nby, copies, stiff, touched)"}[dim]
+    assemble_cells = ("(bx, ux, ihx, Cx), (by, uy, ihy, Cy) = axes\n"
+                      "    CONSISTENT_CELLS_2D(x, m, cells, k, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, "
+                      "nbx, copies, stiff, touched)" if dim == 2 else
+                      "raise ValueError('the cells rule is 2D')")
     kronecker = ("return (cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz], cm.box_index[g, :n], "
                  "cm.inv_scale[g, :n], cm.box, nt, cm.boxes[g, :cm.n_boxes[g]])"
                  if dim == 3 else
@@ -356,6 +360,13 @@ def SMALL_MASS(mass, tol, small, nbx, nby, p):
 def ASSEMBLE(x, m, axes, p, nbx, nby, copies, stiff, touched):
     """Per-thread copies of the consistent mass stencil (kernels.mpm.consistent_{dim}d)."""
     {assemble}
+
+
+@njit(cache=True)
+def ASSEMBLE_CELLS(x, m, axes, cells, k, p, nbx, copies, stiff, touched):
+    """2D: per-thread copies of the consistent mass stencil of points whose
+    first cells k x k blocks are cells' tensor rules (kernels.mpm.consistent_cells_2d)."""
+    {assemble_cells}
 
 
 @njit(cache=True)
@@ -385,8 +396,8 @@ def loop_module(dim, parallel, window):
     # sources go into the file's name (kernels.generated.load hashes it)
     depends = "".join(inspect.getsource(m) for m in (
         schemes, mpm, scatter, kronecker, band_factor, tiny_mass, merged_mass, fast_dof, staging, gauss_rule,
-        spline_1d, tls, cholesky, weights, traction, constitutive, grid_modifiers, bbar,
-        by_symbol, step_size))
+        spline_1d, spline_2d, tls, mls, cholesky, weights, traction, constitutive,
+        grid_modifiers, bbar, by_symbol, step_size))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -471,7 +482,7 @@ class StepLoop:
         self.forces = ForceTable(self.module, forces, state) if forces else None
         self.prescribed = PrescribedTable(self.module, state) \
             if state.constraints.prescribed else None
-        fields.update(rc=None if recon is None else self._reconstruction(recon, p),
+        fields.update(rc=None if recon is None else self._reconstruction(recon, p, bool(forces)),
                       no_acceleration=np.zeros((nd if recon is not None else 1, dim)),
                       displacement=empty((n if recon is not None or side or forces else 1,
                                           dim)),
@@ -657,21 +668,24 @@ class StepLoop:
         return self.module.new_side_traction(
             *(fields[name] for name in self.module.TRACTION_FIELDS))
 
-    def _reconstruction(self, recon, p):
+    def _reconstruction(self, recon, p, forces):
         """The reconstruction data of the run (compiled_loop_reconstruct), with
-        the rule's constants of the executor's CompiledReconstruction."""
+        the rule's constants of the executor's CompiledReconstruction;
+        ``forces``: whether a body force's density is fitted too."""
         n, dim = p.n, p.dim
         empty = np.empty
+        k = 1 + dim + dim * dim + (dim if forces else 0)  # the fitted fields
         if recon.name != "spline" or dim == 2:  # on CompiledReconstruction.rule's rule
             fields = dict(
                 ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
                 breaks1=recon.breaks1, uniform0=bool(recon.uniform[0]),
-                uniform1=bool(recon.uniform[1]), values=empty((n, 1 + dim + dim * dim)),
+                uniform1=bool(recon.uniform[1]), values=empty((n, k)),
                 rho=empty(n), pcell=empty(0, dtype=np.int64), xg=empty((0, dim)), wg=empty(0),
                 gcell=empty(0, dtype=np.int64), own=empty(0, dtype=np.int64),
                 factor=None, radius=0.0, alpha=None, spline=None,
+                mls_store=mls.empty_mls_store(), mls_most=0,
                 xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),
-                sq=empty((0, dim, dim)), momentum_values=empty((n, dim)),
+                sq=empty((0, dim, dim)), fq=empty((0, dim)), momentum_values=empty((n, dim)),
                 momentum_fit=empty((0, dim)), no_stress=empty((0, dim, dim)),
                 point_velocities=empty((0, dim)))
             if recon.name == "tls":
@@ -687,11 +701,11 @@ class StepLoop:
                 *(fields[name] for name in self.module.RULED_FIELDS))
         fields = dict(
             ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
-            values=empty((n, 1 + dim + dim * dim)), rho=empty(n),
+            values=empty((n, k)), rho=empty(n),
             order=empty(0, dtype=np.int64), piece_particles=empty(0, dtype=np.int64),
-            piece_points=empty(0, dtype=np.int64), xg=empty(0), fit=empty((0, 1 + dim + dim * dim)),
+            piece_points=empty(0, dtype=np.int64), xg=empty(0), fit=empty((0, k)),
             xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),
-            sq=empty((0, dim, dim)), momentum_values=empty((n, dim)),
+            sq=empty((0, dim, dim)), fq=empty((0, dim)), momentum_values=empty((n, dim)),
             momentum_fit=empty((0, dim)), no_stress=empty((0, dim, dim)),
             point_velocities=empty((0, dim)))
         return self.module.new_reconstruction(

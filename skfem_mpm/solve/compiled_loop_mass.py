@@ -208,6 +208,21 @@ def keep_stage_mass(cm):
 def assemble_mass(cm, x, m, p, nbx, nby, dim):
     """The consistent mass stencil and K of the particles (Kernels.consistent_stencil)."""
     ASSEMBLE(x, m, cm.axes, p, nbx, nby, cm.copies, cm.stiff_copies, cm.touched)
+    _reduce_mass(cm, p, nbx, nby, dim)
+
+
+@njit(cache=True)
+def assemble_mass_cells(cm, x, m, cells, k, p, nbx, nby):
+    """2D: the consistent mass stencil and K of points whose first ``cells``
+    blocks of k x k are whole cells' tensor Gauss rules
+    (Kernels.consistent_stencil with cells, k: kernels.mpm.consistent_cells_2d)."""
+    ASSEMBLE_CELLS(x, m, cm.axes, cells, k, p, nbx, cm.copies, cm.stiff_copies, cm.touched)
+    _reduce_mass(cm, p, nbx, nby, 2)
+
+
+@njit(cache=True, inline="always")
+def _reduce_mass(cm, p, nbx, nby, dim):
+    """The stencil and K from the per-thread copies (Kernels.consistent_stencil)."""
     lo = cm.touched[0, 0]
     hi = cm.touched[0, 1]
     for t in range(1, cm.touched.shape[0]):

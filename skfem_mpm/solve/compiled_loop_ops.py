@@ -359,6 +359,7 @@ def _scatter(run, particles, column):
     reconstructed = _reconstructed(run)
     ruled = _ruled(run)
     traction = _traction(run)
+    cells = ruled and DIM == 2  # the rule's tensor cells: CompiledReconstruction.tensor_cells
 
     def impl(run, particles, column):
         """Lumped mass, momentum, force (and the consistent mass) of
@@ -377,24 +378,26 @@ def _scatter(run, particles, column):
             P2G(run.p2g_at, faces, run.grid, st.loads, True, run.copies_p2g, run.touched_p2g)
             REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, st.mass, st.momentum, st.force,
                           st.mass_range, st.occupied)
-        if reconstructed:
+        fext, has_fext = run.particle_forces(column)  # (a body force: compiled_loop_body_force)
+        if reconstructed:  # (a body force: its density rho b = f_p / V_p fitted too)
             if ruled:
                 fitted = call(rule_points, run.rc, particles[0], particles[1], run.m,
-                              particles[4], particles[5])
+                              particles[4], particles[5], fext)
             else:
                 fitted = call(reconstruct_points, run.rc, particles[0], particles[1], run.m,
-                              particles[4], particles[5])
+                              particles[4], particles[5], fext)
             if not fitted:
                 run.stop = 5  # a fitted density 0, a spline system the banded Cholesky
                 return run    # refuses: the executor takes the step
             rc = run.rc
             points = (rc.xq, rc.vq, rc.vq, rc.mq, rc.Vq, rc.sq)
+            if has_fext:  # the points' forces w_g (rho b)_h
+                fext = rc.fq
             t_fit = monotonic_ns()
             run.phase_ns[4] += t_fit - t0
             t0 = t_fit
         else:
             points = particles
-        fext, has_fext = run.particle_forces(column)  # (a body force: compiled_loop_body_force)
         P2G(run.p2g_at, points, run.grid, fext, has_fext, run.copies_p2g, run.touched_p2g)
         REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, run.mass, run.momentum, run.force,
                       run.mass_range, run.occupied)
@@ -421,8 +424,13 @@ def _scatter(run, particles, column):
         t1 = monotonic_ns()
         run.phase_ns[0] += t1 - t0
         if consistent:
-            call(assemble_mass, run.cm, points[0], points[3], run.degree, run.nbx, run.nby,
-                 run.x.shape[1])
+            if cells:  # the rule's whole cells summed per axis (Kernels.consistent_stencil)
+                k = run.rc.ref.shape[0]
+                call(assemble_mass_cells, run.cm, points[0], points[3],
+                     run.rc.wg.shape[0] // (k * k), k, run.degree, run.nbx, run.nby)
+            else:
+                call(assemble_mass, run.cm, points[0], points[3], run.degree, run.nbx, run.nby,
+                     run.x.shape[1])
             run.phase_ns[3] += monotonic_ns() - t1
         return run
     return impl

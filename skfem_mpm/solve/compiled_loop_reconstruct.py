@@ -18,12 +18,13 @@ The 1D spline:
 
     reconstruct_points   the step's Gauss rule over the body (x_g, w_g:
                          kernels.gauss_rule.gauss_rule_1d), the fit of the
-                         per-volume fields h = [rho, rho v, sigma] at its
+                         per-volume fields h = [rho, rho v, sigma] (and
+                         with a body force rho b = f_p / V_p) at its
                          points (kernels.spline_1d.not_a_knot_spline), and
                          the points as "quadrature particles" of mass
-                         w_g rho_h, velocity (rho v)_h / rho_h, volume w_g and
-                         stress sigma_h, which the p2g kernel and the
-                         consistent-mass assembly integrate
+                         w_g rho_h, velocity (rho v)_h / rho_h, volume w_g,
+                         stress sigma_h (and force w_g (rho b)_h), which the
+                         p2g kernel and the consistent-mass assembly integrate
     project_points       MUSL: the fit of rho v^new at the same points, as
                          points of mass w_g and velocity (rho v^new)_h (the
                          g2p2g kernel with a = 0 integrates their momentum)
@@ -42,7 +43,8 @@ project):
                          the Gauss points (fit_points), which first computes
                          and keeps for the step what depends on the
                          positions alone (tls: kernels.tls.tls_factor, then
-                         tls_apply; mls: M_g^-1 e_0 in kernels.mls.mls_fit;
+                         tls_apply; mls: M_g^-1 e_0 and the weighted
+                         particles of each point in kernels.mls.mls_fit;
                          the 2D spline: kernels.spline_2d's system, band and
                          banded Cholesky factor, then band_solve and
                          spline_evaluate); the points as quadrature
@@ -73,12 +75,14 @@ RECONSTRUCTION_FIELDS = (
     # the rule: Gauss-Legendre points and weights on [0, 1], the largest
     # gap inside one piece of the body (a cell), the breakpoints
     "ref", "wref", "gap", "breaks",
-    # per particle: the fitted fields [rho, rho v, sigma] (n, 1 + dim + dim^2), rho
+    # per particle: the fitted fields [rho, rho v, sigma] (n, 1 + dim + dim^2)
+    # and with a body force its density rho b = f_p / V_p (dim more columns), rho
     "values", "rho",
     # the step's rule (sorted order, pieces, points) and the fit at its points
     "order", "piece_particles", "piece_points", "xg", "fit",
-    # the points as quadrature particles (x, v, m, V, stress)
-    "xq", "vq", "mq", "Vq", "sq",
+    # the points as quadrature particles (x, v, m, V, stress) and, with a
+    # body force, their forces w_g (rho b)_h (else not set)
+    "xq", "vq", "mq", "Vq", "sq", "fq",
     # the MUSL projection: rho v^new per particle, its fit at the points,
     # zero stresses, the g2p2g kernel's (unused) point velocities
     "momentum_values", "momentum_fit", "no_stress", "point_velocities",
@@ -102,12 +106,15 @@ def new_reconstruction(*fields):
 
 
 @njit(cache=True)
-def _per_volume_fields(rc, v, m, V, stress):
+def _per_volume_fields(rc, v, m, V, stress, forces):
     """rc.values = the fitted per-volume fields [rho, rho v, sigma] of the
-    particles (n, 1 + dim + dim^2) and rc.rho = rho = m / V; returns
-    rc.values (a Reconstruction or a RuleReconstruction)."""
+    particles (n, 1 + dim + dim^2) and, where rc.values has dim more
+    columns (a body force), the force density f_p / V_p of the particle
+    forces ``forces`` (the executor's volume forces); rc.rho = rho = m / V;
+    returns rc.values (a Reconstruction or a RuleReconstruction)."""
     n, dim = v.shape
     values = rc.values
+    base = 1 + dim + dim * dim
     for i in range(n):
         rho = m[i] / V[i]
         rc.rho[i] = rho
@@ -117,25 +124,31 @@ def _per_volume_fields(rc, v, m, V, stress):
         for a in range(dim):
             for b in range(dim):
                 values[i, 1 + dim + a * dim + b] = stress[i, a, b]
+        if values.shape[1] > base:
+            for c in range(dim):
+                values[i, base + c] = forces[i, c] / V[i]
     return values
 
 
 @njit(cache=True)
 def _quadrature_points(rc, fit):
     """The rule's points (rc.xq, weights rc.Vq) as quadrature particles of
-    the fitted fields ``fit`` (ng, 1 + dim + dim^2): mass w_g rho_h,
-    velocity (rho v)_h / rho_h, stress sigma_h (rc.mq, rc.vq, rc.sq), and
-    the projection's work arrays sized for them; False when rho_h is 0 at
-    a point (nothing is divided then)."""
+    the fitted fields ``fit`` (ng, 1 + dim + dim^2 (+ dim)): mass w_g rho_h,
+    velocity (rho v)_h / rho_h, stress sigma_h (rc.mq, rc.vq, rc.sq), the
+    force w_g (rho b)_h with a body force (rc.fq), and
+    the projection's work arrays sized for them (kept from the last step
+    while the count of points stays); False when rho_h is 0 at a point
+    (nothing is divided then)."""
     ng = fit.shape[0]
     dim = rc.xq.shape[1]
     w = rc.Vq
-    rc.vq = np.empty((ng, dim))
-    rc.mq = np.empty(ng)
-    rc.sq = np.empty((ng, dim, dim))
-    rc.momentum_fit = np.empty((ng, dim))
-    rc.no_stress = np.zeros((ng, dim, dim))
-    rc.point_velocities = np.empty((ng, dim))
+    if rc.mq.shape[0] != ng:  # else the last step's (every entry is written again)
+        rc.vq = np.empty((ng, dim))
+        rc.mq = np.empty(ng)
+        rc.sq = np.empty((ng, dim, dim))
+        rc.momentum_fit = np.empty((ng, dim))
+        rc.no_stress = np.zeros((ng, dim, dim))  # (read only)
+        rc.point_velocities = np.empty((ng, dim))
     for g in range(ng):
         if fit[g, 0] == 0.0:
             return False
@@ -147,15 +160,23 @@ def _quadrature_points(rc, fit):
         for a in range(dim):
             for b in range(dim):
                 rc.sq[g, a, b] = fit[g, 1 + dim + a * dim + b]
+    base = 1 + dim + dim * dim
+    if fit.shape[1] > base:  # a body force: w_g (rho b)_h
+        if rc.fq.shape[0] != ng:
+            rc.fq = np.empty((ng, dim))
+        for g in range(ng):
+            for c in range(dim):
+                rc.fq[g, c] = w[g] * fit[g, base + c]
     return True
 
 
 @njit(cache=True)
-def reconstruct_points(rc, x, v, m, V, stress):
+def reconstruct_points(rc, x, v, m, V, stress, forces):
     """The step's rule and the quadrature points of the fitted fields (see
-    the module); False when the fitted density is 0 at a point."""
+    the module; ``forces`` a body force's f_p); False when the fitted
+    density is 0 at a point."""
     n, dim = x.shape
-    values = _per_volume_fields(rc, v, m, V, stress)
+    values = _per_volume_fields(rc, v, m, V, stress, forces)
     positions = x.reshape(n)  # 1D: x is (n, 1)
     order, pieces, points, xg, wg, _ = GAUSS_RULE_1D(positions, V, rc.gap, rc.breaks, rc.ref,
                                                      rc.wref)
@@ -208,7 +229,8 @@ RULED_FIELDS = (
     # gap inside one piece of the 1D body, the breakpoints per axis (1D:
     # breaks1 is breaks) and whether each axis is uniform (locate_cells)
     "ref", "wref", "gap", "breaks", "breaks1", "uniform0", "uniform1",
-    # per particle: the fitted fields [rho, rho v, sigma] (n, 1 + dim + dim^2), rho
+    # per particle: the fitted fields [rho, rho v, sigma] (n, 1 + dim + dim^2)
+    # and with a body force its density rho b = f_p / V_p (dim more columns), rho
     "values", "rho",
     # the step's rule: the particles' cells, the Gauss points (ngauss, dim),
     # their weights and cells, and the particles that are points of the
@@ -222,8 +244,12 @@ RULED_FIELDS = (
     # space's axes and sizes, its penalty and the stencil, band and banded
     # Cholesky factor of A + P (SplineLeastSquares, BandedCholesky)
     "factor", "radius", "alpha", "spline",
-    # the points as quadrature particles (x, v, m, V, stress)
-    "xq", "vq", "mq", "Vq", "sq",
+    # mls: the pairs of the step's fit (kernels.mls.mls_fit's store, sized by
+    # kernels.mls.mls_store from the largest count in reach of the last fit)
+    "mls_store", "mls_most",
+    # the points as quadrature particles (x, v, m, V, stress) and, with a
+    # body force, their forces w_g (rho b)_h (else not set)
+    "xq", "vq", "mq", "Vq", "sq", "fq",
     # the MUSL projection: rho v^new per particle, its fit at the points,
     # zero stresses, the g2p2g kernel's (unused) point velocities
     "momentum_values", "momentum_fit", "no_stress", "point_velocities",
@@ -305,8 +331,12 @@ def _fit_points(rc, x, V, values, out, fresh):
     if not isinstance(fields["alpha"], types.NoneType):
         def mls(rc, x, V, values, out, fresh):  # CompiledReconstruction._fit's mls
             if fresh:
-                rc.alpha = np.empty((rc.xg.shape[0], x.shape[1] + 1))
-            MLS_FIT(x, values, rc.xg, rc.radius, rc.alpha, out, fresh)
+                ng = rc.xg.shape[0]
+                rc.alpha = np.empty((ng, x.shape[1] + 1))
+                rc.mls_store = MLS_STORE(rc.mls_store, ng, rc.mls_most)
+            most = MLS_FIT(x, values, rc.xg, rc.radius, rc.alpha, out, fresh, rc.mls_store)
+            if fresh:
+                rc.mls_most = most
             return True
         return mls
 
@@ -328,14 +358,14 @@ def _fit_points(rc, x, V, values, out, fresh):
 
 
 @njit(cache=True)
-def rule_points(rc, x, v, m, V, stress):
+def rule_points(rc, x, v, m, V, stress, forces):
     """The step's rule, the fit of the per-volume fields at its Gauss
     points (fit_points, fresh), the particles' own values at its particle
     points, and the points as quadrature particles (see
-    reconstruct_points); False when the fit cannot be made here or the
-    density is 0 at a point."""
+    reconstruct_points; ``forces`` a body force's f_p); False when the fit
+    cannot be made here or the density is 0 at a point."""
     dim = x.shape[1]
-    values = _per_volume_fields(rc, v, m, V, stress)
+    values = _per_volume_fields(rc, v, m, V, stress, forces)
     k = values.shape[1]
     _RULE(rc, x, V)
     xg, wg, own = rc.xg, rc.wg, rc.own

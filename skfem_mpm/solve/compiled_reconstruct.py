@@ -34,7 +34,7 @@ from ..errors import InvalidState
 from ..kernels.gauss_rule import (body_boxes_2d, cut_cell_particles, gauss_rule_1d,
                                   gauss_rule_cells, locate_cells)
 from ..kernels.kronecker import KroneckerData, axis_mass_bands, banded_cholesky_into
-from ..kernels.mls import mls_fit
+from ..kernels.mls import empty_mls_store, mls_fit, mls_store
 from ..kernels.mpm import ell_pcg
 from ..kernels.spline_1d import not_a_knot_spline
 from ..kernels.spline_2d import (WIDTH, band_solve, spline_band, spline_evaluate,
@@ -286,6 +286,8 @@ class CompiledReconstruction:
             self.spline_ls = SplineLeastSquares(grid, options.get("penalty", 1e-6))
         if self.name == "mls":  # the reference's kernel radius: radius cells of the smallest
             self.radius = float(options.get("radius", 1.5)) * min(grid.h)
+            # the pairs of the last rule fitted with coefficients (kernels.mls.mls_fit)
+            self._mls_store, self._mls_most, self._mls_rule = empty_mls_store(), 0, 0
 
     def rule(self, p):
         pcell = None
@@ -321,7 +323,7 @@ class CompiledReconstruction:
         gauss.x, gauss.w, gauss.cell = rule.x[:n], rule.w[:n], rule.cell[:n]
         gauss.particle_points = None
         out = np.concatenate((self._fit(p, values, gauss), values[own]))
-        for name in ("lu", "alpha", "tls"):  # what the fit keeps for this rule (see _fit)
+        for name in ("lu", "alpha", "mls_rule", "tls"):  # what the fit keeps (see _fit)
             if hasattr(gauss, name):
                 setattr(rule, name, getattr(gauss, name))
         return out
@@ -331,7 +333,8 @@ class CompiledReconstruction:
         alone; what depends only on the particles' positions is kept on the
         rule for the next fit on it (a step's MUSL projection, a power
         iteration's products): the 2D spline's factorisation (``lu``), the
-        mls points' M_g^-1 e_0 (``alpha``), the TLS cells' factorised
+        mls points' M_g^-1 e_0 (``alpha``; their weighted particles, see
+        kernels.mls.mls_fit, in one store of the last rule fitted), the TLS cells' factorised
         Lagrange systems (``tls``: kernels.tls.tls_factor)."""
         out = np.empty((rule.x.shape[0], values.shape[1]))
         parallel = self.kernels.parallel if self.kernels is not None else p.n >= SERIAL_BELOW
@@ -342,12 +345,19 @@ class CompiledReconstruction:
                     p.x, p.V, rule.pcell, rule.x, rule.w, rule.cell, self.breaks, self.breaks1)
             for_threads(tls_apply, parallel)(p.x, p.V, values, rule.x, factor, out)
             return out
-        if self.name == "mls":  # M_g^-1 e_0 once per rule (the particles' positions)
+        if self.name == "mls":  # M_g^-1 e_0 and the pairs once per rule (the positions)
             alpha = getattr(rule, "alpha", None)
             if alpha is None:
-                rule.alpha = np.empty((rule.x.shape[0], self.dim + 1))
-            for_threads(mls_fit, parallel)(p.x, values, rule.x, self.radius, rule.alpha, out,
-                                           alpha is None)
+                ng = rule.x.shape[0]
+                rule.alpha = np.empty((ng, self.dim + 1))
+                self._mls_store = mls_store(self._mls_store, ng, self._mls_most)
+                self._mls_rule += 1  # the store holds this rule's pairs
+                rule.mls_rule = self._mls_rule
+            store = self._mls_store if rule.mls_rule == self._mls_rule else empty_mls_store()
+            most = for_threads(mls_fit, parallel)(p.x, values, rule.x, self.radius, rule.alpha,
+                                                  out, alpha is None, store)
+            if alpha is None:
+                self._mls_most = most
             return out
         if self.dim == 2:  # spline: one factorisation per rule (the particles' positions)
             rule.lu = self.spline_ls(p.x, p.V, values, rule.x, out, getattr(rule, "lu", None))
@@ -383,8 +393,18 @@ class CompiledReconstruction:
         stencil = None
         if state.method.needs_consistent_mass:
             with state.timer("mass_matrix"):
-                stencil = k.consistent_stencil(points)
+                stencil = k.consistent_stencil(points, *self.tensor_cells(rule))
         return mass, momentum, force, stencil, (rule, rho)
+
+    def tensor_cells(self, rule):
+        """(cells, k): in 2D the rule's first ``cells`` blocks of k x k points
+        are whole cells' tensor rules (gauss_rule_cells), which the
+        consistent mass sums per axis (kernels.mpm.consistent_cells_2d);
+        (0, 0) in 1D."""
+        if self.dim != 2:
+            return 0, 0
+        k = self.ref.shape[0]
+        return getattr(rule, "ngauss", rule.w.shape[0]) // (k * k), k
 
     def _momentum(self, rule, momentum_density):
         """sum_g w_g (rho v)_h(x_g) N_i(x_g) by g2p2g (a = 0) on points of mass w_g."""
