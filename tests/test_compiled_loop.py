@@ -327,9 +327,9 @@ def test_the_merge_kernels_compile_at_the_first_step_with_tiny_masses(monkeypatc
 
 def test_precompile_mass_compiles_what_the_loop_calls():
     """A study's second worker compiles a consistent-mass loop's CG solve
-    and system preparation (precompile_mass) for the very argument types
-    the loop then calls them with: one signature each; lumped mass has
-    none to compile."""
+    (precompile_mass) for the very argument types the loop then calls it
+    with: one signature of it and of the system's preparation; lumped
+    mass has none to compile."""
     scene = scene_for(mass_case(MASS_CASES[0]), steps=23)
     state = prepare(scene, Method(scheme="musl", mass="consistent"))
     assert compiled_loop.precompile_mass(state, CompiledExecutor(state))
