@@ -227,11 +227,15 @@ def test_a_call_site_must_be_named():
             call_at(site)
 
 
-def test_a_kernel_another_process_is_compiling_is_loaded_not_compiled(tmp_path):
+@pytest.mark.parametrize("need", ["entry point", "typing a call"])
+def test_a_kernel_another_process_is_compiling_is_loaded_not_compiled(tmp_path, need):
     """by_symbol.compile_lock: while one process compiles a kernel (holding
     its lock), a second that needs it waits, then loads the first's
-    machine code from the shared cache instead of compiling it again."""
-    (tmp_path / "kern3_mod.py").write_text(textwrap.dedent("""
+    machine code from the shared cache instead of compiling it again;
+    both where the kernel's address is taken and where a caller types its
+    ``call`` (which compiles the kernel)."""
+    module = "kern3_mod" if need == "entry point" else "kern4_mod"
+    (tmp_path / f"{module}.py").write_text(textwrap.dedent("""
         from numba import njit
 
         @njit(cache=True)
@@ -240,18 +244,20 @@ def test_a_kernel_another_process_is_compiling_is_loaded_not_compiled(tmp_path):
         """))
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"),
                PYTHONPATH=os.pathsep.join([str(tmp_path), *sys.path]))
-    script = textwrap.dedent("""
-        from numba import types
-        from skfem_mpm.kernels.by_symbol import _entry_point
-        from kern3_mod import tripled_sum
-        _entry_point(tripled_sum, (types.float64[::1],))
+    use = "_entry_point(tripled_sum, (types.float64[::1],))" if need == "entry point" else \
+        "njit(lambda a: call(tripled_sum, a)).compile((types.float64[::1],))"
+    script = textwrap.dedent(f"""
+        from numba import njit, types
+        from skfem_mpm.kernels.by_symbol import _entry_point, call
+        from {module} import tripled_sum
+        {use}
         print(tripled_sum.stats.cache_hits.total(), tripled_sum.stats.cache_misses.total())
         """)
     sys.path.insert(0, str(tmp_path))
     old_cache = numba_config.CACHE_DIR
     try:
         numba_config.CACHE_DIR = str(tmp_path / "cache")  # (the lock's name and the cache)
-        from kern3_mod import tripled_sum
+        tripled_sum = __import__(module).tripled_sum
 
         with compile_lock(tripled_sum, (types.float64[::1],)):
             second = subprocess.Popen([sys.executable, "-c", script], env=env, cwd=tmp_path,

@@ -11,6 +11,7 @@ without the loop.
 """
 import itertools
 
+import numba
 import numpy as np
 import pytest
 from tiers import tiered
@@ -326,9 +327,9 @@ def test_the_merge_kernels_compile_at_the_first_step_with_tiny_masses(monkeypatc
 
 def test_precompile_mass_compiles_what_the_loop_calls():
     """A study's second worker compiles a consistent-mass loop's CG solve
-    and system preparation (precompile_mass) for the very argument types
-    the loop then calls them with: one signature each; lumped mass has
-    none to compile."""
+    (precompile_mass) for the very argument types the loop then calls it
+    with: one signature of it and of the system's preparation; lumped
+    mass has none to compile."""
     scene = scene_for(mass_case(MASS_CASES[0]), steps=23)
     state = prepare(scene, Method(scheme="musl", mass="consistent"))
     assert compiled_loop.precompile_mass(state, CompiledExecutor(state))
@@ -337,6 +338,28 @@ def test_precompile_mass_compiles_what_the_loop_calls():
         assert len(getattr(loop.module, name).overloads) == 1, name
     lumped = prepare(scene, Method(scheme="musl", mass="lumped"))
     assert not compiled_loop.precompile_mass(lumped, CompiledExecutor(lumped))
+
+
+@pytest.mark.parametrize("case", ["musl-consistent", "rk4-spline"])
+def test_a_typed_only_run_has_the_type_of_the_built_run(case):
+    """precompile_mass types the run without building it (the fields'
+    types, no constructor compiled): that type is the built run's, mass
+    system and reconstruction records included, so the loop finds what
+    the second worker compiled."""
+    from skfem_mpm.benchmarks import get_benchmark
+
+    if case == "musl-consistent":  # (the variants the tests above compile)
+        scene = scene_for(mass_case(MASS_CASES[0]), steps=23)
+        method = Method(scheme="musl", mass="consistent")
+    else:
+        scene = get_benchmark("traction-bar", "small").scene(8, 3, 2, t_end=0.03)
+        method = Method(scheme="rk4", mass="consistent", reconstruction="spline")
+    state = prepare(scene, method)
+    typed = compiled_loop.StepLoop(state, CompiledExecutor(state), compile_loop=False)
+    built = compiled_loop.StepLoop(state, CompiledExecutor(state))
+    assert isinstance(typed.run_state, numba.types.StructRef)
+    assert typed.run_state == numba.typeof(built.run_state)
+    assert typed.run_state.field_dict["cm"] == numba.typeof(built.cm)
 
 
 def test_tiny_masses_of_the_traction_bar_stay_in_the_loop(monkeypatch):

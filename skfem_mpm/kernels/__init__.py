@@ -8,6 +8,9 @@ environment variable ``SKFEM_MPM_BACKEND=numpy`` says otherwise.
 import os
 
 from ..validation import check_choice
+from . import wrappers
+
+wrappers.install()  # before anything compiles (kernels.wrappers)
 
 BACKENDS = ("numba", "numpy")
 

@@ -30,6 +30,7 @@ Processes sharing numba's cache (a study's workers, test workers) compile a
 kernel once: the first holds :class:`compile_lock` while it compiles, the
 others wait and load its machine code from the cache.
 """
+import contextlib
 import functools
 import hashlib
 import importlib
@@ -139,6 +140,18 @@ class compile_lock:
                 self.fd = None
 
 
+def _typing_lock(kernel, args):
+    """:class:`compile_lock` of ``kernel`` for a call site's ``args``,
+    held while the caller types the call: typing a call of a numba
+    function compiles it (or loads it from the cache), so that is where
+    two processes would otherwise both compile it. No lock when this
+    process has it already."""
+    args = tuple(types.unliteral(a) for a in args)
+    if args in kernel.overloads:
+        return contextlib.nullcontext()
+    return compile_lock(kernel, args)
+
+
 def _entry_point(kernel, argtypes):
     """(compile result, address of the native entry point) of ``kernel``
     compiled (or loaded from numba's cache) for ``argtypes``."""
@@ -182,7 +195,8 @@ def call(typingctx, kernel, *args):
     module). ``kernel`` must be a global ``@njit`` function."""
     if not isinstance(kernel, types.Dispatcher):
         raise TypeError(f"call: kernel must be an @njit function, got {kernel}")
-    sig = typingctx.resolve_function_type(kernel, args, {})
+    with _typing_lock(kernel.dispatcher, args):
+        sig = typingctx.resolve_function_type(kernel, args, {})
     if sig is None:
         raise TypeError(f"call: {kernel.dispatcher.py_func.__name__} does not accept {args}")
     func = kernel.dispatcher.py_func

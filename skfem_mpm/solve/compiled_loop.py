@@ -64,6 +64,7 @@ import time
 
 import numba
 import numpy as np
+from numba.core.typing.typeof import Purpose
 
 from ..kernels import (band_factor, bbar, by_symbol, cholesky, constitutive, fast_dof,
                        gauss_rule, grid_modifiers, kronecker, merged_mass, mls, mpm, scatter,
@@ -403,18 +404,19 @@ def loop_module(dim, parallel, window):
 
 
 def precompile_mass(state, executor):
-    """Compile (or load from numba's cache) the consistent-mass functions
-    the compiled loop of ``state`` calls by symbol, the CG solve first,
-    then the system's preparation (the generated module's ``mass_units``),
-    without compiling the loop: a second process (a study's second worker)
-    so takes that share of a first use while the first compiles the rest
-    of the loop; :class:`~skfem_mpm.kernels.by_symbol.compile_lock` makes
+    """Compile (or load from numba's cache) the consistent-mass solve the
+    compiled loop of ``state`` calls by symbol (the generated module's
+    ``mass_units``: mass_solve and its CG), without compiling the loop nor
+    building the run (only its type: :meth:`StepLoop._record`): a second
+    process (a study's second worker) so takes that share of a first use
+    while the first compiles the rest of the loop, which reaches the
+    solve last; :class:`~skfem_mpm.kernels.by_symbol.compile_lock` makes
     each function compile in one of them. Returns whether the run has
     such functions (consistent or hybrid mass on the loop)."""
     if state.method.mass == "lumped" or not loop_applies(state, executor)[0]:
         return False
     loop = StepLoop(state, executor, compile_loop=False)
-    loop.module.mass_units.compile((numba.typeof(loop.run_state),))
+    loop.module.mass_units.compile((loop.run_state,))
     return True
 
 
@@ -424,6 +426,8 @@ class StepLoop:
     n)`` takes up to n steps and returns how many it took."""
 
     def __init__(self, state, executor, compile_loop=True):
+        """``compile_loop`` False (precompile_mass): the run is only typed,
+        ``run_state`` its numba type (:meth:`_record`), never stepped."""
         ok, why = loop_applies(state, executor)
         if not ok:
             raise ValueError(f"the compiled loop does not apply: {why}")
@@ -433,6 +437,7 @@ class StepLoop:
         self.parallel = k.parallel  # the executor's kernels: serial or parallel
         window = k.transfers.window
         self.module = loop_module(dim, self.parallel, window)
+        self._typed_only = not compile_loop
         nbx, nby = (nd, 1) if dim == 1 else tuple(grid.basis_per_axis[:2])
         self.scheme = state.method.scheme
         self.executor = executor
@@ -505,7 +510,7 @@ class StepLoop:
         # consistent or hybrid mass: the run's mass system (None: lumped)
         self.cm = fields["cm"] = None if state.method.mass == "lumped" else \
             self._mass_system(state, k)
-        self.run_state = self.module.new_run(*(fields[name] for name in self.module.FIELDS))
+        self.run_state = self._record("new_run", "RunType", self.module.FIELDS, fields)
         self.retired = False  # the executor takes every further step
         self._loop = self.module.LOOPS[self.scheme]
         if compile_loop:  # (False: precompile_mass's run, never stepped)
@@ -665,8 +670,8 @@ class StepLoop:
             zero_stress=zeros((count, dim, dim)), mass=zeros(nd), momentum=zeros((nd, dim)),
             force=zeros((nd, dim)), mass_range=zeros((k.nthreads, 2)),
             occupied=zeros(4, dtype=np.int64))
-        return self.module.new_side_traction(
-            *(fields[name] for name in self.module.TRACTION_FIELDS))
+        return self._record("new_side_traction", "SideTractionType",
+                            self.module.TRACTION_FIELDS, fields)
 
     def _reconstruction(self, recon, p, forces):
         """The reconstruction data of the run (compiled_loop_reconstruct), with
@@ -697,8 +702,8 @@ class StepLoop:
                 band = np.zeros((ls.ndofs, 3 * ls.nbx + 4))
                 fields["spline"] = (ls.axes, int(ls.nbx), int(ls.nby), float(ls.penalty),
                                     np.zeros_like(ls.A), band, np.zeros_like(band))
-            return self.module.new_rule_reconstruction(
-                *(fields[name] for name in self.module.RULED_FIELDS))
+            return self._record("new_rule_reconstruction", "RuleReconstructionType",
+                                self.module.RULED_FIELDS, fields)
         fields = dict(
             ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
             values=empty((n, k)), rho=empty(n),
@@ -708,8 +713,8 @@ class StepLoop:
             sq=empty((0, dim, dim)), fq=empty((0, dim)), momentum_values=empty((n, dim)),
             momentum_fit=empty((0, dim)), no_stress=empty((0, dim, dim)),
             point_velocities=empty((0, dim)))
-        return self.module.new_reconstruction(
-            *(fields[name] for name in self.module.RECONSTRUCTION_FIELDS))
+        return self._record("new_reconstruction", "ReconstructionType",
+                            self.module.RECONSTRUCTION_FIELDS, fields)
 
     def _point_at_transfers(self, dim, degree, window):
         """Compile (or load) the loop, which records the argument types of
@@ -822,7 +827,21 @@ class StepLoop:
             own = fields[name]
             fields[f"reaction_{name}"] = np.zeros(own.shape) if rk4 else own
         self._groups = G
-        return self.module.new_mass_system(*(fields[n] for n in self.module.MASS_FIELDS))
+        return self._record("new_mass_system", "MassSystemType", self.module.MASS_FIELDS, fields)
+
+    def _record(self, new, type_class, names, fields):
+        """The record the module's constructor ``new`` builds of ``fields``
+        (in the order ``names``); on a run that is only typed, its numba
+        type instead: ``type_class`` of the fields' argument types (a
+        field that is such a type stands for its record), the type ``new``
+        would return, without compiling ``new`` (nor the structref's
+        constructor, whose code unboxes every field)."""
+        values = [fields[name] for name in names]
+        if not self._typed_only:
+            return getattr(self.module, new)(*values)
+        return getattr(self.module, type_class)([
+            (name, value if isinstance(value, numba.types.Type) else
+             numba.typeof(value, Purpose.argument)) for name, value in zip(names, values)])
 
     def _row_by_row(self, state, n):
         """Up to n more adaptive steps under tables of t alone (a body

@@ -514,11 +514,13 @@ def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x):
 @njit(cache=True)
 def mass_units(run):
     """Never called: compiling it for a run's type compiles (or loads) the
-    functions its loop calls by symbol for consistent mass, mass_solve
-    (with ell_pcg) first, then prepare_mass, by the very calls of the
-    scheme operations (see compiled_loop.precompile_mass)."""
+    consistent-mass solve its loop calls by symbol, mass_solve (with
+    ell_pcg), by the very call of the scheme operations (see
+    compiled_loop.precompile_mass). Not prepare_mass: the loop's own
+    compilation reaches it before mass_solve (a step prepares the grid,
+    then solves), so a second process would take it only as the first
+    reaches it, and one of them would wait for the other."""
     run.mass_solve(2, run.force, 0, run.a, run.momentum, 1, run.v_old)
-    run.prepare_grid()
 
 
 @njit(cache=True)
