@@ -80,8 +80,6 @@ def compiled_executor_applies(state):
         return False, "backend numpy"
     if not isinstance(state.grid, SplineGrid):
         return False, "not a SplineGrid"
-    if state.grid.dim == 3 and m.reconstruction != "none":
-        return False, "3D reconstruction (compiled reconstructions are 1D and 2D only)"
     if m.reconstruction != "none":
         why = unsupported(m, state.grid.dim)
         if why is not None:

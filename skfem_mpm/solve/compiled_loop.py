@@ -118,7 +118,7 @@ _GRID_KERNELS = {
     "GAUSS_RULE_1D": gauss_rule.gauss_rule_1d,
     "NOT_A_KNOT_SPLINE": spline_1d.not_a_knot_spline,
     "LOCATE_CELLS": gauss_rule.locate_cells,
-    "BODY_BOXES_2D": gauss_rule.body_boxes_2d,
+    "BODY_BOXES": gauss_rule.body_boxes,
     "GAUSS_RULE_CELLS": gauss_rule.gauss_rule_cells,
     "CUT_CELL_PARTICLES": gauss_rule.cut_cell_particles,
     "TLS_FACTOR": tls.tls_factor,
@@ -180,8 +180,7 @@ def loop_applies(state, executor):
     reasons = (
         (not ENABLED, "the compiled loop is switched off (compiled_loop.ENABLED)"),
         (executor is None or not executor.path.startswith("fast"), "not the compiled executor"),
-        (recon is not None and (recon.name, recon.dim) not in (
-            ("spline", 1), ("spline", 2), ("tls", 1), ("tls", 2), ("mls", 1), ("mls", 2)),
+        (recon is not None and recon.name == "spline" and recon.dim == 3,
          f"reconstruction {m.reconstruction} in {state.grid.dim}D"),
         (recon is not None and recon.name == "spline" and recon.dim == 2
          and recon.spline_ls.iterative,
@@ -665,8 +664,8 @@ class StepLoop:
         if recon.name != "spline" or dim == 2:  # on CompiledReconstruction.rule's rule
             fields = dict(
                 ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
-                breaks1=recon.breaks1, uniform0=bool(recon.uniform[0]),
-                uniform1=bool(recon.uniform[1]), values=empty((n, 1 + dim + dim * dim)),
+                axes=recon.axes, uniform=recon.uniform, ncells=recon.ncells,
+                values=empty((n, 1 + dim + dim * dim)),
                 rho=empty(n), pcell=empty(0, dtype=np.int64), xg=empty((0, dim)), wg=empty(0),
                 gcell=empty(0, dtype=np.int64), own=empty(0, dtype=np.int64),
                 factor=None, radius=0.0, alpha=None, spline=None,
