@@ -330,8 +330,9 @@ def _prelude(dim, parallel, window, variant):
                 3: "(b0, u0, ih0, C0), (b1, u1, ih1, C1), (b2, u2, ih2, C2) = axes\n"
                    "    CONSISTENT_AXES(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, "
                    "p, nbx, nby, copies, stiff, touched)"}[dim]
-    kronecker = ("return (cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz], cm.box_index[g, :n], "
-                 "cm.inv_scale[g, :n], cm.box, nt, cm.boxes[g, :cm.n_boxes[g]])"
+    by_boxes = ("return (cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz], cm.box_index[g, :n], "
+                "cm.inv_scale[g, :n], cm.box, nt, cm.boxes[g, :cm.n_boxes[g]])")
+    kronecker = (by_boxes
                  if dim == 3 else
                  "return (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n], "
                  "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)))"
@@ -341,8 +342,21 @@ def _prelude(dim, parallel, window, variant):
                  "    band = cm.band[g, :m * (w + 1)].reshape((m, max(w, 0) + 1))\n"
                  "    return (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n], "
                  "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)), band, w >= 0)")
+    pcg = ("return ELL_PCG(A, cols, inv_diag, KRONECKER_ARGS(cm, g, n, nc, nt), None, b, x, "
+           "problem, cm.rtol, limit, nt, work)")
+    if dim == 2:
+        pcg = ("if cm.n_boxes[g] > 1 and cm.band_width[g] < 0:\n"
+               "        return ELL_PCG(A, cols, inv_diag, BOX_ARGS(cm, g, n, nc, nt), None, b, x, "
+               "problem, cm.rtol, limit, nt, work)\n    " + pcg)
     body = f'''
 DIM = {dim}
+
+
+@njit(cache=True)
+def BOX_ARGS(cm, g, n, nc, nt):
+    """Group g's boxes of coupled components as apply_kronecker_axes takes them."""
+    nz, ny, nx = cm.box_shape[g, 0], cm.box_shape[g, 1], cm.box_shape[g, 2]
+    {by_boxes}
 
 
 @njit(cache=True)
@@ -364,6 +378,14 @@ def KRONECKER_ARGS(cm, g, n, nc, nt):
     3D apply_kronecker_axes', its boxes' factors concatenated)."""
     nz, ny, nx = cm.box_shape[g, 0], cm.box_shape[g, 1], cm.box_shape[g, 2]
     {kronecker}
+
+
+@njit(cache=True)
+def KRONECKER_PCG(cm, g, n, nc, nt, A, cols, inv_diag, b, x, problem, limit, work):
+    """Group g's CG run (ell_pcg) with its Kronecker preconditioner; in 2D
+    with the boxes of its coupled components when it has two or more
+    (apply_kronecker_axes' arguments, as KroneckerData.args gives them)."""
+    {pcg}
 '''
     return "\n".join(lines) + "\n\n" + body
 
@@ -743,7 +765,7 @@ class StepLoop:
             group_comps[g, :len(comps)] = comps
         nc = 2 * dim  # the most columns of a CG run: two problems
         band_max = int(cls.BAND_MAX) if dim == 2 else 0
-        boxes = kronecker.MAX_BOXES if dim == 3 else 1  # (the concatenated factors' rows)
+        boxes = kronecker.MAX_BOXES if dim >= 2 else 1  # (the concatenated factors' rows)
         merged_size = int(cls.MERGE_BUFFER * nd * ns)  # as StencilSystem's
         zeros, empty = np.zeros, np.empty
         fields = dict(

@@ -209,11 +209,15 @@ class StencilSystem:
         if self.preconditioner == "kronecker" and rows.size and f"banded{g}_on" in self.warm:
             kron = self._band(g, A, cols)
         if self.preconditioner == "kronecker" and rows.size and kron is None:
+            # the fringe correction works on the one box of the free dofs;
+            # without it a box per coupled component (KroneckerData.of_system)
+            with_fringe = self.fringe_layers > 0 and (self.FRINGE_FROM <= 0
+                                                      or f"fringe{g}_on" in self.warm)
             kron = KroneckerData.of_system(A, rows, self.geometry,
-                                           previous=self.memo.get(f"kronecker{g}"), index=index)
+                                           previous=self.memo.get(f"kronecker{g}"), index=index,
+                                           by_component=not with_fringe)
             self.memo[f"kronecker{g}"] = kron
-            if self.fringe_layers > 0 and (self.FRINGE_FROM <= 0
-                                           or f"fringe{g}_on" in self.warm):
+            if with_fringe:
                 fringe = self._fringe(g, rows, A, cols)
         built = group[3] = (A, cols, F, fcols, inv_diag, kron, fringe, need_fixed)
         return built
