@@ -989,8 +989,9 @@ def test_colliding_disks_get_a_kronecker_box_each():
     """D3 (20 x 20 quadratic cells, consistent MUSL, t_end 0.15: the scene
     of test_colliding_disks_with_consistent_mass_run_in_the_loop, which
     checks the loop's bits on it): in 2D too the Kronecker preconditioner
-    takes a box per coupled component of the free dofs when there are two
-    or more (kernels.kronecker.kronecker_boxes), one per disk. Measured:
+    of a scene of several bodies takes a box per coupled component of the
+    free dofs when there are two or more (kernels.kronecker.kronecker_boxes),
+    one per disk. Measured:
     11.9 CG iterations per solve (570 in 48 runs; one box over both disks:
     18.5, 889)."""
     from skfem_mpm.benchmarks import get_benchmark

@@ -551,8 +551,9 @@ def test_kronecker_boxes_follow_the_coupled_components(dim):
     dofs coupled to nothing: the preconditioner is the exact inverse (P = A
     wherever A is a Kronecker product, kernels.kronecker's docstring); one
     box over both blocks is not. In 2D the boxes are one layer each (the z
-    factor of length 1, not applied), and without ``by_component`` (the
-    fringe correction's one box) the free dofs take one box."""
+    factor of length 1, not applied), and without ``by_component`` (a
+    single body, or the fringe correction's one box) the free dofs take one
+    box."""
     from skfem_mpm.kernels.kronecker import KroneckerData, apply_kronecker, apply_kronecker_axes
 
     apply = serial(apply_kronecker_axes)
@@ -614,7 +615,7 @@ def test_kronecker_boxes_follow_the_coupled_components(dim):
             dense[r, index[((c + dc) * nb + b + db) * nb + a + da]] = A[r, s]
     x = rng.standard_normal((rows.size, 2))
     b = dense @ x
-    kron = KroneckerData.of_system(A, rows, (p, nb, nb, dim), index=index)
+    kron = KroneckerData.of_system(A, rows, (p, nb, nb, dim), index=index, by_component=True)
     assert kron.boxes.shape[0] == 2
     if dim == 2:
         assert kron.factor_shape[0] == 1 and not kron.boxes[:, 6].any()
@@ -627,7 +628,8 @@ def test_kronecker_boxes_follow_the_coupled_components(dim):
     joined = A.copy()
     first = [r for r, k in enumerate(rows) if owner.get(k) == 0 and local[k][0] == 3]
     joined[first, (ns - 1) // 2 + 2] = 1e-300  # a coupling to block 1 (a + 2)
-    one = KroneckerData.of_system(joined, rows, (p, nb, nb, dim), index=index)
+    one = KroneckerData.of_system(joined, rows, (p, nb, nb, dim), index=index,
+                                  by_component=True)
     if dim == 3:
         assert one.boxes.shape[0] == 1
         apply(*one.args(2, 2), b, z)
@@ -635,9 +637,8 @@ def test_kronecker_boxes_follow_the_coupled_components(dim):
         assert one.boxes is None and len(one.args(2, 1)) == 6
         serial(apply_kronecker)(*one.args(2, 1), b, z)
     assert np.abs(z - x).max() > 1e-3 * np.abs(x).max()
-    if dim == 2:  # without by_component: the one box, also for two components
-        boxed = KroneckerData.of_system(A, rows, (p, nb, nb, dim), index=index,
-                                        by_component=False)
+    if dim == 2:  # without by_component (a single body): the one box, also for two components
+        boxed = KroneckerData.of_system(A, rows, (p, nb, nb, dim), index=index)
         assert boxed.boxes is None
         serial(apply_kronecker)(*boxed.args(2, 1), b, z)
         assert np.abs(z - x).max() > 1e-3 * np.abs(x).max()

@@ -371,7 +371,8 @@ class CompiledExecutor(CompiledRungeKutta):
             else:
                 fast[:] = 0.0
             system = StencilSystem(self.kernels, stencil, mass, state.constraints, fast,
-                                   state.warm, small_mass=state.method.small_mass if small else 0.0)
+                                   state.warm, small_mass=state.method.small_mass if small else 0.0,
+                                   by_component=len(state.bodies) > 1)
             if system.mergeable:
                 return system
         M = self.kernels.stencil_csr(stencil)

@@ -797,7 +797,7 @@ class StepLoop:
             fit_bands=zeros((3, boxes * max(nbx, nby, nbz), p + 1)),
             fit_sums=zeros((3, boxes * max(nbx, nby, nbz))),
             boxes=zeros((G, kronecker.MAX_BOXES, kronecker.BOX_FIELDS), dtype=np.int64),
-            n_boxes=zeros(G, dtype=np.int64),
+            n_boxes=zeros(G, dtype=np.int64), by_component=len(state.bodies) > 1,
             b=empty(nd * nc), x=empty(nd * nc), work=empty(6 * nd * nc),
             box=empty(nbx * nby * nbz * nc), rtol=1e-13,
             max_iterations=int(cls.max_iterations or 0),

@@ -95,7 +95,9 @@ MASS_FIELDS = (
     # the boxes' rows of apply_kronecker_axes and their count; box_shape
     # the concatenated factors' lengths, box_coords the rows' coordinates
     # in them, box_index their entries in the work space (-1: diagonal)
-    "boxes", "n_boxes",
+    # 2D: whether to search the coupled components (several bodies:
+    # StencilSystem's by_component)
+    "boxes", "n_boxes", "by_component",
     # conjugate gradients: right-hand sides, solutions, work space (flat)
     "b", "x", "work", "box", "rtol", "max_iterations", "fringe_from", "fringe_min_rows",
     "fringe_layers", "fringe_on", "iterations",
@@ -330,7 +332,7 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
                                                         cm.band[g, :n * (w + 1)].reshape((n, w + 1))):
                     cm.band_width[g] = w
                     continue
-            if DIM == 2:  # a box per coupled component when there are two or more
+            if DIM == 2 and cm.by_component:  # a box per coupled component (two or more)
                 cm.n_boxes[g] = KRONECKER_BOXES(fit, rows, cm.kept_index[g] if merged else
                                                 cm.index[g], p, nbx, nby, nd,
                                                 cm.box_coords[g, :n], cm.box_index[g, :n],
