@@ -130,20 +130,16 @@ def locate_cells(x, axes, uniform):
     ``axes`` the grid's breakpoints per axis (a tuple of d arrays),
     ``uniform`` whether each axis is uniform (a tuple of d flags)."""
     n, dim = x.shape
-    inv_h = np.empty(dim)  # the uniform axes' 1 / h, as SplineGrid.locate
-    for a in range(dim):
+    cell = np.zeros(n, dtype=np.int64)
+    stride = 1
+    for a in range(dim):  # axis by axis (one look-up of the axis each)
         breaks = axes[a]
+        flat = uniform[a]
         m = breaks.shape[0] - 1
-        inv_h[a] = m / (breaks[m] - breaks[0])
-    cell = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        c = 0
-        stride = 1
-        for a in range(dim):
-            breaks = axes[a]
-            c += stride * locate_axis_point(x[i, a], breaks, uniform[a], inv_h[a])
-            stride *= breaks.shape[0] - 1
-        cell[i] = c
+        inv_h = m / (breaks[m] - breaks[0])  # the uniform axes' 1 / h, as SplineGrid.locate
+        for i in range(n):
+            cell[i] += stride * locate_axis_point(x[i, a], breaks, flat, inv_h)
+        stride *= m
     return cell
 
 
@@ -171,23 +167,28 @@ def body_boxes(x, V, pcell, axes):
     pmax = np.full((ncells, dim), -np.inf)
     hmax = np.zeros((ncells, dim))
     volume = np.zeros(ncells)
-    size = np.empty(dim)
-    e = np.empty(dim, dtype=np.int64)
+    for i in range(pcell.shape[0]):
+        held[pcell[i]] = True
+    size = np.ones((ncells, dim))  # the held cells' sizes and indices per axis
+    index = np.zeros((ncells, dim), dtype=np.int64)
+    stride = 1
+    for a in range(dim):
+        breaks = axes[a]
+        for c in range(ncells):
+            if held[c]:
+                ea = (c // stride) % counts[a]
+                index[c, a] = ea
+                size[c, a] = breaks[ea + 1] - breaks[ea]
+        stride *= counts[a]
     for i in range(pcell.shape[0]):
         c = pcell[i]
-        held[c] = True
-        rest = c
-        area = 1.0
-        for a in range(dim):
-            e[a] = rest % counts[a]
-            rest //= counts[a]
-            breaks = axes[a]
-            size[a] = breaks[e[a] + 1] - breaks[e[a]]
-            area = size[a] if a == 0 else area * size[a]
+        area = size[c, 0]
+        for a in range(1, dim):
+            area = area * size[c, a]
         ratio = V[i] / area
         scale = np.sqrt(ratio) if dim == 2 else cube_root(ratio)
         for a in range(dim):
-            half = 0.5 * (size[a] * scale)
+            half = 0.5 * (size[c, a] * scale)
             pmin[c, a] = min(pmin[c, a], x[i, a] - half)
             pmax[c, a] = max(pmax[c, a], x[i, a] + half)
             hmax[c, a] = max(hmax[c, a], half)
@@ -205,13 +206,11 @@ def body_boxes(x, V, pcell, axes):
             continue
         n_open = 0
         est_volume = 1.0
-        rest = c
         stride = 1
         for a in range(dim):
             breaks = axes[a]
             n = counts[a]
-            ea = rest % n
-            rest //= n
+            ea = index[c, a]
             lower[a] = breaks[ea]
             upper[a] = breaks[ea + 1]
             below = ea > 0 and held[c - stride]
@@ -253,19 +252,25 @@ def cut_cell_particles(pcell, lo, hi, axes):
     of the other particles, in particle order (those :func:`gauss_rule_cells`
     integrates)."""
     n = pcell.shape[0]
-    dim = lo.shape[1]
+    ncells, dim = lo.shape
+    held = np.zeros(ncells, dtype=np.bool_)
+    for i in range(n):
+        held[pcell[i]] = True
+    cut_cell = np.zeros(ncells, dtype=np.bool_)  # per held cell, axis by axis
+    stride = 1
+    for a in range(dim):
+        breaks = axes[a]
+        m = breaks.shape[0] - 1
+        for c in range(ncells):
+            if held[c]:
+                ea = (c // stride) % m
+                if not (lo[c, a] == breaks[ea] and hi[c, a] == breaks[ea + 1]):
+                    cut_cell[c] = True
+        stride *= m
     cut = np.empty(n, dtype=np.bool_)
     nown = 0
     for i in range(n):
-        c = pcell[i]
-        rest = c
-        whole = True
-        for a in range(dim):
-            breaks = axes[a]
-            ea = rest % (breaks.shape[0] - 1)
-            rest //= breaks.shape[0] - 1
-            whole = whole and lo[c, a] == breaks[ea] and hi[c, a] == breaks[ea + 1]
-        cut[i] = not whole
+        cut[i] = cut_cell[pcell[i]]
         if cut[i]:
             nown += 1
     own = np.empty(nown, dtype=np.int64)
