@@ -470,20 +470,17 @@ def _monomials(local, degree):
 
 
 def _neighbour_cells(grid, cells):
-    """(ncells, 3^dim) neighbour cell ids (-1 outside the grid)."""
-    if grid.dim == 1:
-        n = grid.cells_per_axis[0]
-        nb = cells[:, None] + np.array([-1, 0, 1])[None, :]
-        return np.where((nb >= 0) & (nb < n), nb, -1)
-    nx, ny = grid.cells_per_axis
-    ix, iy = cells % nx, cells // nx
-    out = []
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            jx, jy = ix + dx, iy + dy
-            ok = (jx >= 0) & (jx < nx) & (jy >= 0) & (jy < ny)
-            out.append(np.where(ok, jx + nx * jy, -1))
-    return np.stack(out, axis=1)
+    """(len(cells), 3^dim) the ids of each cell's neighbours and itself
+    (offsets -1, 0, 1 per axis, x fastest; -1 outside the grid): the cell
+    itself is column 3^dim // 2."""
+    counts = np.asarray(grid.cells_per_axis, dtype=np.int64)
+    index = np.stack(np.unravel_index(cells, counts[::-1]), axis=1)[:, ::-1]  # (n, dim), x first
+    offsets = np.stack(np.meshgrid(*[[-1, 0, 1]] * grid.dim, indexing="ij"),
+                       axis=-1).reshape(-1, grid.dim)[:, ::-1]  # x fastest
+    near = index[:, None, :] + offsets[None, :, :]
+    inside = ((near >= 0) & (near < counts)).all(axis=2)
+    strides = np.cumprod(np.concatenate(([1], counts[:-1])))
+    return np.where(inside, near @ strides, -1)
 
 
 TLS_RANK_TOL = 1e-8

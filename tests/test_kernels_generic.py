@@ -541,34 +541,42 @@ def test_p2g_writes_the_grid_near_the_particles_only(dim):
         assert tuple(t.occupied[2:]) == (first, last)
 
 
-def test_kronecker_boxes_follow_the_coupled_components():
-    """3D: the Kronecker preconditioner of KroneckerData.of_system takes one
-    box per coupled component of the matrix (kernels.kronecker.kronecker_boxes):
-    two blocks of free dofs, each a Kronecker product of its own banded
-    factors, within the stencil's reach of each other but not coupled
-    (zero entries between them), and dofs coupled to nothing: the
-    preconditioner is the exact inverse (P = A wherever A is a Kronecker
-    product, kernels.kronecker's docstring); one box over both blocks is
-    not."""
-    from skfem_mpm.kernels.kronecker import KroneckerData, apply_kronecker_axes
+@pytest.mark.parametrize("dim", [2, 3])
+def test_kronecker_boxes_follow_the_coupled_components(dim):
+    """2D and 3D: the Kronecker preconditioner of KroneckerData.of_system
+    takes one box per coupled component of the matrix
+    (kernels.kronecker.kronecker_boxes): two blocks of free dofs, each a
+    Kronecker product of its own banded factors, within the stencil's
+    reach of each other but not coupled (zero entries between them), and
+    dofs coupled to nothing: the preconditioner is the exact inverse (P = A
+    wherever A is a Kronecker product, kernels.kronecker's docstring); one
+    box over both blocks is not. In 2D the boxes are one layer each (the z
+    factor of length 1, not applied), and without ``by_component`` (a
+    single body, or the fringe correction's one box) the free dofs take one
+    box."""
+    from skfem_mpm.kernels.kronecker import KroneckerData, apply_kronecker, apply_kronecker_axes
 
     apply = serial(apply_kronecker_axes)
     rng = np.random.default_rng(3)
     p, nb = 2, 12
     width = 2 * p + 1
+    ns = width ** dim
+    nbz = nb if dim == 3 else 1
 
     def banded(n):  # SPD, positive entries, bandwidth p
         K = np.diag(2.0 + rng.random(n))
         for d, size in ((1, 0.5), (2, 0.1)):
-            off = size * rng.random(n - d)
-            K += np.diag(off, d) + np.diag(off, -d)
+            if n > d:  # (2D: the z factor is 1 x 1)
+                off = size * rng.random(n - d)
+                K += np.diag(off, d) + np.diag(off, -d)
         return K
 
     # block 0: a in 1..4; block 1: a in 6..9 (2 = p apart: stencil slots
     # between them exist, their entries are 0); both b, c in 2..5 and 3..7
-    blocks = [((1, 5), (2, 6), (3, 8)), ((6, 10), (2, 6), (3, 8))]
+    z_axis = (3, 8) if dim == 3 else (0, 1)
+    blocks = [((1, 5), (2, 6), z_axis), ((6, 10), (2, 6), z_axis)]
     factors = [[banded(hi - lo) for lo, hi in axes] for axes in blocks]
-    lonely = [(11, 0, 0), (0, 11, 11)]  # coupled to nothing
+    lonely = [(11, 0, 0), (0, 11, 11 if dim == 3 else 0)]  # coupled to nothing
     owner, local = {}, {}
     for i, axes in enumerate(blocks):
         for c in range(*axes[2]):
@@ -578,18 +586,23 @@ def test_kronecker_boxes_follow_the_coupled_components():
                     owner[k] = i
                     local[k] = (a - axes[0][0], b - axes[1][0], c - axes[2][0])
     rows = np.array(sorted(list(owner) + [(c * nb + b) * nb + a for a, b, c in lonely]))
-    index = np.full(nb ** 3, -1, dtype=np.int64)
+    index = np.full(nb * nb * nbz, -1, dtype=np.int64)
     index[rows] = np.arange(rows.size)
-    A = np.zeros((rows.size, width ** 3))
+
+    def offsets(s):
+        dc = s // (width * width) - p if dim == 3 else 0
+        return s % width - p, (s // width) % width - p, dc
+
+    A = np.zeros((rows.size, ns))
     for r, k in enumerate(rows):
         a, b, c = k % nb, (k // nb) % nb, k // (nb * nb)
         if k not in owner:
-            A[r, (width ** 3 - 1) // 2] = 1.5 + r
+            A[r, (ns - 1) // 2] = 1.5 + r
             continue
         Kx, Ky, Kz = factors[owner[k]]
         la, lb, lc = local[k]
-        for s in range(width ** 3):
-            da, db, dc = s % width - p, (s // width) % width - p, s // (width * width) - p
+        for s in range(ns):
+            da, db, dc = offsets(s)
             j = ((c + dc) * nb + b + db) * nb + a + da
             if owner.get(j, -1) == owner[k]:
                 ja, jb, jc = local[j]
@@ -598,12 +611,14 @@ def test_kronecker_boxes_follow_the_coupled_components():
     for r, k in enumerate(rows):
         a, b, c = k % nb, (k // nb) % nb, k // (nb * nb)
         for s in np.flatnonzero(A[r]):
-            da, db, dc = s % width - p, (s // width) % width - p, s // (width * width) - p
+            da, db, dc = offsets(s)
             dense[r, index[((c + dc) * nb + b + db) * nb + a + da]] = A[r, s]
     x = rng.standard_normal((rows.size, 2))
     b = dense @ x
-    kron = KroneckerData.of_system(A, rows, (p, nb, nb, 3), index=index)
+    kron = KroneckerData.of_system(A, rows, (p, nb, nb, dim), index=index, by_component=True)
     assert kron.boxes.shape[0] == 2
+    if dim == 2:
+        assert kron.factor_shape[0] == 1 and not kron.boxes[:, 6].any()
     assert np.array_equal(np.flatnonzero(kron.local < 0), index[[(c * nb + b_) * nb + a
                                                                  for a, b_, c in lonely]])
     z = np.empty_like(b)
@@ -612,11 +627,21 @@ def test_kronecker_boxes_follow_the_coupled_components():
     # one box over both blocks (the rows of both as one component): not exact
     joined = A.copy()
     first = [r for r, k in enumerate(rows) if owner.get(k) == 0 and local[k][0] == 3]
-    joined[first, (width ** 3 - 1) // 2 + 2] = 1e-300  # a coupling to block 1 (a + 2)
-    one = KroneckerData.of_system(joined, rows, (p, nb, nb, 3), index=index)
-    assert one.boxes.shape[0] == 1
-    apply(*one.args(2, 2), b, z)
+    joined[first, (ns - 1) // 2 + 2] = 1e-300  # a coupling to block 1 (a + 2)
+    one = KroneckerData.of_system(joined, rows, (p, nb, nb, dim), index=index,
+                                  by_component=True)
+    if dim == 3:
+        assert one.boxes.shape[0] == 1
+        apply(*one.args(2, 2), b, z)
+    else:  # one component: the one box of the free dofs (apply_kronecker's arguments)
+        assert one.boxes is None and len(one.args(2, 1)) == 6
+        serial(apply_kronecker)(*one.args(2, 1), b, z)
     assert np.abs(z - x).max() > 1e-3 * np.abs(x).max()
+    if dim == 2:  # without by_component (a single body): the one box, also for two components
+        boxed = KroneckerData.of_system(A, rows, (p, nb, nb, dim), index=index)
+        assert boxed.boxes is None
+        serial(apply_kronecker)(*boxed.args(2, 1), b, z)
+        assert np.abs(z - x).max() > 1e-3 * np.abs(x).max()
 
 
 @pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads VmRSS (Linux)")

@@ -37,13 +37,14 @@ def scene_3d(degree, material="linear", effect="gravity", steps=6, region=None):
 
 
 def check_agreement(degree, scheme, material="linear", effect="gravity", steps=6, tol=1e-12,
-                    mass="lumped", **kw):
+                    mass="lumped", reconstruction="none", **kw):
     grid, particles, material, effects = scene_3d(degree, material, effect, **kw)
+    method = dict(scheme=scheme, mass=mass, reconstruction=reconstruction)
     scene = Scene(grid, Body(particles, material), 1.0, effects=effects)
-    dt = prepare(scene, Method(scheme=scheme, mass=mass)).dt
+    dt = prepare(scene, Method(**method)).dt
     scene = Scene(grid, Body(particles, material), steps * dt, effects=effects)
-    ref = simulate(scene, Method(backend="numpy", scheme=scheme, mass=mass), save_every=2)
-    fast = simulate(scene, Method(backend="numba", scheme=scheme, mass=mass), save_every=2)
+    ref = simulate(scene, Method(backend="numpy", **method), save_every=2)
+    fast = simulate(scene, Method(backend="numba", **method), save_every=2)
     # the compiled loop runs the lumped linear elastic cases (its own tests
     # compare it with the executor bit for bit), the executor the others
     assert fast.path in ("fast", "fast (compiled loop)") and ref.path.startswith("reference"), \
@@ -198,8 +199,44 @@ def test_3d_refusals_name_their_reason():
         assert compiled_executor_applies(prepare(scene, method)) == (True, "")
     ok, why = compiled_executor_applies(prepare(scene, Method(mass="consistent",
                                                               reconstruction="spline")))
-    assert not ok and "3D reconstruction" in why
+    assert not ok and "reconstruction spline in 3D" in why
+    for name in ("tls", "mls"):
+        assert compiled_executor_applies(prepare(scene, Method(reconstruction=name))) == \
+            (True, "")
     assert compiled_executor_applies(prepare(scene, Method(scheme="rk4"))) == (True, "")
+
+
+# reconstruction in 3D (tls, mls) on the compiled executor and in the loop,
+# from the 1D/2D kernels (kernels.gauss_rule, kernels.tls, kernels.mls): the
+# block's free surfaces cut cells (their particles are points of the rule);
+# 1e-12 lumped, 1e-9 consistent, as above. Each compiles a 3D reconstructed
+# loop of its own: the slow tier.
+RECONSTRUCTED = [("tls", "musl", "consistent"), ("mls", "musl", "consistent"),
+                 ("tls", "usl", "lumped"), ("mls", "rk4", "lumped"),
+                 ("tls", "rk4", "consistent")]
+
+
+@pytest.mark.slow(reason="each case compiles a 3D reconstructed loop")
+@pytest.mark.parametrize("reconstruction,scheme,mass", RECONSTRUCTED,
+                         ids=["-".join(c) for c in RECONSTRUCTED])
+def test_reconstructed_3d_agrees_with_the_reference_and_the_loop_with_the_executor(
+        monkeypatch, reconstruction, scheme, mass):
+    from skfem_mpm.solve import compiled_loop
+
+    tol = 1e-12 if mass == "lumped" else 1e-9
+    _, fast = check_agreement(2, scheme, "linear", "gravity", mass=mass, tol=tol,
+                              reconstruction=reconstruction)
+    assert fast.path == "fast (compiled loop)", fast.path
+    monkeypatch.setattr(compiled_loop, "ENABLED", False)
+    grid, particles, material, effects = scene_3d(2)
+    method = Method(scheme=scheme, mass=mass, reconstruction=reconstruction)
+    scene = Scene(grid, Body(particles, material), 6 * prepare(
+        Scene(grid, Body(particles, material), 1.0, effects=effects), method).dt,
+        effects=effects)
+    stepped = simulate(scene, method, save_every=2)
+    assert stepped.path == f"fast (reconstruction {reconstruction})", stepped.path
+    for key in ("x", "v", "stress"):
+        assert np.array_equal(stepped.history[key], fast.history[key]), key
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ points agree bit for bit.
 2D (:func:`gauss_rule_cells`): the cells that hold particles (ascending
 scikit-fem numbering e = ix + nx iy), each with the tensor rule of k points
 per axis on the part of the cell the body covers, the box
-[l_x, l_x + b_x] x [l_y, l_y + b_y] of :func:`body_boxes_2d` (the whole
+[l_x, l_x + b_x] x [l_y, l_y + b_y] of :func:`body_boxes` (the whole
 cell inside the body), point (a, b) at index a + k b:
 
     x_g = (l_x + b_x r_a, l_y + b_y r_b),   w_g = (b_x w_a) (b_y w_b),
@@ -28,13 +28,31 @@ cells (:func:`locate_cells`, with the transfers' own
 :meth:`SplineGrid.locate`: on a uniform axis floor((x - u_0) (n / (u_n -
 u_0))), else the last breakpoint <= x, clamped to the grid's cells.
 """
+import llvmlite.ir as ir
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from .weights import locate_axis_point
 
-__all__ = ["body_boxes_2d", "cut_cell_particles", "gauss_rule_1d", "gauss_rule_cells",
+__all__ = ["body_boxes", "cut_cell_particles", "gauss_rule_1d", "gauss_rule_cells",
            "locate_cells"]
+
+
+@intrinsic
+def cube_root(typingctx, x):
+    """libm's cbrt(x) (float64). numba's np.cbrt is pow(x, 1/3), which is
+    not exact on perfect cubes (27 -> 3.0000000000000004); libm's is (a
+    uniform layout of 2 x 2 x 2 particles per cell has V_p / |e| = 1/8,
+    whose root 1/2 sizes the particles' boxes exactly)."""
+    sig = types.float64(types.float64)
+
+    def codegen(context, builder, signature, args):
+        fnty = ir.FunctionType(ir.DoubleType(), [ir.DoubleType()])
+        return builder.call(cgutils.get_or_insert_function(builder.module, fnty, "cbrt"), args)
+
+    return sig, codegen
 
 
 @njit(cache=True, error_model="numpy")
@@ -107,72 +125,97 @@ def gauss_rule_1d(x, V, gap, breaks, ref, wref):
 
 
 @njit(cache=True, error_model="numpy")
-def locate_cells(x, breaks0, breaks1, uniform0, uniform1):
-    """The cell (ix + nx iy; ix in 1D) of each point x (n, d)."""
+def locate_cells(x, axes, uniform):
+    """The cell (ix + nx iy + nx ny iz; ix in 1D) of each point x (n, d);
+    ``axes`` the grid's breakpoints per axis (a tuple of d arrays),
+    ``uniform`` whether each axis is uniform (a tuple of d flags)."""
     n, dim = x.shape
-    nx = breaks0.shape[0] - 1
-    ny = breaks1.shape[0] - 1
-    inv_h0 = nx / (breaks0[nx] - breaks0[0])  # the uniform axes' 1 / h, as SplineGrid.locate
-    inv_h1 = ny / (breaks1[ny] - breaks1[0])
-    cell = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        c = locate_axis_point(x[i, 0], breaks0, uniform0, inv_h0)
-        if dim == 2:
-            c += nx * locate_axis_point(x[i, 1], breaks1, uniform1, inv_h1)
-        cell[i] = c
+    cell = np.zeros(n, dtype=np.int64)
+    stride = 1
+    for a in range(dim):  # axis by axis (one look-up of the axis each)
+        breaks = axes[a]
+        flat = uniform[a]
+        m = breaks.shape[0] - 1
+        inv_h = m / (breaks[m] - breaks[0])  # the uniform axes' 1 / h, as SplineGrid.locate
+        for i in range(n):
+            cell[i] += stride * locate_axis_point(x[i, a], breaks, flat, inv_h)
+        stride *= m
     return cell
 
 
 @njit(cache=True, error_model="numpy")
-def body_boxes_2d(x, V, pcell, breaks0, breaks1):
-    """(lo, hi), each (ncells, 2): the box of each held cell that the body
+def _cell_counts(axes, dim):
+    """Cells per axis (3,) (1 beyond the dimension) and their product."""
+    counts = np.ones(3, dtype=np.int64)
+    for a in range(dim):
+        counts[a] = axes[a].shape[0] - 1
+    return counts, counts[0] * counts[1] * counts[2]
+
+
+@njit(cache=True, error_model="numpy")
+def body_boxes(x, V, pcell, axes):
+    """(lo, hi), each (ncells, d): the box of each held cell that the body
     covers (rows of cells without particles are not set), the twin of
-    :func:`skfem_mpm.reconstruct.body_boxes` in 2D (same arithmetic, so
-    the same boxes bit for bit; see its docstring for the rule)."""
-    nx = breaks0.shape[0] - 1
-    ny = breaks1.shape[0] - 1
-    ncells = nx * ny
+    :func:`skfem_mpm.reconstruct.body_boxes` in 2D and 3D (``axes`` the
+    breakpoints per axis; the same arithmetic, so in 2D the same boxes bit
+    for bit; in 3D the cube roots are libm's, NumPy's own differ by up to
+    an ulp; see its docstring for the rule)."""
+    dim = x.shape[1]
+    counts, ncells = _cell_counts(axes, dim)
     held = np.zeros(ncells, dtype=np.bool_)
-    pmin = np.full((ncells, 2), np.inf)
-    pmax = np.full((ncells, 2), -np.inf)
-    hmax = np.zeros((ncells, 2))
+    pmin = np.full((ncells, dim), np.inf)
+    pmax = np.full((ncells, dim), -np.inf)
+    hmax = np.zeros((ncells, dim))
     volume = np.zeros(ncells)
-    size = np.empty(2)
+    for i in range(pcell.shape[0]):
+        held[pcell[i]] = True
+    size = np.ones((ncells, dim))  # the held cells' sizes and indices per axis
+    index = np.zeros((ncells, dim), dtype=np.int64)
+    stride = 1
+    for a in range(dim):
+        breaks = axes[a]
+        for c in range(ncells):
+            if held[c]:
+                ea = (c // stride) % counts[a]
+                index[c, a] = ea
+                size[c, a] = breaks[ea + 1] - breaks[ea]
+        stride *= counts[a]
     for i in range(pcell.shape[0]):
         c = pcell[i]
-        held[c] = True
-        ix, iy = c % nx, c // nx
-        size[0] = breaks0[ix + 1] - breaks0[ix]
-        size[1] = breaks1[iy + 1] - breaks1[iy]
-        scale = np.sqrt(V[i] / (size[0] * size[1]))
-        for a in range(2):
-            half = 0.5 * (size[a] * scale)
+        area = size[c, 0]
+        for a in range(1, dim):
+            area = area * size[c, a]
+        ratio = V[i] / area
+        scale = np.sqrt(ratio) if dim == 2 else cube_root(ratio)
+        for a in range(dim):
+            half = 0.5 * (size[c, a] * scale)
             pmin[c, a] = min(pmin[c, a], x[i, a] - half)
             pmax[c, a] = max(pmax[c, a], x[i, a] + half)
             hmax[c, a] = max(hmax[c, a], half)
         volume[c] += V[i]
-    lo = np.zeros((ncells, 2))
-    hi = np.zeros((ncells, 2))
-    lower = np.empty(2)
-    upper = np.empty(2)
-    closed_lo = np.empty(2, dtype=np.bool_)
-    closed_hi = np.empty(2, dtype=np.bool_)
-    est_lo = np.empty(2)
-    est_hi = np.empty(2)
+    lo = np.zeros((ncells, dim))
+    hi = np.zeros((ncells, dim))
+    lower = np.empty(dim)
+    upper = np.empty(dim)
+    closed_lo = np.empty(dim, dtype=np.bool_)
+    closed_hi = np.empty(dim, dtype=np.bool_)
+    est_lo = np.empty(dim)
+    est_hi = np.empty(dim)
     for c in range(ncells):
         if not held[c]:
             continue
-        e = (c % nx, c // nx)
         n_open = 0
         est_volume = 1.0
-        for a in range(2):
-            breaks = breaks0 if a == 0 else breaks1
-            n = nx if a == 0 else ny
-            stride = 1 if a == 0 else nx
-            lower[a] = breaks[e[a]]
-            upper[a] = breaks[e[a] + 1]
-            below = e[a] > 0 and held[c - stride]
-            above = e[a] < n - 1 and held[c + stride]
+        stride = 1
+        for a in range(dim):
+            breaks = axes[a]
+            n = counts[a]
+            ea = index[c, a]
+            lower[a] = breaks[ea]
+            upper[a] = breaks[ea + 1]
+            below = ea > 0 and held[c - stride]
+            above = ea < n - 1 and held[c + stride]
+            stride *= n
             gap_lo = pmin[c, a] - lower[a]
             gap_hi = upper[a] - pmax[c, a]
             closed_lo[a] = below or gap_lo < hmax[c, a] + (max(gap_hi, 0.0) if above else 0.0)
@@ -183,8 +226,8 @@ def body_boxes_2d(x, V, pcell, breaks0, breaks1):
                 n_open += 1
             est_volume = est_volume * (est_hi[a] - est_lo[a])
         ratio = volume[c] / est_volume
-        factor = ratio if n_open == 1 else np.sqrt(ratio)
-        for a in range(2):
+        factor = ratio if n_open == 1 else (np.sqrt(ratio) if n_open == 2 else cube_root(ratio))
+        for a in range(dim):
             if closed_lo[a] and closed_hi[a]:
                 lo[c, a] = lower[a]
                 hi[c, a] = upper[a]
@@ -202,22 +245,32 @@ def body_boxes_2d(x, V, pcell, breaks0, breaks1):
 
 
 @njit(cache=True, error_model="numpy")
-def cut_cell_particles(pcell, lo, hi, breaks0, breaks1):
+def cut_cell_particles(pcell, lo, hi, axes):
     """(own, kept): the particles (ascending) whose cell's body box lo..hi
-    (:func:`body_boxes_2d`) is not the whole cell, a cell a free surface
+    (:func:`body_boxes`) is not the whole cell, a cell a free surface
     cuts, whose particles are points of the rule themselves; and the cells
     of the other particles, in particle order (those :func:`gauss_rule_cells`
     integrates)."""
     n = pcell.shape[0]
-    nx = breaks0.shape[0] - 1
+    ncells, dim = lo.shape
+    held = np.zeros(ncells, dtype=np.bool_)
+    for i in range(n):
+        held[pcell[i]] = True
+    cut_cell = np.zeros(ncells, dtype=np.bool_)  # per held cell, axis by axis
+    stride = 1
+    for a in range(dim):
+        breaks = axes[a]
+        m = breaks.shape[0] - 1
+        for c in range(ncells):
+            if held[c]:
+                ea = (c // stride) % m
+                if not (lo[c, a] == breaks[ea] and hi[c, a] == breaks[ea + 1]):
+                    cut_cell[c] = True
+        stride *= m
     cut = np.empty(n, dtype=np.bool_)
     nown = 0
     for i in range(n):
-        c = pcell[i]
-        ix = c % nx
-        iy = c // nx
-        cut[i] = not (lo[c, 0] == breaks0[ix] and hi[c, 0] == breaks0[ix + 1]
-                      and lo[c, 1] == breaks1[iy] and hi[c, 1] == breaks1[iy + 1])
+        cut[i] = cut_cell[pcell[i]]
         if cut[i]:
             nown += 1
     own = np.empty(nown, dtype=np.int64)
@@ -234,10 +287,10 @@ def cut_cell_particles(pcell, lo, hi, breaks0, breaks1):
 
 @njit(cache=True, error_model="numpy")
 def gauss_rule_cells(pcell, lo, hi, ref, wref):
-    """(xg, wg, cell) of the 2D tensor Gauss rule on the boxes lo[c]..hi[c]
-    (:func:`body_boxes_2d`) of the cells c in ``pcell`` (ascending, each
-    once; see the module docstring)."""
-    ncells = lo.shape[0]
+    """(xg, wg, cell) of the 2D or 3D tensor Gauss rule on the boxes
+    lo[c]..hi[c] (:func:`body_boxes`) of the cells c in ``pcell``
+    (ascending, each once; see the module docstring)."""
+    ncells, dim = lo.shape
     k = ref.shape[0]
     held = np.zeros(ncells, dtype=np.bool_)
     for i in range(pcell.shape[0]):
@@ -246,8 +299,9 @@ def gauss_rule_cells(pcell, lo, hi, ref, wref):
     for c in range(ncells):
         if held[c]:
             nheld += 1
-    ng = nheld * k * k
-    xg = np.empty((ng, 2))
+    kz = k if dim == 3 else 1
+    ng = nheld * k * k * kz
+    xg = np.empty((ng, dim))
     wg = np.empty(ng)
     cell = np.empty(ng, dtype=np.int64)
     g = 0
@@ -256,11 +310,17 @@ def gauss_rule_cells(pcell, lo, hi, ref, wref):
             continue
         hx = hi[c, 0] - lo[c, 0]
         hy = hi[c, 1] - lo[c, 1]
-        for b in range(k):
-            for a in range(k):
-                xg[g, 0] = lo[c, 0] + hx * ref[a]
-                xg[g, 1] = lo[c, 1] + hy * ref[b]
-                wg[g] = (hx * wref[a]) * (hy * wref[b])
-                cell[g] = c
-                g += 1
+        hz = hi[c, dim - 1] - lo[c, dim - 1]  # 2D: read, not used
+        for q in range(kz):
+            for b in range(k):
+                for a in range(k):
+                    xg[g, 0] = lo[c, 0] + hx * ref[a]
+                    xg[g, 1] = lo[c, 1] + hy * ref[b]
+                    w = (hx * wref[a]) * (hy * wref[b])
+                    if dim == 3:
+                        xg[g, 2] = lo[c, 2] + hz * ref[q]
+                        w = w * (hz * wref[q])
+                    wg[g] = w
+                    cell[g] = c
+                    g += 1
     return xg, wg, cell

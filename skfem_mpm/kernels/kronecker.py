@@ -273,7 +273,7 @@ def coupled_components(A, rows, index, p, nbx, nby, label):
 @njit(cache=True, error_model="numpy")
 def kronecker_boxes(A, rows, index, p, nbx, nby, capacity, coords, box_index, boxes, shape):
     """The Kronecker boxes of the free-dof rows ``rows`` of the ELL matrix A
-    (3D; see :func:`coupled_components`, whose ``index`` it takes): a row
+    (2D and 3D; see :func:`coupled_components`, whose ``index`` it takes): a row
     coupled to no other is a diagonal row (coords -1, box_index -1); each
     coupled component gets the index box of its rows, the largest
     MAX_BOXES - 1 (by rows; the first of equal ones) one each, the others
@@ -332,6 +332,7 @@ def kronecker_boxes(A, rows, index, p, nbx, nby, capacity, coords, box_index, bo
         nb = 1
     first = 0
     x0 = y0 = z0 = 0
+    planar = index.shape[0] == nbx * nby  # 2D: every box one layer, one z factor of length 1
     for k in range(nb):
         nx, ny, nz = hi[k, 0] - lo[k, 0], hi[k, 1] - lo[k, 1], hi[k, 2] - lo[k, 2]
         boxes[k, 0] = first
@@ -344,8 +345,9 @@ def kronecker_boxes(A, rows, index, p, nbx, nby, capacity, coords, box_index, bo
         first += nz * ny * nx
         x0 += nx
         y0 += ny
-        z0 += nz
-    shape[0] = z0
+        if not planar:
+            z0 += nz
+    shape[0] = max(z0, 1)
     shape[1] = y0
     shape[2] = x0
     for r in range(n):
@@ -393,17 +395,24 @@ class KroneckerData:
         self.inv_scale = 1.0 / np.sqrt(lumped[rows] / self.gauss)
 
     @classmethod
-    def of_system(cls, A, rows, geometry, previous=None, index=None):
+    def of_system(cls, A, rows, geometry, previous=None, index=None, by_component=False):
         """The preconditioner of the free-dof matrix A itself (ELL rows of
         ``rows`` as compact_system writes them) by :func:`fit_kronecker`; the box
         numbering of ``previous`` is reused for the same free dofs. In 3D
         one box per coupled component of A (:func:`kronecker_boxes`;
         ``index``: dof -> row of A or -1, over the grid), built anew each
-        time (the components follow A, not only its rows)."""
+        time (the components follow A, not only its rows); in 2D the same
+        with ``by_component`` where A has two or more coupled components,
+        else the one box of the free dofs (StencilSystem asks for it with
+        several bodies and without the fringe correction, which takes the
+        one box: the search costs about as much as one of the factors'
+        fits, a tenth of a consistent step at 128 x 128 cells)."""
         self = cls.__new__(cls)
         p = geometry[0]
-        if geometry[3] == 3:
-            self._coupled_boxes(A, rows, geometry, index)
+        boxes = 0
+        if geometry[3] == 3 or (geometry[3] == 2 and by_component):
+            boxes = self._coupled_boxes(A, rows, geometry, index)
+        if geometry[3] == 3 or boxes > 1:
             nz, ny, nx = self.factor_shape
             self.Lx, self.Ly, self.Lz = (np.empty((nx, p + 1)), np.empty((ny, p + 1)),
                                          np.empty((nz, p + 1)))
@@ -412,6 +421,7 @@ class KroneckerData:
             fit_kronecker(A, self.coords, self.Lx, self.Ly, self.Lz, self.inv_scale,
                           np.empty((3, longest, p + 1)), np.empty((3, longest)))
             return self
+        self.boxes = None
         if not self._reuse_box(geometry, rows, previous):
             self._box(geometry, rows)
         shape = self.shape if len(self.shape) == 3 else (1,) + self.shape
@@ -436,9 +446,10 @@ class KroneckerData:
         return True
 
     def _coupled_boxes(self, A, rows, geometry, index):
-        """3D: the boxes of A's coupled components (:func:`kronecker_boxes`),
+        """The boxes of A's coupled components (:func:`kronecker_boxes`),
         every row's coordinates in the concatenated factors and its entry
-        in the work space (``local``; -1: a diagonal row)."""
+        in the work space (``local``; -1: a diagonal row); returns their
+        number."""
         p, nbx, nby, _ = geometry
         self.key, self.geometry = None, geometry
         n = rows.size
@@ -453,6 +464,7 @@ class KroneckerData:
         self.factor_shape = tuple(int(v) for v in shape)
         self.entries = int((self.boxes[:, 1] * self.boxes[:, 2] * self.boxes[:, 3]).sum())
         self.shape = None
+        return nb
 
     def _box(self, geometry, rows):
         """The free dofs' index box: its first index per axis, its shape

@@ -8,7 +8,7 @@ coordinates xi = (x - c_e) / h_e (c_e the centre and h_e the sizes per axis
 of the box spanned by the cell's Gauss points, as the oracle) and the
 monomials
 
-    phi = (1, xi_1, .., xi_d, xi_a xi_b for a <= b)      (m = 3 in 1D, 6 in 2D),
+    phi = (1, xi_1, .., xi_d, xi_a xi_b for a <= b)      (m = 3 in 1D, 6 in 2D, 10 in 3D),
 
 the coefficients a_e (m, k) of all k value columns at once solve the
 Lagrange system of the volume-weighted fit under the conservation
@@ -62,16 +62,26 @@ TLS_BOUND_ABS = 1e-9
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _monomials(x0, x1, centre0, centre1, size0, size1, two):
-    """phi = (1, xi, eta, xi xi, xi eta, eta eta) of the point (x0, x1),
-    xi = (x0 - centre0) / size0, eta = (x1 - centre1) / size1; in 1D (``two``
-    False) (1, xi, xi xi) and three zeros. Scalars only: an inlined function
-    of array arguments makes numba count references to them per call."""
+def _monomials(x0, x1, x2, centre0, centre1, centre2, size0, size1, size2, dim):
+    """phi = (1, xi, eta, zeta, xi xi, xi eta, xi zeta, eta eta, eta zeta,
+    zeta zeta) of the point (x0, x1, x2), xi = (x0 - centre0) / size0 and so
+    on (the oracle's order: 1, the coordinates, then xi_a xi_b for a <= b);
+    in 2D (1, xi, eta, xi xi, xi eta, eta eta), in 1D (1, xi, xi xi), the
+    rest zeros. Scalars only: an inlined function of array arguments makes
+    numba count references to them per call."""
     xi = (x0 - centre0) / size0
-    if not two:
-        return 1.0, xi, xi * xi, 0.0, 0.0, 0.0
+    if dim == 1:
+        return 1.0, xi, xi * xi, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     eta = (x1 - centre1) / size1
-    return 1.0, xi, eta, xi * xi, xi * eta, eta * eta
+    if dim == 2:
+        return 1.0, xi, eta, xi * xi, xi * eta, eta * eta, 0.0, 0.0, 0.0, 0.0
+    zeta = (x2 - centre2) / size2
+    return (1.0, xi, eta, zeta, xi * xi, xi * eta, xi * zeta, eta * eta, eta * zeta,
+            zeta * zeta)
+
+
+MONOMIALS = 10
+"""The most monomials (3D quadratic): the length of phi."""
 
 
 @njit(cache=True, error_model="numpy")
@@ -168,7 +178,8 @@ arrays; prange over the blocks in the parallel kernels)."""
 @njit(cache=True, error_model="numpy")
 def _frame(xg, gorder, g0, ng, dim, centre, size):
     """centre, size: the box spanned by the cell's Gauss points
-    gorder[g0:g0 + ng] per axis (the oracle's frame)."""
+    gorder[g0:g0 + ng] per axis (the oracle's frame); beyond the dimension
+    they stay as they are."""
     for a in range(dim):
         lo = np.inf
         hi = -np.inf
@@ -180,7 +191,7 @@ def _frame(xg, gorder, g0, ng, dim, centre, size):
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def tls_factor(x, V, pcell, xg, wg, gcell, breaks0, breaks1):
+def tls_factor(x, V, pcell, xg, wg, gcell, ncells):
     """The half of the TLS fit that depends on the positions alone (the
     particles' x, V and the rule), computed once for every field fitted on
     them (:func:`tls_apply`): the cells' bins, frames, G, whether each
@@ -188,10 +199,8 @@ def tls_factor(x, V, pcell, xg, wg, gcell, breaks0, breaks1):
     K = [[A, G], [G^T, 0]] of both levels. Arguments as
     :func:`tls_reconstruct`'s; returns the tuple :func:`tls_apply` takes."""
     dim = x.shape[1]
-    two = dim == 2
-    last = dim - 1  # the second coordinate's column (1D: read, not used)
-    nx = breaks0.shape[0] - 1
-    ncells = nx * (breaks1.shape[0] - 1 if two else 1)
+    y = min(1, dim - 1)  # the coordinates' columns (beyond the dimension: read, not used)
+    z = dim - 1
     m = 1 + dim + dim * (dim + 1) // 2
     slot = np.full(ncells, -1, dtype=np.int64)
     nact = 0
@@ -201,37 +210,40 @@ def tls_factor(x, V, pcell, xg, wg, gcell, breaks0, breaks1):
             nact += 1
     porder, pstart = _bins(pcell, slot, nact)
     gorder, gstart = _bins(gcell, slot, nact)
-    frame = np.zeros((nact, 4))  # centre (2), size (2) per cell
+    frame = np.zeros((nact, 6))  # centre (3), size (3) per cell
     G = np.zeros((nact, m))
     posed = np.zeros((nact, 2), dtype=np.bool_)
     lu = np.zeros((nact, 2, m + 1, m + 1))  # K of the level's n + 1 rows, factorised
     pivots = np.zeros((nact, 2, m + 1), dtype=np.int64)
     nblocks = (nact + CELLS_PER_BLOCK - 1) // CELLS_PER_BLOCK
     for block in prange(nblocks):
-        phi = np.zeros(6)
-        centre = np.zeros(2)
-        size = np.ones(2)
+        phi = np.zeros(MONOMIALS)
+        centre = np.zeros(3)
+        size = np.ones(3)
         A = np.empty((m, m))
         work = np.empty((m + 1, m + 1))
         for s in range(block * CELLS_PER_BLOCK, min(nact, (block + 1) * CELLS_PER_BLOCK)):
             g0 = gstart[s]
             ng = gstart[s + 1] - g0
             _frame(xg, gorder, g0, ng, dim, centre, size)
-            frame[s, 0], frame[s, 1], frame[s, 2], frame[s, 3] = \
-                centre[0], centre[1], size[0], size[1]
+            for a in range(3):
+                frame[s, a] = centre[a]
+                frame[s, 3 + a] = size[a]
             A[:] = 0.0
             for i in range(pstart[s], pstart[s + 1]):
                 q = porder[i]
-                phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = _monomials(
-                    x[q, 0], x[q, last], centre[0], centre[1], size[0], size[1], two)
+                phi[0], phi[1], phi[2], phi[3], phi[4], phi[5], phi[6], phi[7], phi[8], \
+                    phi[9] = _monomials(x[q, 0], x[q, y], x[q, z], centre[0], centre[1],
+                                        centre[2], size[0], size[1], size[2], dim)
                 for r in range(m):
                     wr = V[q] * phi[r]
                     for t in range(m):
                         A[r, t] += wr * phi[t]
             for i in range(ng):
                 g = gorder[g0 + i]
-                phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = _monomials(
-                    xg[g, 0], xg[g, last], centre[0], centre[1], size[0], size[1], two)
+                phi[0], phi[1], phi[2], phi[3], phi[4], phi[5], phi[6], phi[7], phi[8], \
+                    phi[9] = _monomials(xg[g, 0], xg[g, y], xg[g, z], centre[0], centre[1],
+                                        centre[2], size[0], size[1], size[2], dim)
                 for r in range(m):
                     G[s, r] += wg[g] * phi[r]
             for level in range(2):
@@ -259,8 +271,8 @@ def tls_apply(x, V, values, xg, factor, out):
     Lagrange systems, the bound test."""
     porder, pstart, gorder, gstart, frame, G, posed, lu, pivots = factor
     dim = x.shape[1]
-    two = dim == 2
-    last = dim - 1
+    y = min(1, dim - 1)
+    z = dim - 1
     k = values.shape[1]
     m = G.shape[1]
     nact = G.shape[0]
@@ -269,9 +281,9 @@ def tls_apply(x, V, values, xg, factor, out):
         most = max(most, gstart[s + 1] - gstart[s])
     nblocks = (nact + CELLS_PER_BLOCK - 1) // CELLS_PER_BLOCK
     for block in prange(nblocks):
-        phig = np.zeros((most, 6))  # the monomials at the cell's Gauss points
+        phig = np.zeros((most, MONOMIALS))  # the monomials at the cell's Gauss points
         fit = np.empty((most, k))  # a level's fit at them
-        phi = np.zeros(6)
+        phi = np.zeros(MONOMIALS)
         b = np.empty((m, k))
         S = np.empty(k)
         R = np.empty((m + 1, k))
@@ -282,7 +294,8 @@ def tls_apply(x, V, values, xg, factor, out):
         high = np.empty(k)
         pending = np.empty(k, dtype=np.bool_)
         for s in range(block * CELLS_PER_BLOCK, min(nact, (block + 1) * CELLS_PER_BLOCK)):
-            c0, c1, s0, s1 = frame[s, 0], frame[s, 1], frame[s, 2], frame[s, 3]
+            c0, c1, c2 = frame[s, 0], frame[s, 1], frame[s, 2]
+            s0, s1, s2 = frame[s, 3], frame[s, 4], frame[s, 5]
             g0 = gstart[s]
             ng = gstart[s + 1] - g0
             b[:] = 0.0
@@ -291,8 +304,8 @@ def tls_apply(x, V, values, xg, factor, out):
             fmax[:] = -np.inf
             for i in range(pstart[s], pstart[s + 1]):
                 q = porder[i]
-                phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = _monomials(
-                    x[q, 0], x[q, last], c0, c1, s0, s1, two)
+                phi[0], phi[1], phi[2], phi[3], phi[4], phi[5], phi[6], phi[7], phi[8], \
+                    phi[9] = _monomials(x[q, 0], x[q, y], x[q, z], c0, c1, c2, s0, s1, s2, dim)
                 for r in range(m):
                     wr = V[q] * phi[r]
                     for col in range(k):
@@ -303,8 +316,9 @@ def tls_apply(x, V, values, xg, factor, out):
                     fmax[col] = max(fmax[col], values[q, col])
             for i in range(ng):
                 g = gorder[g0 + i]
-                phig[i, 0], phig[i, 1], phig[i, 2], phig[i, 3], phig[i, 4], phig[i, 5] = \
-                    _monomials(xg[g, 0], xg[g, last], c0, c1, s0, s1, two)
+                phig[i, 0], phig[i, 1], phig[i, 2], phig[i, 3], phig[i, 4], phig[i, 5], \
+                    phig[i, 6], phig[i, 7], phig[i, 8], phig[i, 9] = _monomials(
+                        xg[g, 0], xg[g, y], xg[g, z], c0, c1, c2, s0, s1, s2, dim)
             for col in range(k):
                 slack[col] = TLS_BOUND_TOL * (fmax[col] - fmin[col]) + TLS_BOUND_ABS * max(
                     abs(fmin[col]), abs(fmax[col]))
@@ -369,19 +383,19 @@ def empty_factor(dim):
     m = 1 + dim + dim * (dim + 1) // 2
     index = np.zeros(0, dtype=np.int64)
     start = np.zeros(1, dtype=np.int64)
-    return (index, start, index.copy(), start.copy(), np.zeros((0, 4)), np.zeros((0, m)),
+    return (index, start, index.copy(), start.copy(), np.zeros((0, 6)), np.zeros((0, m)),
             np.zeros((0, 2), dtype=np.bool_), np.zeros((0, 2, m + 1, m + 1)),
             np.zeros((0, 2, m + 1), dtype=np.int64))
 
 
 @njit(cache=True, error_model="numpy")
-def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, breaks0, breaks1, out):
+def tls_reconstruct(x, V, values, pcell, xg, wg, gcell, ncells, out):
     """out[g] (ng, k) = the TLS fit of the particle ``values`` (n, k) of the
     cell gcell[g] at the Gauss point xg[g] (see the module docstring):
     :func:`tls_apply` on :func:`tls_factor`.
 
     ``x`` (n, d) particle positions, ``V`` (n,) volumes, ``pcell`` (n,) the
-    cell of each particle (scikit-fem numbering: ix + nx iy), ``xg`` (ng, d),
-    ``wg`` (ng,), ``gcell`` (ng,) the rule; ``breaks0``/``breaks1`` the
-    grid's breakpoints per axis (``breaks1`` unused in 1D)."""
-    tls_apply(x, V, values, xg, tls_factor(x, V, pcell, xg, wg, gcell, breaks0, breaks1), out)
+    cell of each particle (scikit-fem numbering: ix + nx iy + nx ny iz),
+    ``xg`` (ng, d), ``wg`` (ng,), ``gcell`` (ng,) the rule; ``ncells`` the
+    grid's number of cells."""
+    tls_apply(x, V, values, xg, tls_factor(x, V, pcell, xg, wg, gcell, ncells), out)

@@ -80,8 +80,6 @@ def compiled_executor_applies(state):
         return False, "backend numpy"
     if not isinstance(state.grid, SplineGrid):
         return False, "not a SplineGrid"
-    if state.grid.dim == 3 and m.reconstruction != "none":
-        return False, "3D reconstruction (compiled reconstructions are 1D and 2D only)"
     if m.reconstruction != "none":
         why = unsupported(m, state.grid.dim)
         if why is not None:
@@ -373,7 +371,8 @@ class CompiledExecutor(CompiledRungeKutta):
             else:
                 fast[:] = 0.0
             system = StencilSystem(self.kernels, stencil, mass, state.constraints, fast,
-                                   state.warm, small_mass=state.method.small_mass if small else 0.0)
+                                   state.warm, small_mass=state.method.small_mass if small else 0.0,
+                                   by_component=len(state.bodies) > 1)
             if system.mergeable:
                 return system
         M = self.kernels.stencil_csr(stencil)

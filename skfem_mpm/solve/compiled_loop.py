@@ -119,7 +119,7 @@ _GRID_KERNELS = {
     "GAUSS_RULE_1D": gauss_rule.gauss_rule_1d,
     "NOT_A_KNOT_SPLINE": spline_1d.not_a_knot_spline,
     "LOCATE_CELLS": gauss_rule.locate_cells,
-    "BODY_BOXES_2D": gauss_rule.body_boxes_2d,
+    "BODY_BOXES": gauss_rule.body_boxes,
     "GAUSS_RULE_CELLS": gauss_rule.gauss_rule_cells,
     "CUT_CELL_PARTICLES": gauss_rule.cut_cell_particles,
     "TLS_FACTOR": tls.tls_factor,
@@ -183,8 +183,7 @@ def loop_applies(state, executor):
     reasons = (
         (not ENABLED, "the compiled loop is switched off (compiled_loop.ENABLED)"),
         (executor is None or not executor.path.startswith("fast"), "not the compiled executor"),
-        (recon is not None and (recon.name, recon.dim) not in (
-            ("spline", 1), ("spline", 2), ("tls", 1), ("tls", 2), ("mls", 1), ("mls", 2)),
+        (recon is not None and recon.name == "spline" and recon.dim == 3,
          f"reconstruction {m.reconstruction} in {state.grid.dim}D"),
         (recon is not None and recon.name == "spline" and recon.dim == 2
          and recon.spline_ls.iterative,
@@ -336,8 +335,9 @@ def _prelude(dim, parallel, window, variant):
                       "    CONSISTENT_CELLS_2D(x, m, cells, k, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, "
                       "nbx, copies, stiff, touched)" if dim == 2 else
                       "raise ValueError('the cells rule is 2D')")
-    kronecker = ("return (cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz], cm.box_index[g, :n], "
-                 "cm.inv_scale[g, :n], cm.box, nt, cm.boxes[g, :cm.n_boxes[g]])"
+    by_boxes = ("return (cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz], cm.box_index[g, :n], "
+                "cm.inv_scale[g, :n], cm.box, nt, cm.boxes[g, :cm.n_boxes[g]])")
+    kronecker = (by_boxes
                  if dim == 3 else
                  "return (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n], "
                  "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)))"
@@ -347,8 +347,21 @@ def _prelude(dim, parallel, window, variant):
                  "    band = cm.band[g, :m * (w + 1)].reshape((m, max(w, 0) + 1))\n"
                  "    return (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n], "
                  "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)), band, w >= 0)")
+    pcg = ("return ELL_PCG(A, cols, inv_diag, KRONECKER_ARGS(cm, g, n, nc, nt), None, b, x, "
+           "problem, cm.rtol, limit, nt, work)")
+    if dim == 2:
+        pcg = ("if cm.n_boxes[g] > 1 and cm.band_width[g] < 0:\n"
+               "        return ELL_PCG(A, cols, inv_diag, BOX_ARGS(cm, g, n, nc, nt), None, b, x, "
+               "problem, cm.rtol, limit, nt, work)\n    " + pcg)
     body = f'''
 DIM = {dim}
+
+
+@njit(cache=True)
+def BOX_ARGS(cm, g, n, nc, nt):
+    """Group g's boxes of coupled components as apply_kronecker_axes takes them."""
+    nz, ny, nx = cm.box_shape[g, 0], cm.box_shape[g, 1], cm.box_shape[g, 2]
+    {by_boxes}
 
 
 @njit(cache=True)
@@ -377,6 +390,14 @@ def KRONECKER_ARGS(cm, g, n, nc, nt):
     3D apply_kronecker_axes', its boxes' factors concatenated)."""
     nz, ny, nx = cm.box_shape[g, 0], cm.box_shape[g, 1], cm.box_shape[g, 2]
     {kronecker}
+
+
+@njit(cache=True)
+def KRONECKER_PCG(cm, g, n, nc, nt, A, cols, inv_diag, b, x, problem, limit, work):
+    """Group g's CG run (ell_pcg) with its Kronecker preconditioner; in 2D
+    with the boxes of its coupled components when it has two or more
+    (apply_kronecker_axes' arguments, as KroneckerData.args gives them)."""
+    {pcg}
 '''
     return "\n".join(lines) + "\n\n" + body
 
@@ -683,8 +704,8 @@ class StepLoop:
         if recon.name != "spline" or dim == 2:  # on CompiledReconstruction.rule's rule
             fields = dict(
                 ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
-                breaks1=recon.breaks1, uniform0=bool(recon.uniform[0]),
-                uniform1=bool(recon.uniform[1]), values=empty((n, k)),
+                axes=recon.axes, uniform=recon.uniform, ncells=recon.ncells,
+                values=empty((n, k)),
                 rho=empty(n), pcell=empty(0, dtype=np.int64), xg=empty((0, dim)), wg=empty(0),
                 gcell=empty(0, dtype=np.int64), own=empty(0, dtype=np.int64),
                 factor=None, radius=0.0, alpha=None, spline=None,
@@ -763,7 +784,7 @@ class StepLoop:
             group_comps[g, :len(comps)] = comps
         nc = 2 * dim  # the most columns of a CG run: two problems
         band_max = int(cls.BAND_MAX) if dim == 2 else 0
-        boxes = kronecker.MAX_BOXES if dim == 3 else 1  # (the concatenated factors' rows)
+        boxes = kronecker.MAX_BOXES if dim >= 2 else 1  # (the concatenated factors' rows)
         merged_size = int(cls.MERGE_BUFFER * nd * ns)  # as StencilSystem's
         zeros, empty = np.zeros, np.empty
         fields = dict(
@@ -795,7 +816,7 @@ class StepLoop:
             fit_bands=zeros((3, boxes * max(nbx, nby, nbz), p + 1)),
             fit_sums=zeros((3, boxes * max(nbx, nby, nbz))),
             boxes=zeros((G, kronecker.MAX_BOXES, kronecker.BOX_FIELDS), dtype=np.int64),
-            n_boxes=zeros(G, dtype=np.int64),
+            n_boxes=zeros(G, dtype=np.int64), by_component=len(state.bodies) > 1,
             b=empty(nd * nc), x=empty(nd * nc), work=empty(6 * nd * nc),
             box=empty(nbx * nby * nbz * nc), rtol=1e-13,
             max_iterations=int(cls.max_iterations or 0),

@@ -37,8 +37,10 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
                     kept over the steps while its free rows stay and CG
                     needs at most StencilSystem.BAND_KEEP iterations with it
                     in 3D one Kronecker box per coupled component of the
-                    fitted rows (kernels.kronecker.kronecker_boxes), as
-                    KroneckerData.of_system builds them
+                    fitted rows (kernels.kronecker.kronecker_boxes), in 2D
+                    the same when there are two or more (else the one box
+                    of the free rows), as KroneckerData.of_system builds
+                    them
     mass_solve      M x = rhs on the free dofs (constrained dofs their
                     prescribed values, or 0; massless dofs 0: the fixed
                     columns' known values moved to the right-hand side
@@ -98,7 +100,9 @@ MASS_FIELDS = (
     # the boxes' rows of apply_kronecker_axes and their count; box_shape
     # the concatenated factors' lengths, box_coords the rows' coordinates
     # in them, box_index their entries in the work space (-1: diagonal)
-    "boxes", "n_boxes",
+    # 2D: whether to search the coupled components (several bodies:
+    # StencilSystem's by_component)
+    "boxes", "n_boxes", "by_component",
     # conjugate gradients: right-hand sides, solutions, work space (flat)
     "b", "x", "work", "box", "rtol", "max_iterations", "fringe_from", "fringe_min_rows",
     "fringe_layers", "fringe_on", "iterations",
@@ -370,7 +374,14 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
                     cm.band_kept[g, 1] = w
                     copy_into(cm.band_rows[g, :n], rows)
                     continue
-            _kronecker_box(cm, g, rows, nbx, nby)
+            if DIM == 2 and cm.by_component:  # a box per coupled component (two or more)
+                cm.n_boxes[g] = KRONECKER_BOXES(fit, rows, cm.kept_index[g] if merged else
+                                                cm.index[g], p, nbx, nby, nd,
+                                                cm.box_coords[g, :n], cm.box_index[g, :n],
+                                                cm.boxes[g], cm.box_shape[g])
+                cm.n_boxed[g] = -1  # (the one box's numbering was written over)
+            if cm.n_boxes[g] <= 1:
+                _kronecker_box(cm, g, rows, nbx, nby)
         nz = cm.box_shape[g, 0]
         ny = cm.box_shape[g, 1]
         nx = cm.box_shape[g, 2]
@@ -494,10 +505,9 @@ def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x):
     problem = np.empty(nc, dtype=np.int64)
     for j in range(nc):
         problem[j] = j // ncomp
-    kron = KRONECKER_ARGS(cm, g, n, nc, nt)
     limit = cm.max_iterations if cm.max_iterations > 0 else 10 * n + 100
     work = cm.work[:6 * n * nc].reshape((6, n, nc))
-    its = ELL_PCG(A, cols, inv_diag, kron, None, b, x, problem, cm.rtol, limit, nt, work)
+    its = KRONECKER_PCG(cm, g, n, nc, nt, A, cols, inv_diag, b, x, problem, limit, work)
     if its < 0:
         return False
     cm.iterations += its

@@ -9,7 +9,7 @@ the argument types of the executor's calls), so that a run gives the same
 bits on either path. Covered: the particle-knot spline in 1D
 (:class:`Reconstruction`), and on the rule of CompiledReconstruction.rule
 (:class:`RuleReconstruction`) the published TLS with its default options
-and mls in 1D and 2D and the 2D spline with its direct solve; the run's
+and mls in 1D, 2D and 3D and the 2D spline with its direct solve; the run's
 reconstruction type (and in a RuleReconstruction the types of its
 kind-specific fields) says which, so a run compiles only its own kind's
 functions.
@@ -33,9 +33,9 @@ tls, mls, the 2D spline (CompiledReconstruction.rule, reconstruct and
 project):
 
     rule_points          the particles' cells (kernels.gauss_rule.locate_cells)
-                         and the step's rule: in 1D gauss_rule_1d; in 2D the
-                         tensor rule on the body's box of each cell holding
-                         particles (body_boxes_2d, gauss_rule_cells), except
+                         and the step's rule: in 1D gauss_rule_1d; in 2D and
+                         3D the tensor rule on the body's box of each cell
+                         holding particles (body_boxes, gauss_rule_cells), except
                          in the cells a free surface cuts (the box is not
                          the whole cell), whose particles are points of the
                          rule themselves (``own``, after the Gauss points,
@@ -206,9 +206,9 @@ def project_points(rc, x, v_new):
 
 # ------------------------------------------- the rule's fits: tls, mls, 2D spline
 # The reconstructions on the rule of CompiledReconstruction.rule (in 1D the
-# body's Gauss rule, in 2D the cells' rule with the particles of cut cells
-# as points): the published TLS (kernels.tls, default options) in 1D and
-# 2D, mls (kernels.mls) in 1D and 2D, the 2D spline (kernels.spline_2d,
+# body's Gauss rule, in 2D and 3D the cells' rule with the particles of cut
+# cells as points): the published TLS (kernels.tls, default options) and
+# mls (kernels.mls) in 1D, 2D and 3D, the 2D spline (kernels.spline_2d,
 # the direct solve). One type whose kind-specific fields (``factor``,
 # ``alpha``, ``spline``) are None in the other kinds: the fit
 # (:func:`fit_points`) is chosen from those fields' types, so that a run
@@ -226,15 +226,16 @@ globals()[RuleReconstructionType.__name__] = RuleReconstructionType
 
 RULED_FIELDS = (
     # the rule: Gauss-Legendre points and weights on [0, 1], the largest
-    # gap inside one piece of the 1D body, the breakpoints per axis (1D:
-    # breaks1 is breaks) and whether each axis is uniform (locate_cells)
-    "ref", "wref", "gap", "breaks", "breaks1", "uniform0", "uniform1",
+    # gap inside one piece of the 1D body, the first axis's breakpoints,
+    # the breakpoints per axis and whether each axis is uniform (tuples:
+    # locate_cells) and the number of cells
+    "ref", "wref", "gap", "breaks", "axes", "uniform", "ncells",
     # per particle: the fitted fields [rho, rho v, sigma] (n, 1 + dim + dim^2)
     # and with a body force its density rho b = f_p / V_p (dim more columns), rho
     "values", "rho",
     # the step's rule: the particles' cells, the Gauss points (ngauss, dim),
     # their weights and cells, and the particles that are points of the
-    # rule themselves (2D: those in cells a free surface cuts; after the
+    # rule themselves (2D, 3D: those in cells a free surface cuts; after the
     # Gauss points, in particle order)
     "pcell", "xg", "wg", "gcell", "own",
     # what a fit keeps for the next fit on the same particles and rule (a
@@ -278,7 +279,7 @@ def _rule_1d(rc, x, V):
     """The body's Gauss rule (kernels.gauss_rule.gauss_rule_1d) and the
     particles' cells, as CompiledReconstruction.rule."""
     n = x.shape[0]
-    rc.pcell = LOCATE_CELLS(x, rc.breaks, rc.breaks1, rc.uniform0, rc.uniform1)
+    rc.pcell = LOCATE_CELLS(x, rc.axes, rc.uniform)
     _, _, _, xg, wg, gcell = GAUSS_RULE_1D(x.reshape(n), V, rc.gap, rc.breaks, rc.ref, rc.wref)
     rc.xg = xg.reshape((xg.shape[0], 1))
     rc.wg = wg
@@ -287,17 +288,16 @@ def _rule_1d(rc, x, V):
 
 
 @njit(cache=True)
-def _rule_2d(rc, x, V):
-    """The rule of CompiledReconstruction.rule in 2D: the tensor Gauss rule
-    on the body's box of each cell holding particles
-    (kernels.gauss_rule.body_boxes_2d, gauss_rule_cells), except the cells
+def _rule_cells(rc, x, V):
+    """The rule of CompiledReconstruction.rule in 2D and 3D: the tensor
+    Gauss rule on the body's box of each cell holding particles
+    (kernels.gauss_rule.body_boxes, gauss_rule_cells), except the cells
     a free surface cuts (their box is not the whole cell), whose particles
     are points of the rule themselves (``own``)."""
-    breaks0 = rc.breaks
-    breaks1 = rc.breaks1
-    pcell = LOCATE_CELLS(x, breaks0, breaks1, rc.uniform0, rc.uniform1)
-    lo, hi = BODY_BOXES_2D(x, V, pcell, breaks0, breaks1)
-    own, kept = CUT_CELL_PARTICLES(pcell, lo, hi, breaks0, breaks1)
+    axes = rc.axes
+    pcell = LOCATE_CELLS(x, axes, rc.uniform)
+    lo, hi = BODY_BOXES(x, V, pcell, axes)
+    own, kept = CUT_CELL_PARTICLES(pcell, lo, hi, axes)
     xg, wg, gcell = GAUSS_RULE_CELLS(kept, lo, hi, rc.ref, rc.wref)
     rc.pcell = pcell
     rc.xg = xg
@@ -306,7 +306,7 @@ def _rule_2d(rc, x, V):
     rc.own = own
 
 
-_RULE = _rule_1d if DIM == 1 else _rule_2d
+_RULE = _rule_1d if DIM == 1 else _rule_cells
 
 
 def fit_points(rc, x, V, values, out, fresh):
@@ -323,8 +323,7 @@ def _fit_points(rc, x, V, values, out, fresh):
     if not isinstance(fields["factor"], types.NoneType):
         def tls(rc, x, V, values, out, fresh):  # CompiledReconstruction._fit's tls
             if fresh:
-                rc.factor = TLS_FACTOR(x, V, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.breaks,
-                                       rc.breaks1)
+                rc.factor = TLS_FACTOR(x, V, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.ncells)
             TLS_APPLY(x, V, values, rc.xg, rc.factor, out)
             return True
         return tls

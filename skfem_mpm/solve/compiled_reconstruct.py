@@ -17,21 +17,21 @@ MUSL re-projection P_i = sum_g w_g (rho v^new)_h N_i reconstructs the
 updated particle momentum with the same rule (g2p2g on points of mass w_g).
 
 The rule: in 1D the body's pieces (:func:`skfem_mpm.kernels.gauss_rule.gauss_rule_1d`),
-in 2D the part of each cell holding particles that the body covers
-(:func:`skfem_mpm.kernels.gauss_rule.body_boxes_2d`,
+in 2D and 3D the part of each cell holding particles that the body covers
+(:func:`skfem_mpm.kernels.gauss_rule.body_boxes`,
 :func:`skfem_mpm.kernels.gauss_rule.gauss_rule_cells`), p + 2 points per
 axis, both bit for bit those of :func:`skfem_mpm.reconstruct.integration_rule`.
 The reconstructions: the particle-knot spline in 1D
 (:mod:`skfem_mpm.kernels.spline_1d`), the published TLS (default
-options) in 1D and 2D (:mod:`skfem_mpm.kernels.tls`) and mls in 1D and 2D
-(:mod:`skfem_mpm.kernels.mls`). Which run here is
+options) in 1D, 2D and 3D (:mod:`skfem_mpm.kernels.tls`) and mls in 1D, 2D
+and 3D (:mod:`skfem_mpm.kernels.mls`); the spline in 1D and 2D. Which run here is
 :func:`unsupported`'s answer; the rest stays on the reference executor.
 """
 import numpy as np
 from numba import get_num_threads
 
 from ..errors import InvalidState
-from ..kernels.gauss_rule import (body_boxes_2d, cut_cell_particles, gauss_rule_1d,
+from ..kernels.gauss_rule import (body_boxes, cut_cell_particles, gauss_rule_1d,
                                   gauss_rule_cells, locate_cells)
 from ..kernels.kronecker import KroneckerData, axis_mass_bands, banded_cholesky_into
 from ..kernels.mls import empty_mls_store, mls_fit, mls_store
@@ -64,7 +64,7 @@ def unsupported(method, dim):
         if set(options) - {"knots", "penalty"}:
             return "reconstruction options"
         return None
-    if recon == "mls" and dim in (1, 2):
+    if recon == "mls":
         if set(options) - {"radius"}:
             return "reconstruction mls options other than radius"
         return None
@@ -73,7 +73,7 @@ def unsupported(method, dim):
             if name not in TLS_DEFAULTS or value != TLS_DEFAULTS[name]:
                 return f"reconstruction tls with {name}={value!r} (compiled: the published default)"
         return None
-    return f"reconstruction {recon} in {dim}D"
+    return f"reconstruction {recon} in {dim}D (compiled: 1D and 2D)"
 
 
 class QuadraturePoints:
@@ -262,11 +262,9 @@ class CompiledReconstruction:
         self = cls.__new__(cls)
         self._setup(grid, name, options)
         self.kernels = None
-        breaks = (self.breaks, self.breaks1)
-
         def reconstruct(grid, particles, values, rule):
             if getattr(rule, "pcell", None) is None:
-                rule.pcell = locate_cells(particles.x, *breaks, *self.uniform)
+                rule.pcell = locate_cells(particles.x, self.axes, self.uniform)
             return self.reconstruct(particles, np.asarray(values, dtype=np.float64), rule)
 
         return reconstruct
@@ -276,10 +274,10 @@ class CompiledReconstruction:
         self.name = name
         ref, wref = np.polynomial.legendre.leggauss(grid.degree + 2)
         self.ref, self.wref = 0.5 * (ref + 1), 0.5 * wref
-        axes = [np.ascontiguousarray(b, dtype=np.float64) for b in grid.breakpoints]
-        self.breaks = axes[0]
-        self.breaks1 = axes[-1]  # unused in 1D
-        self.uniform = (bool(grid._uniform[0]), bool(grid._uniform[-1]))
+        self.axes = tuple(np.ascontiguousarray(b, dtype=np.float64) for b in grid.breakpoints)
+        self.breaks = self.axes[0]
+        self.uniform = tuple(bool(u) for u in grid._uniform)
+        self.ncells = int(grid.ncells)
         self.gap = float(grid.cell_sizes[0].max())
         self._zero_a = np.zeros((grid.ndofs, grid.dim))
         if self.name == "spline" and self.dim == 2:
@@ -291,14 +289,14 @@ class CompiledReconstruction:
 
     def rule(self, p):
         pcell = None
-        if self.name == "tls" or self.dim == 2:
-            pcell = locate_cells(p.x, self.breaks, self.breaks1, *self.uniform)
+        if self.name == "tls" or self.dim >= 2:
+            pcell = locate_cells(p.x, self.axes, self.uniform)
         if self.dim == 1:
             order, pp, pg, xg, wg, cell = gauss_rule_1d(p.x[:, 0], p.V, self.gap, self.breaks,
                                                         self.ref, self.wref)
             return Rule(xg[:, None], wg, cell, pcell, order, pp, pg)
-        lo, hi = body_boxes_2d(p.x, p.V, pcell, self.breaks, self.breaks1)
-        own, kept = cut_cell_particles(pcell, lo, hi, self.breaks, self.breaks1)
+        lo, hi = body_boxes(p.x, p.V, pcell, self.axes)
+        own, kept = cut_cell_particles(pcell, lo, hi, self.axes)
         xg, wg, cell = gauss_rule_cells(kept, lo, hi, self.ref, self.wref)
         if own.size == 0:
             return Rule(xg, wg, cell, pcell)
@@ -342,7 +340,7 @@ class CompiledReconstruction:
             factor = getattr(rule, "tls", None)
             if factor is None:
                 factor = rule.tls = for_threads(tls_factor, parallel)(
-                    p.x, p.V, rule.pcell, rule.x, rule.w, rule.cell, self.breaks, self.breaks1)
+                    p.x, p.V, rule.pcell, rule.x, rule.w, rule.cell, self.ncells)
             for_threads(tls_apply, parallel)(p.x, p.V, values, rule.x, factor, out)
             return out
         if self.name == "mls":  # M_g^-1 e_0 and the pairs once per rule (the positions)

@@ -48,9 +48,6 @@ class State:
         self.materials = [b.material for b in scene.bodies]
         if method.scheme == "rk4":
             check_staged(self.materials, self.grid.dim)
-        if method.reconstruction == "tls" and self.grid.dim == 3:
-            raise ValueError("reconstruction='tls' is written for 1D and 2D grids; on a 3D "
-                             "grid use 'spline', 'mls' or 'none'")
         self.force_modifiers = [m for e in scene.effects for m in e.force_modifiers()]
         self.velocity_modifiers = [m for e in scene.effects for m in e.velocity_modifiers()]
         self.constraints = Constraints(self.grid, scene.effects)

@@ -76,8 +76,9 @@ class StencilSystem:
     iteration_log = None  # a list: each CG run appends its iterations (benchmarks)
 
     def __init__(self, kernels, stencil, lumped, constraints, fast, warm, rtol=1e-13,
-                 small_mass=0.0):
+                 small_mass=0.0, by_component=False):
         self.k = kernels
+        self.by_component = by_component
         self.geometry = kernels.stencil_geometry
         self.stencil = stencil
         self.constraints = constraints
@@ -170,7 +171,7 @@ class StencilSystem:
         if self.preconditioner == "kronecker" and n:
             kron = KroneckerData.of_system(fit[:n * ns].reshape((n, ns)), merge.kept,
                                            self.geometry, previous=self.memo.get(f"kronecker{g}"),
-                                           index=merge.kept_index)
+                                           index=merge.kept_index, by_component=self.by_component)
             self.memo[f"kronecker{g}"] = kron
         group[3] = (Ar[:n * W].reshape((n, W)), colsr[:n * W].reshape((n, W)),
                     Fr[:n * WF].reshape((n, WF)), fcolsr[:n * WF].reshape((n, WF)),
@@ -210,11 +211,16 @@ class StencilSystem:
         if self.preconditioner == "kronecker" and rows.size and f"banded{g}_on" in self.warm:
             kron = self._band(g, A, cols, rows)
         if self.preconditioner == "kronecker" and rows.size and kron is None:
+            # the fringe correction works on the one box of the free dofs;
+            # without it, in 2D with several bodies (by_component), a box
+            # per coupled component (KroneckerData.of_system)
+            with_fringe = self.fringe_layers > 0 and (self.FRINGE_FROM <= 0
+                                                      or f"fringe{g}_on" in self.warm)
             kron = KroneckerData.of_system(A, rows, self.geometry,
-                                           previous=self.memo.get(f"kronecker{g}"), index=index)
+                                           previous=self.memo.get(f"kronecker{g}"), index=index,
+                                           by_component=self.by_component and not with_fringe)
             self.memo[f"kronecker{g}"] = kron
-            if self.fringe_layers > 0 and (self.FRINGE_FROM <= 0
-                                           or f"fringe{g}_on" in self.warm):
+            if with_fringe:
                 fringe = self._fringe(g, rows, A, cols)
         built = group[3] = (A, cols, F, fcols, inv_diag, kron, fringe, need_fixed)
         return built

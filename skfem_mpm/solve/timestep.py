@@ -441,7 +441,7 @@ def compiled_twin(grid, reconstruct, options):
     from ..reconstruct import RECONSTRUCTORS
 
     names = [n for n, f in RECONSTRUCTORS.items() if f is reconstruct]
-    if not names or grid.dim != 2:
+    if not names or grid.dim == 1:
         return None
     method = SimpleNamespace(reconstruction=names[0], reconstruction_options=dict(options))
     if unsupported(method, grid.dim) is not None:
