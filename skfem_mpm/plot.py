@@ -368,15 +368,17 @@ def plot_field_snapshots(result, path, field="stress", count=4, exact=None, titl
                              layout="constrained")
     for ax, k, v in zip(axes[0], picks, values):
         x = result.history["x"][k]
+        where = ""
         if dim == 3:
             grid = result.grid
             middle = 0.5 * sum(grid.bounds[2])
             layer = x[np.argmin(np.abs(x[:, 2] - middle)), 2]
             keep = np.abs(x[:, 2] - layer) < 0.25 * grid.h[2]
             x, v = x[keep], v[keep]
+            where = f", z = {layer:.3g}"
         sc = ax.scatter(x[:, 0], x[:, 1], c=v, s=4, cmap="viridis", vmin=lo, vmax=hi)
         ax.set_aspect("equal")
-        ax.set_title(f"t = {result.times[k]:.4g}", fontsize=9)
+        ax.set_title(f"t = {result.times[k]:.4g}{where}", fontsize=9)
         ax.set_xlabel("x")
     axes[0][0].set_ylabel("y")
     fig.colorbar(sc, ax=list(axes[0]), label=FIELD_LABELS.get(field, ("", field))[1])
