@@ -1043,6 +1043,48 @@ def test_colliding_disks_get_a_kronecker_box_each():
     assert np.mean(iterations) < 14
 
 
+def separate_blocks(bodies, steps=12):
+    """Two blocks of one material, two cells apart on a 16 x 8 quadratic grid
+    (their free dofs share no mass-matrix entry), with cell-aligned edges (no
+    tiny masses), moving towards each other, fixed at the bottom; as two
+    Bodies or as one."""
+    grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (16, 8), 2)
+
+    def velocity(sign):
+        return lambda X: np.column_stack((0.1 * sign + 0 * X[:, 0], 0.05 * np.sin(3 * X[:, 0])))
+
+    left = Particles.seed(grid, 2, 1.0, region=((0.125, 0.375), (0.125, 0.625)),
+                          velocity=velocity(1))
+    right = Particles.seed(grid, 2, 1.0, region=((0.625, 0.875), (0.25, 0.75)),
+                           velocity=velocity(-1))
+    material = LinearElastic(10.0, 0.3)
+    parts = [Body(left, material), Body(right, material)] if bodies == 2 else \
+        [Body(Particles.concatenate([left, right]), material)]
+    effects = [Fixed("bottom")]
+    dt = prepare(Scene(grid, parts, 1.0, effects=effects), Method()).dt
+    return Scene(grid, parts, steps * dt, effects=effects)
+
+
+def test_separate_bodies_without_tiny_masses_get_a_kronecker_box_each(monkeypatch):
+    """The 2D box per coupled component where no dof is merged (the disks
+    merge tiny masses every step): two separate blocks as two bodies take a
+    box each, in the loop as on the executor (same bits), and their CG
+    needs fewer iterations than the same blocks as one body (one box over
+    both). Measured: 23.8 against 35.5 iterations per solve (50 runs)."""
+    from skfem_mpm.solve.stencil_system import preconditioned_with
+
+    method = Method(mass="consistent")
+    looped, _ = looped_and_stepped(monkeypatch, separate_blocks(2), method)
+    assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] == 24
+    assert looped.counts["small_dofs_max"] == 0
+    mean = {}
+    for bodies in (1, 2):
+        with preconditioned_with("kronecker") as iterations:  # (the executor: the log)
+            simulate(separate_blocks(bodies), method)
+        mean[bodies] = np.mean(iterations)
+    assert mean[2] < 0.8 * mean[1], mean
+
+
 def two_blocks(E_right=10.0, steps=23):
     """Two blocks moving towards each other on a 2D grid (quadratic), each
     its own Body, fixed at the bottom, under gravity."""
