@@ -1083,6 +1083,9 @@ def footing_embedment(x, X, B, settlement):
     x = 0) stands above the highest particle of the initial ground (the
     highest reference position X). ``x``, ``X``: (n, 2) positions."""
     beside = (x[:, 0] >= 0.5 * B) & (x[:, 0] <= B)
+    if not beside.any():
+        raise ValueError(f"footing_embedment: no particle beside the footing (B/2 <= x <= B "
+                         f"with B = {B!r}): the ground beside it is needed to read its heave")
     return float(settlement + x[beside, 1].max() - X[:, 1].max())
 
 
@@ -1094,6 +1097,9 @@ def hansen_depth_factor(depth_over_width):
     Bulletin 28; the form in Das, Principles of Foundation Engineering):
     q_ult = N_c c_u d_c for a footing whose base lies D below the ground."""
     k = np.asarray(depth_over_width, dtype=np.float64)
+    if not np.all(k >= 0.0):  # (NaN too)
+        raise ValueError(f"hansen_depth_factor: depth_over_width must be >= 0 (the base below "
+                         f"the ground), got {depth_over_width!r}")
     return 1.0 + 0.4 * np.where(k <= 1.0, k, np.arctan(k))
 
 

@@ -246,6 +246,10 @@ def test_the_embedment_is_the_settlement_plus_the_heave_beside_the_footing():
     assert footing_embedment(x, X, 2.0, 0.1) == pytest.approx(0.1 + 1.15 - 0.95)  # up to x = B
     assert hansen_depth_factor(0.5) == pytest.approx(1.2)
     assert np.allclose(hansen_depth_factor([1.0, 2.0]), [1.4, 1 + 0.4 * np.arctan(2.0)])
+    with pytest.raises(ValueError, match="depth_over_width must be >= 0"):
+        hansen_depth_factor([0.5, -0.1])
+    with pytest.raises(ValueError, match="no particle beside the footing"):
+        footing_embedment(x, X, 0.1, 0.1)
 
 
 def test_bbar_runs_the_same_on_both_executors():
