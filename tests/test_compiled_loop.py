@@ -1085,6 +1085,39 @@ def test_separate_bodies_without_tiny_masses_get_a_kronecker_box_each(monkeypatc
     assert mean[2] < 0.8 * mean[1], mean
 
 
+def test_fringe_correction_takes_the_one_box_of_several_bodies(monkeypatch):
+    """The exception to a box per body: the fringe correction
+    (kernels.fringe) works on the one box of the free dofs, so with it on
+    (here from the first solve, the band factor off) the two separate
+    blocks of the test above take one Kronecker box as if they were one
+    body, and move as the one-body run moves (the same physics: no mass
+    entry joins them) to CG's tolerance. A box per body with the fringe on
+    does not compile (the fringe step needs the one box's numbering)."""
+    from skfem_mpm.kernels.kronecker import KroneckerData
+
+    built = KroneckerData.of_system.__func__
+    boxes = []
+
+    def spy(cls, *args, **kwargs):
+        data = built(cls, *args, **kwargs)
+        boxes.append("one" if data.boxes is None else "per component")
+        return data
+
+    monkeypatch.setattr(KroneckerData, "of_system", classmethod(spy))
+    x = {}
+    for bodies in (1, 2):
+        with preconditioned_with("kronecker+fringe") as iterations:
+            monkeypatch.setattr(StencilSystem, "BAND_MAX", 0)
+            monkeypatch.setattr(StencilSystem, "FRINGE_FROM", 0)
+            monkeypatch.setattr(StencilSystem, "FRINGE_MIN_ROWS", 0)
+            result = simulate(separate_blocks(bodies), Method(mass="consistent"))
+        assert result.counts["steps"] == 24 and len(iterations) == 50
+        assert set(boxes) == {"one"}, (bodies, set(boxes))
+        boxes.clear()
+        x[bodies] = result.particles.x
+    assert np.abs(x[2] - x[1]).max() < 1e-9 * np.abs(x[1]).max()
+
+
 def two_blocks(E_right=10.0, steps=23):
     """Two blocks moving towards each other on a 2D grid (quadratic), each
     its own Body, fixed at the bottom, under gravity."""
