@@ -485,8 +485,9 @@ def test_spline_reconstruction_gives_the_executors_bits(monkeypatch, case):
 # surface cuts are points of the rule themselves), integrated as above.
 # Every pair of dimension, scheme and mass kind; in 2D both the aligned
 # body (whole cells) and the unaligned one (cut cells: particle points).
-# Consistent and hybrid mass in 2D run on the aligned body: the unaligned
-# one has tiny-mass dofs, which the loop leaves to the executor.
+# Consistent and hybrid mass in 2D run on the aligned body; the unaligned
+# one with consistent MUSL (the particle points' consistent mass next to
+# the fitted cells' closed-form integrals) in the slow tier.
 TLS_CASES = [
     dict(dim=1, scheme="musl", mass="hybrid", degree=2, effect="gravity", aligned=False),
     dict(dim=1, scheme="musl", mass="lumped", degree=3, effect="gravity", aligned=False),
@@ -500,6 +501,7 @@ TLS_CASES = [
     dict(dim=2, scheme="cd", mass="lumped", degree=2, effect="gravity", aligned=True),
     dict(dim=2, scheme="rk4", mass="lumped", degree=2, effect="gravity", aligned=False),
     dict(dim=2, scheme="rk4", mass="consistent", degree=2, effect="gravity", aligned=True),
+    dict(dim=2, scheme="musl", mass="consistent", degree=2, effect="gravity", aligned=False),
 ]
 
 

@@ -746,14 +746,15 @@ class Kernels:
             bound = self._threaded[kernel] = for_threads(kernel, self.parallel)
         return bound
 
-    def p2g(self, particles, fext):
+    def p2g(self, particles, fext, cells=None):
         """(lumped mass (dofs,), momentum (dofs, dim), force (dofs, dim)),
-        see :mod:`skfem_mpm.kernels.scatter`; reused by the next call."""
-        return self.transfers.p2g(particles, fext)
+        see :mod:`skfem_mpm.kernels.scatter`; reused by the next call
+        (``cells``: Transfers.p2g's)."""
+        return self.transfers.p2g(particles, fext, cells)
 
-    def g2p2g(self, particles, grid_a, dt, v_new):
+    def g2p2g(self, particles, grid_a, dt, v_new, cells=None):
         """MUSL: v_new = v + dt N a and the grid momentum of m v_new."""
-        return self.transfers.g2p2g(particles, grid_a, dt, v_new)
+        return self.transfers.g2p2g(particles, grid_a, dt, v_new, cells)
 
     def g2p(self, particles, grid_a, grid_v, dt, vfactor, flip, fused, material, new, L_out,
             acc_out=None):
@@ -828,19 +829,23 @@ class Kernels:
         return sp.csr_matrix((stencil.ravel()[slots], cols, indptr),
                              shape=(self.ndofs, self.ndofs))
 
-    def consistent_stencil(self, particles, cells=0, k=0):
+    def consistent_stencil(self, particles, cells=0, k=0, add=None):
         """(M as a stencil array (dofs, (2p+1)^dim), sum m_p |grad N_k|^2);
         both arrays are reused by the next call. 2D: the first ``cells``
         k x k blocks of points are whole cells' tensor Gauss rules
-        (:func:`consistent_cells_2d`)."""
+        (:func:`consistent_cells_2d`); ``add(mass_copies, stiff_copies,
+        touched)`` (2D), if given, adds more into that kernel's per-thread
+        copies before they are summed (kernels.cell_integrals)."""
         self._stencil_pattern()
         p = particles
         touched = self._stencil_touched
-        if self.dim == 2 and cells > 0:
+        if self.dim == 2 and (cells > 0 or add is not None):
             (bx, ux, ihx, Cx), (by, uy, ihy, Cy) = self.args
             self.kernel(consistent_cells_2d)(p.x, p.m, cells, k, bx, by, ux, uy, ihx, ihy, Cx,
                                              Cy, self.p, self.nbx, self._stencil_copies,
                                              self._stiff_copies, touched)
+            if add is not None:
+                add(self._stencil_copies, self._stiff_copies, touched)
         elif self.dim == 1:
             (bx, ux, ihx, Cx), = self.args
             self.kernel(consistent_1d)(p.x, p.m, bx, ux, ihx, Cx, self.p, self._stencil_copies,

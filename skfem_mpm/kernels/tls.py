@@ -54,7 +54,7 @@ from numba import njit, prange
 from .cholesky import cholesky
 
 __all__ = ["TLS_BOUND_ABS", "TLS_BOUND_TOL", "TLS_RANK_TOL", "empty_factor", "tls_apply",
-           "tls_factor", "tls_reconstruct"]
+           "slot_cells", "tls_coefficients", "tls_factor", "tls_reconstruct"]
 
 TLS_RANK_TOL = 1e-8  # the value of skfem_mpm.reconstruct.TLS_RANK_TOL (a test checks)
 TLS_BOUND_TOL = 1.0  # skfem_mpm.reconstruct.TLS_BOUND_TOL and TLS_BOUND_ABS (a test checks)
@@ -235,10 +235,13 @@ def tls_factor(x, V, pcell, xg, wg, gcell, ncells):
                 phi[0], phi[1], phi[2], phi[3], phi[4], phi[5], phi[6], phi[7], phi[8], \
                     phi[9] = _monomials(x[q, 0], x[q, y], x[q, z], centre[0], centre[1],
                                         centre[2], size[0], size[1], size[2], dim)
-                for r in range(m):
+                for r in range(m):  # the lower triangle (A is symmetric)
                     wr = V[q] * phi[r]
-                    for t in range(m):
+                    for t in range(r + 1):
                         A[r, t] += wr * phi[t]
+            for r in range(m):
+                for t in range(r + 1, m):
+                    A[r, t] = A[t, r]
             for i in range(ng):
                 g = gorder[g0 + i]
                 phi[0], phi[1], phi[2], phi[3], phi[4], phi[5], phi[6], phi[7], phi[8], \
@@ -269,6 +272,33 @@ def tls_apply(x, V, values, xg, factor, out):
     :func:`tls_factor` on the same particles and rule (see the module
     docstring): the sums b and S, the solves of both levels' factorised
     Lagrange systems, the bound test."""
+    nact = factor[5].shape[0]
+    nblocks = (nact + CELLS_PER_BLOCK - 1) // CELLS_PER_BLOCK
+    no_coef = np.empty((0, 0, 0))
+    for block in prange(nblocks):
+        _fit_block(block, x, V, values, xg, factor, out, no_coef, True)
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def tls_coefficients(x, V, values, xg, factor, coef):
+    """coef[s] (m, k) = the monomial coefficients, in cell slot s's frame
+    (factor[4]), of the TLS fit of the particle ``values`` (n, k) that
+    :func:`tls_apply` evaluates at the cell's Gauss points (the same level
+    per column, chosen by the same bound test at those points; the
+    conserving constant is c_0 = S / G_0); coef (nact, m, k), the slots of
+    :func:`tls_factor` (cell of slot s: the cell of its Gauss points)."""
+    nact = factor[5].shape[0]
+    nblocks = (nact + CELLS_PER_BLOCK - 1) // CELLS_PER_BLOCK
+    no_points = np.empty((0, 0))
+    for block in prange(nblocks):
+        _fit_block(block, x, V, values, xg, factor, no_points, coef, False)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _fit_block(block, x, V, values, xg, factor, out, coef, at_points):
+    """The fits of the cells of one block (see the module docstring): at
+    the Gauss points into ``out`` (``at_points``), else their coefficients
+    into ``coef`` (the other of the two is not written)."""
     porder, pstart, gorder, gstart, frame, G, posed, lu, pivots = factor
     dim = x.shape[1]
     y = min(1, dim - 1)
@@ -276,104 +306,149 @@ def tls_apply(x, V, values, xg, factor, out):
     k = values.shape[1]
     m = G.shape[1]
     nact = G.shape[0]
-    most = 0  # the most Gauss points of one cell
-    for s in range(nact):
+    first = block * CELLS_PER_BLOCK
+    stop = min(nact, (block + 1) * CELLS_PER_BLOCK)
+    most = 0  # the most Gauss points of one cell of the block
+    for s in range(first, stop):
         most = max(most, gstart[s + 1] - gstart[s])
-    nblocks = (nact + CELLS_PER_BLOCK - 1) // CELLS_PER_BLOCK
-    for block in prange(nblocks):
-        phig = np.zeros((most, MONOMIALS))  # the monomials at the cell's Gauss points
-        fit = np.empty((most, k))  # a level's fit at them
-        phi = np.zeros(MONOMIALS)
-        b = np.empty((m, k))
-        S = np.empty(k)
-        R = np.empty((m + 1, k))
-        fmin = np.empty(k)
-        fmax = np.empty(k)
-        slack = np.empty(k)
-        low = np.empty(k)
-        high = np.empty(k)
-        pending = np.empty(k, dtype=np.bool_)
-        for s in range(block * CELLS_PER_BLOCK, min(nact, (block + 1) * CELLS_PER_BLOCK)):
-            c0, c1, c2 = frame[s, 0], frame[s, 1], frame[s, 2]
-            s0, s1, s2 = frame[s, 3], frame[s, 4], frame[s, 5]
-            g0 = gstart[s]
-            ng = gstart[s + 1] - g0
-            b[:] = 0.0
-            S[:] = 0.0
-            fmin[:] = np.inf
-            fmax[:] = -np.inf
-            for i in range(pstart[s], pstart[s + 1]):
-                q = porder[i]
-                phi[0], phi[1], phi[2], phi[3], phi[4], phi[5], phi[6], phi[7], phi[8], \
-                    phi[9] = _monomials(x[q, 0], x[q, y], x[q, z], c0, c1, c2, s0, s1, s2, dim)
-                for r in range(m):
-                    wr = V[q] * phi[r]
-                    for col in range(k):
-                        b[r, col] += wr * values[q, col]
+    phig = np.zeros((most, MONOMIALS))  # the monomials at the cell's Gauss points
+    fit = np.empty((most, k))  # a level's fit at them
+    phi = np.zeros(MONOMIALS)
+    b = np.empty((m, k))
+    S = np.empty(k)
+    R = np.empty((m + 1, k))
+    fmin = np.empty(k)
+    fmax = np.empty(k)
+    slack = np.empty(k)
+    low = np.empty(k)
+    high = np.empty(k)
+    pending = np.empty(k, dtype=np.bool_)
+    for s in range(first, stop):
+        c0, c1, c2 = frame[s, 0], frame[s, 1], frame[s, 2]
+        s0, s1, s2 = frame[s, 3], frame[s, 4], frame[s, 5]
+        g0 = gstart[s]
+        ng = gstart[s + 1] - g0
+        b[:] = 0.0
+        S[:] = 0.0
+        fmin[:] = np.inf
+        fmax[:] = -np.inf
+        for i in range(pstart[s], pstart[s + 1]):
+            q = porder[i]
+            phi[0], phi[1], phi[2], phi[3], phi[4], phi[5], phi[6], phi[7], phi[8], \
+                phi[9] = _monomials(x[q, 0], x[q, y], x[q, z], c0, c1, c2, s0, s1, s2, dim)
+            for r in range(m):
+                wr = V[q] * phi[r]
                 for col in range(k):
-                    S[col] += V[q] * values[q, col]
-                    fmin[col] = min(fmin[col], values[q, col])
-                    fmax[col] = max(fmax[col], values[q, col])
-            for i in range(ng):
-                g = gorder[g0 + i]
-                phig[i, 0], phig[i, 1], phig[i, 2], phig[i, 3], phig[i, 4], phig[i, 5], \
-                    phig[i, 6], phig[i, 7], phig[i, 8], phig[i, 9] = _monomials(
-                        xg[g, 0], xg[g, y], xg[g, z], c0, c1, c2, s0, s1, s2, dim)
+                    b[r, col] += wr * values[q, col]
             for col in range(k):
-                slack[col] = TLS_BOUND_TOL * (fmax[col] - fmin[col]) + TLS_BOUND_ABS * max(
-                    abs(fmin[col]), abs(fmax[col]))
-                pending[col] = True
-            npending = k
-            for level in range(2):
-                if npending == 0 or not posed[s, level]:
-                    continue
-                n = m if level == 0 else 1 + dim
-                for r in range(n):
-                    for col in range(k):
-                        R[r, col] = b[r, col]
+                S[col] += V[q] * values[q, col]
+                fmin[col] = min(fmin[col], values[q, col])
+                fmax[col] = max(fmax[col], values[q, col])
+        evaluated = False  # phig holds the monomials at the cell's Gauss points
+        for col in range(k):
+            slack[col] = TLS_BOUND_TOL * (fmax[col] - fmin[col]) + TLS_BOUND_ABS * max(
+                abs(fmin[col]), abs(fmax[col]))
+            pending[col] = True
+        npending = k
+        for level in range(2):
+            if npending == 0 or not posed[s, level]:
+                continue
+            n = m if level == 0 else 1 + dim
+            for r in range(n):
                 for col in range(k):
-                    R[n, col] = S[col]
-                # R := K^-1 R as _solve does, written out on lu[s, level] (no views)
-                for j in range(n + 1):
-                    best = pivots[s, level, j]
-                    if best != j:
+                    R[r, col] = b[r, col]
+            for col in range(k):
+                R[n, col] = S[col]
+            # R := K^-1 R as _solve does, written out on lu[s, level] (no views)
+            for j in range(n + 1):
+                best = pivots[s, level, j]
+                if best != j:
+                    for col in range(k):
+                        R[j, col], R[best, col] = R[best, col], R[j, col]
+            for j in range(n + 1):
+                for i in range(j + 1, n + 1):
+                    f = lu[s, level, i, j]
+                    if f != 0.0:
                         for col in range(k):
-                            R[j, col], R[best, col] = R[best, col], R[j, col]
-                for j in range(n + 1):
-                    for i in range(j + 1, n + 1):
-                        f = lu[s, level, i, j]
-                        if f != 0.0:
-                            for col in range(k):
-                                R[i, col] -= f * R[j, col]
-                for j in range(n, -1, -1):
-                    for col in range(k):
-                        acc = R[j, col]
-                        for q in range(j + 1, n + 1):
-                            acc -= lu[s, level, j, q] * R[q, col]
-                        R[j, col] = acc / lu[s, level, j, j]
-                for col in range(k):  # the level's fit at the points, for the bound test
-                    low[col] = np.inf
-                    high[col] = -np.inf
-                for i in range(ng):
-                    for col in range(k):
-                        acc = 0.0
-                        for r in range(n):
-                            acc += phig[i, r] * R[r, col]
-                        fit[i, col] = acc
-                        low[col] = min(low[col], acc)
-                        high[col] = max(high[col], acc)
-                for col in range(k):  # the columns within their bounds keep this level's fit
-                    if pending[col] and low[col] >= fmin[col] - slack[col] \
-                            and high[col] <= fmax[col] + slack[col]:
+                            R[i, col] -= f * R[j, col]
+            for j in range(n, -1, -1):
+                for col in range(k):
+                    acc = R[j, col]
+                    for q in range(j + 1, n + 1):
+                        acc -= lu[s, level, j, q] * R[q, col]
+                    R[j, col] = acc / lu[s, level, j, j]
+            # the bound test: first the bound |f - c_0| <= B of the monomials
+            # on the frame (|xi_a| <= 1/2 at the points), with a margin above
+            # the rounding of an evaluation; a column it does not settle (or
+            # at_points, which needs the values) is evaluated at the points
+            unsure = at_points
+            for col in range(k):
+                low[col] = np.inf
+                high[col] = -np.inf
+                if pending[col] and not at_points:
+                    spread = 0.0
+                    for r in range(1, n):
+                        spread += abs(R[r, col]) * (0.5 if r <= dim else 0.25)
+                    margin = 1e-14 * (abs(R[0, col]) + spread)
+                    lo_c = R[0, col] - spread - margin
+                    hi_c = R[0, col] + spread + margin
+                    if lo_c >= fmin[col] - slack[col] and hi_c <= fmax[col] + slack[col]:
+                        low[col] = lo_c
+                        high[col] = hi_c
+                    else:  # (also NaN)
+                        unsure = True
+            if unsure:
+                if not evaluated:
+                    for i in range(ng):
+                        g = gorder[g0 + i]
+                        phig[i, 0], phig[i, 1], phig[i, 2], phig[i, 3], phig[i, 4], \
+                            phig[i, 5], phig[i, 6], phig[i, 7], phig[i, 8], \
+                            phig[i, 9] = _monomials(xg[g, 0], xg[g, y], xg[g, z], c0, c1, c2,
+                                                    s0, s1, s2, dim)
+                    evaluated = True
+                for col in range(k):  # the level's fit at the points
+                    if pending[col] and not low[col] < np.inf:
+                        for i in range(ng):
+                            acc = 0.0
+                            for r in range(n):
+                                acc += phig[i, r] * R[r, col]
+                            fit[i, col] = acc
+                            low[col] = min(low[col], acc)
+                            high[col] = max(high[col], acc)
+            for col in range(k):  # the columns within their bounds keep this level's fit
+                if pending[col] and low[col] >= fmin[col] - slack[col] \
+                        and high[col] <= fmax[col] + slack[col]:
+                    if at_points:
                         for i in range(ng):
                             out[gorder[g0 + i], col] = fit[i, col]
-                        pending[col] = False
-                        npending -= 1
-            for col in range(k):  # the conserving constant
-                if pending[col]:
-                    constant = S[col] / G[s, 0]
+                    else:
+                        for r in range(m):
+                            coef[s, r, col] = R[r, col] if r < n else 0.0
+                    pending[col] = False
+                    npending -= 1
+        for col in range(k):  # the conserving constant
+            if pending[col]:
+                constant = S[col] / G[s, 0]
+                if at_points:
                     for i in range(ng):
                         out[gorder[g0 + i], col] = constant
+                else:
+                    coef[s, 0, col] = constant
+                    for r in range(1, m):
+                        coef[s, r, col] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def slot_cells(factor, gcell):
+    """The cell of each slot of :func:`tls_factor` (that of its Gauss
+    points ``gcell``), for the cell integrals of :func:`tls_coefficients`'
+    coefficients (kernels.cell_integrals)."""
+    gorder, gstart = factor[2], factor[3]
+    nact = gstart.shape[0] - 1
+    cells = np.empty(nact, dtype=np.int64)
+    for s in range(nact):
+        cells[s] = gcell[gorder[gstart[s]]]
+    return cells
 
 
 def empty_factor(dim):

@@ -77,23 +77,30 @@ class Transfers:
                                      np.zeros((self.nthreads, 2), dtype=np.int64))
         return self._copies[nfields]
 
-    def p2g(self, particles, fext=None):
+    def p2g(self, particles, fext=None, cells=None):
         """(mass (dofs,), momentum (dofs, dim), force (dofs, dim)); the
-        arrays are reused by the next call."""
+        arrays are reused by the next call. ``cells(copies, touched)``, if
+        given, adds more into the per-thread copies before they are summed
+        (kernels.cell_integrals)."""
         copies, touched = self.copies(1 + 2 * self.dim)
         has = fext is not None
         p2g_kernel(self.dim, self.p, self.window, self.parallel)(
             particle_record(particles), self.record, fext if has else self._no_force, has,
             copies, touched)
+        if cells is not None:
+            cells(copies, touched)
         self._reduce_fields(copies, touched, self.mass, self._momentum, self._force,
                             self.mass_range, self.occupied)
         return self.mass, self._momentum, self._force
 
-    def g2p2g(self, particles, grid_a, dt, v_new):
-        """MUSL: v_new = v + dt N a; returns the grid momentum of m v_new."""
+    def g2p2g(self, particles, grid_a, dt, v_new, cells=None):
+        """MUSL: v_new = v + dt N a; returns the grid momentum of m v_new
+        (``cells`` as in :meth:`p2g`)."""
         copies, touched = self.copies(self.dim)
         g2p2g_kernel(self.dim, self.p, self.window, self.parallel)(
             particle_record(particles), self.record, grid_a, float(dt), v_new, copies, touched)
+        if cells is not None:
+            cells(copies, touched)
         self._reduce_copies(copies, touched, self._projected)
         return self._projected
 

@@ -66,7 +66,8 @@ import numba
 import numpy as np
 from numba.core.typing.typeof import Purpose
 
-from ..kernels import (band_factor, bbar, by_symbol, cholesky, constitutive, fast_dof,
+from ..kernels import (band_factor, bbar, by_symbol, cell_integrals, cholesky, constitutive,
+                       fast_dof,
                        gauss_rule, grid_modifiers, kronecker, merged_mass, mls, mpm, scatter,
                        spline_1d, spline_2d, staging, step_size, tiny_mass, tls, traction,
                        weights)
@@ -124,6 +125,11 @@ _GRID_KERNELS = {
     "CUT_CELL_PARTICLES": gauss_rule.cut_cell_particles,
     "TLS_FACTOR": tls.tls_factor,
     "TLS_APPLY": tls.tls_apply,
+    "TLS_COEFFICIENTS": tls.tls_coefficients,
+    "SLOT_CELLS": tls.slot_cells,
+    "CELL_P2G": cell_integrals.cell_p2g,
+    "CELL_MOMENTUM": cell_integrals.cell_momentum,
+    "CELL_MASS": cell_integrals.cell_mass,
     "MLS_FIT": mls.mls_fit,
     "MLS_STORE": mls.mls_store,
     "SPLINE_LS_SYSTEM": spline_2d.spline_ls_system,
@@ -708,7 +714,9 @@ class StepLoop:
                 values=empty((n, k)),
                 rho=empty(n), pcell=empty(0, dtype=np.int64), xg=empty((0, dim)), wg=empty(0),
                 gcell=empty(0, dtype=np.int64), own=empty(0, dtype=np.int64),
-                factor=None, radius=0.0, alpha=None, spline=None,
+                factor=None, radius=0.0, alpha=None, spline=None, tables=None,
+                cell_shape=(0, 0, 0), coef=empty((0, 6, k)), slot_cell=empty(0, dtype=np.int64),
+                momentum_coef=empty((0, 6, dim)),
                 mls_store=mls.empty_mls_store(), mls_most=0,
                 xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),
                 sq=empty((0, dim, dim)), fq=empty((0, dim)), momentum_values=empty((n, dim)),
@@ -716,6 +724,9 @@ class StepLoop:
                 point_velocities=empty((0, dim)))
             if recon.name == "tls":
                 fields["factor"] = tls.empty_factor(dim)
+                if recon.cell_tables is not None:  # the cells' closed-form integrals
+                    fields.update(tables=recon.cell_tables,
+                                  cell_shape=(recon.ncx, recon.nbx, recon.degree))
             elif recon.name == "mls":
                 fields.update(radius=float(recon.radius), alpha=empty((0, dim + 1)))
             else:  # SplineLeastSquares' data, BandedCholesky's arrays

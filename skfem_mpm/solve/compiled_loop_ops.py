@@ -202,6 +202,12 @@ def _cell_average(run):
     return not isinstance(run.field_dict["cell_average"], types.NoneType)
 
 
+def cells_integrated_type(run):
+    """Whether a ruled run's fit is integrated per cell in closed form (the
+    2D TLS: compiled_loop_reconstruct's cells_integrated), from its type."""
+    return not isinstance(run.field_dict["rc"].field_dict["tables"], types.NoneType)
+
+
 def _ruled(run):
     """Whether the run (its numba type) reconstructs on the rule of
     CompiledReconstruction.rule (tls, mls, the 2D spline; else, when it
@@ -360,6 +366,7 @@ def _scatter(run, particles, column):
     ruled = _ruled(run)
     traction = _traction(run)
     cells = ruled and DIM == 2  # the rule's tensor cells: CompiledReconstruction.tensor_cells
+    fitted_cells = ruled and cells_integrated_type(run)  # 2D TLS: closed-form cell integrals
 
     def impl(run, particles, column):
         """Lumped mass, momentum, force (and the consistent mass) of
@@ -380,7 +387,10 @@ def _scatter(run, particles, column):
                           st.mass_range, st.occupied)
         fext, has_fext = run.particle_forces(column)  # (a body force: compiled_loop_body_force)
         if reconstructed:  # (a body force: its density rho b = f_p / V_p fitted too)
-            if ruled:
+            if fitted_cells:
+                fitted = call(cell_rule_points, run.rc, particles[0], particles[1], run.m,
+                              particles[4], particles[5], fext)
+            elif ruled:
                 fitted = call(rule_points, run.rc, particles[0], particles[1], run.m,
                               particles[4], particles[5], fext)
             else:
@@ -399,6 +409,8 @@ def _scatter(run, particles, column):
         else:
             points = particles
         P2G(run.p2g_at, points, run.grid, fext, has_fext, run.copies_p2g, run.touched_p2g)
+        if fitted_cells:  # the fitted cells' integrals (kernels.cell_integrals)
+            call(cell_p2g, run.rc, has_fext, run.copies_p2g, run.touched_p2g)
         REDUCE_FIELDS(run.copies_p2g, run.touched_p2g, run.mass, run.momentum, run.force,
                       run.mass_range, run.occupied)
         run.set_constraint_values(column)  # (prescribed velocities: compiled_loop_prescribed)
@@ -424,7 +436,10 @@ def _scatter(run, particles, column):
         t1 = monotonic_ns()
         run.phase_ns[0] += t1 - t0
         if consistent:
-            if cells:  # the rule's whole cells summed per axis (Kernels.consistent_stencil)
+            if fitted_cells:  # the particle points, then the fitted cells
+                call(assemble_mass_fitted_cells, run.cm, run.rc, points[0], points[3],
+                     run.rc.ref.shape[0], run.nbx, run.nby)
+            elif cells:  # the rule's whole cells summed per axis (Kernels.consistent_stencil)
                 k = run.rc.ref.shape[0]
                 call(assemble_mass_cells, run.cm, points[0], points[3],
                      run.rc.wg.shape[0] // (k * k), k, run.degree, run.nbx, run.nby)
@@ -602,6 +617,7 @@ def _solve_projected_velocity(run):
 def _project_velocity(run, state, grid):
     reconstructed = _reconstructed(run)
     ruled = _ruled(run)
+    fitted_cells = ruled and cells_integrated_type(run)
 
     def impl(run, state, grid):
         if run.stop:
@@ -611,7 +627,9 @@ def _project_velocity(run, state, grid):
               run.copies_g2p2g, run.touched_g2p2g)
         if reconstructed:  # the momentum of the fitted rho v^new at the step's points
             t_fit = monotonic_ns()
-            if ruled:
+            if fitted_cells:
+                call(cell_rule_project, run.rc, run.x, run.V, run.v_new)
+            elif ruled:
                 call(rule_project, run.rc, run.x, run.V, run.v_new)
             else:
                 call(project_points, run.rc, run.x, run.v_new)
@@ -622,6 +640,8 @@ def _project_velocity(run, state, grid):
             points = (rc.xq, rc.momentum_fit, rc.momentum_fit, rc.Vq, rc.Vq, rc.no_stress)
             G2P2G(run.g2p2g_at, points, run.grid, run.no_acceleration, 0.0,
                   rc.point_velocities, run.copies_g2p2g, run.touched_g2p2g)
+            if fitted_cells:  # the fitted cells' momentum (kernels.cell_integrals)
+                call(cell_momentum, run.rc, run.copies_g2p2g, run.touched_g2p2g)
         REDUCE_COPIES(run.copies_g2p2g, run.touched_g2p2g, run.momentum_new)
         run.velocities_done = True
         t1 = monotonic_ns()

@@ -245,6 +245,12 @@ RULED_FIELDS = (
     # space's axes and sizes, its penalty and the stencil, band and banded
     # Cholesky factor of A + P (SplineLeastSquares, BandedCholesky)
     "factor", "radius", "alpha", "spline",
+    # the 2D TLS with its grid sums in closed form per cell
+    # (CompiledReconstruction.cell_tables: kernels.cell_integrals), else None:
+    # the axes' tables, (cells along x, functions along x, degree), the
+    # step's fitted coefficients per cell slot, each slot's cell, and the
+    # MUSL projection's coefficients
+    "tables", "cell_shape", "coef", "slot_cell", "momentum_coef",
     # mls: the pairs of the step's fit (kernels.mls.mls_fit's store, sized by
     # kernels.mls.mls_store from the largest count in reach of the last fit)
     "mls_store", "mls_most",
@@ -354,6 +360,94 @@ def _fit_points(rc, x, V, values, out, fresh):
         SPLINE_EVALUATE(rc.xg, rhs, axes[0], axes[1], nbx, out)
         return True
     return spline
+
+
+@njit(cache=True)
+def _own_points(rc, x, V, values):
+    """The rule's particle points (rc.own: cells a free surface cuts) as the
+    step's quadrature points with their own values (rc.xq, rc.Vq and
+    _quadrature_points')."""
+    own = rc.own
+    dim = x.shape[1]
+    k = values.shape[1]
+    ng = own.shape[0]
+    xq = np.empty((ng, dim))
+    Vq = np.empty(ng)
+    points = np.empty((ng, k))
+    for j in range(ng):
+        i = own[j]
+        Vq[j] = V[i]
+        for c in range(dim):
+            xq[j, c] = x[i, c]
+        for c in range(k):
+            points[j, c] = values[i, c]
+    rc.xq = xq
+    rc.Vq = Vq
+    return _quadrature_points(rc, points)
+
+
+@njit(cache=True)
+def cell_rule_points(rc, x, v, m, V, stress, forces):
+    """The 2D TLS with closed-form cell integrals
+    (CompiledReconstruction._cells_to_grid): the step's rule, the fit's
+    coefficients per cell (rc.coef, rc.slot_cell; the position half kept
+    in rc.factor) and the rule's particle points as quadrature points."""
+    values = _per_volume_fields(rc, v, m, V, stress, forces)
+    _RULE(rc, x, V)
+    rc.factor = TLS_FACTOR(x, V, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.ncells)
+    rc.slot_cell = SLOT_CELLS(rc.factor, rc.gcell)
+    nact = rc.slot_cell.shape[0]
+    if rc.coef.shape[0] != nact:
+        rc.coef = np.empty((nact, 6, values.shape[1]))
+        rc.momentum_coef = np.empty((nact, 6, x.shape[1]))
+    TLS_COEFFICIENTS(x, V, values, rc.xg, rc.factor, rc.coef)
+    return _own_points(rc, x, V, values)
+
+
+@njit(cache=True)
+def cell_rule_project(rc, x, V, v_new):
+    """MUSL (the 2D TLS with closed-form cell integrals): the coefficients
+    of the fitted rho v^new (rc.momentum_coef) and the particles' own
+    rho v^new at the rule's particle points (rc.momentum_fit)."""
+    n, dim = v_new.shape
+    for i in range(n):
+        for c in range(dim):
+            rc.momentum_values[i, c] = rc.rho[i] * v_new[i, c]
+    TLS_COEFFICIENTS(x, V, rc.momentum_values, rc.xg, rc.factor, rc.momentum_coef)
+    own = rc.own
+    for j in range(own.shape[0]):
+        for c in range(dim):
+            rc.momentum_fit[j, c] = rc.momentum_values[own[j], c]
+
+
+@njit(cache=True)
+def cell_p2g(rc, has_fext, copies, touched):
+    """Add p2g's fields of the fitted cells into the copies (kernels.cell_integrals)."""
+    ncx, nbx, p = rc.cell_shape
+    tx, ty = rc.tables
+    CELL_P2G(rc.coef, rc.slot_cell, ncx, tx, ty, p, nbx, has_fext, copies, touched)
+
+
+@njit(cache=True)
+def cell_momentum(rc, copies, touched):
+    """Add the fitted cells' projected momentum into the copies."""
+    ncx, nbx, p = rc.cell_shape
+    tx, ty = rc.tables
+    CELL_MOMENTUM(rc.momentum_coef, rc.slot_cell, ncx, tx, ty, p, nbx, copies, touched)
+
+
+@njit(cache=True)
+def assemble_mass_fitted_cells(cm, rc, x, m, k, nbx, nby):
+    """2D: the consistent mass stencil and K of the rule's particle points
+    (kernels.mpm.consistent_cells_2d with no cell blocks) plus the fitted
+    cells' closed-form integrals (kernels.cell_integrals.cell_mass), as
+    Kernels.consistent_stencil with ``add``."""
+    ncx, _, p = rc.cell_shape
+    tx, ty = rc.tables
+    ASSEMBLE_CELLS(x, m, cm.axes, 0, k, p, nbx, cm.copies, cm.stiff_copies, cm.touched)
+    CELL_MASS(rc.coef, rc.slot_cell, ncx, tx, ty, p, nbx, cm.copies, cm.stiff_copies,
+              cm.touched)
+    _reduce_mass(cm, p, nbx, nby, 2)
 
 
 @njit(cache=True)

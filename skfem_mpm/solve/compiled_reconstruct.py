@@ -16,6 +16,13 @@ the generated scatter kernels and the stencil assembly compute them. The
 MUSL re-projection P_i = sum_g w_g (rho v^new)_h N_i reconstructs the
 updated particle momentum with the same rule (g2p2g on points of mass w_g).
 
+The TLS fit in 2D (:data:`CELL_INTEGRALS`) is a polynomial per cell, so
+these sums over a whole cell's Gauss points are taken in closed form per
+axis from its coefficients instead (:mod:`skfem_mpm.kernels.cell_integrals`,
+the same quadrature summed in another order): the fit is never evaluated
+at the points but for its bound test, and p2g and the consistent mass run
+over the particle points of the rule alone (cells a free surface cuts).
+
 The rule: in 1D the body's pieces (:func:`skfem_mpm.kernels.gauss_rule.gauss_rule_1d`),
 in 2D and 3D the part of each cell holding particles that the body covers
 (:func:`skfem_mpm.kernels.gauss_rule.body_boxes`,
@@ -40,9 +47,15 @@ from ..kernels.spline_1d import not_a_knot_spline
 from ..kernels.spline_2d import (WIDTH, band_solve, spline_band, spline_evaluate,
                                  spline_ls_system)
 from ..kernels.serial import SERIAL_BELOW, for_threads
-from ..kernels.tls import tls_apply, tls_factor
+from ..kernels.tls import slot_cells, tls_apply, tls_coefficients, tls_factor
+from ..kernels.cell_integrals import axis_tables, cell_mass, cell_momentum, cell_p2g
 
 TLS_DEFAULTS = {"degree": 2, "neighbour_weight": 0.0}
+
+CELL_INTEGRALS = True
+"""2D TLS: the step's grid sums in closed form per cell (see the module);
+False: over the Gauss points as quadrature particles (tests compare the
+two). Read when a run is set up."""
 
 __all__ = ["CompiledReconstruction", "unsupported"]
 
@@ -282,6 +295,14 @@ class CompiledReconstruction:
         self._zero_a = np.zeros((grid.ndofs, grid.dim))
         if self.name == "spline" and self.dim == 2:
             self.spline_ls = SplineLeastSquares(grid, options.get("penalty", 1e-6))
+        self.cell_tables = None  # 2D TLS: kernels.cell_integrals.axis_tables per axis
+        if self.name == "tls" and self.dim == 2 and CELL_INTEGRALS:
+            self.degree = int(grid.degree)
+            self.ncx = int(self.axes[0].size - 1)
+            self.nbx = int(grid.basis_per_axis[0])
+            self.cell_tables = tuple(
+                axis_tables(self.axes[a], self.uniform[a], grid.extraction[a], self.degree,
+                            self.ref, self.wref) for a in range(2))
         if self.name == "mls":  # the reference's kernel radius: radius cells of the smallest
             self.radius = float(options.get("radius", 1.5)) * min(grid.h)
             # the pairs of the last rule fitted with coefficients (kernels.mls.mls_fit)
@@ -368,14 +389,13 @@ class CompiledReconstruction:
         """(lumped mass, momentum, force, consistent stencil or None, the
         projection data): ``volume`` the particle volume forces (n, dim)
         other than uniform accelerations, or None."""
+        if self.cell_tables is not None:
+            return self._cells_to_grid(state, p, volume)
         k, dim = self.kernels, self.dim
         with state.timer("reconstruct"):
             rule = self.rule(p)
-            rho = p.m / p.V
-            fields = [rho[:, None], rho[:, None] * p.v, p.stress.reshape(p.n, dim * dim)]
-            if volume is not None:
-                fields.append(volume / p.V[:, None])
-            h = self.reconstruct(p, np.concatenate(fields, axis=1), rule)
+            rho, values = self._fields(p, volume)
+            h = self.reconstruct(p, values, rule)
         with state.timer("p2g"):
             w = rule.w
             rho_h = h[:, 0]
@@ -394,6 +414,86 @@ class CompiledReconstruction:
                 stencil = k.consistent_stencil(points, *self.tensor_cells(rule))
         return mass, momentum, force, stencil, (rule, rho)
 
+    def _fields(self, p, volume):
+        """(rho (n,), the fitted per-volume fields [rho, rho v, sigma] and
+        with a body force rho b = volume / V (n, k))."""
+        dim = self.dim
+        rho = p.m / p.V
+        fields = [rho[:, None], rho[:, None] * p.v, p.stress.reshape(p.n, dim * dim)]
+        if volume is not None:
+            fields.append(volume / p.V[:, None])
+        return rho, np.ascontiguousarray(np.concatenate(fields, axis=1))
+
+    def _cell_fit(self, p, values, rule):
+        """(coefficients (cells, 6, k), cells): the TLS fit of ``values`` per
+        cell of the rule's Gauss points (kernels.tls.tls_coefficients; the
+        position half kept on the rule, as _fit), and each slot's cell."""
+        parallel = self.kernels.parallel
+        n = getattr(rule, "ngauss", rule.w.shape[0])
+        if getattr(rule, "tls", None) is None:
+            rule.tls = for_threads(tls_factor, parallel)(
+                p.x, p.V, rule.pcell, rule.x[:n], rule.w[:n], rule.cell[:n], self.ncells)
+            rule.slot_cells = slot_cells(rule.tls, rule.cell[:n])
+        coef = np.empty((rule.slot_cells.shape[0], 6, values.shape[1]))
+        for_threads(tls_coefficients, parallel)(p.x, p.V, values, rule.x[:n], rule.tls, coef)
+        return coef, rule.slot_cells
+
+    def _own_points(self, p, rule):
+        """The particles that are points of the rule themselves (cells a
+        free surface cuts; none if no cell is cut)."""
+        own = getattr(rule, "particle_points", None)
+        return np.zeros(0, dtype=np.int64) if own is None else own
+
+    def _cells_to_grid(self, state, p, volume):
+        """to_grid of the 2D TLS with the cells' closed-form integrals
+        (:data:`CELL_INTEGRALS`): p2g and the consistent mass of the rule's
+        particle points, plus kernels.cell_integrals of the fitted
+        coefficients added into the same per-thread copies."""
+        k, dim = self.kernels, self.dim
+        tx, ty = self.cell_tables
+        kernel = k.kernel
+        with state.timer("reconstruct"):
+            rule = self.rule(p)
+            rho, values = self._fields(p, volume)
+            coef, cells = self._cell_fit(p, values, rule)
+        with state.timer("p2g"):
+            own = self._own_points(p, rule)
+            h = values[own]
+            w = p.V[own]
+            rho_h = h[:, 0]
+            stress = np.ascontiguousarray(h[:, 1 + dim:1 + dim + dim * dim]).reshape(-1, dim, dim)
+            points = QuadraturePoints(p.x[own], h[:, 1:1 + dim] / rho_h[:, None], w * rho_h, w,
+                                      stress)
+            fext = None if volume is None else w[:, None] * h[:, 1 + dim + dim * dim:]
+
+            def add(copies, touched):
+                kernel(cell_p2g)(coef, cells, self.ncx, tx, ty, self.degree, self.nbx,
+                                 volume is not None, copies, touched)
+            mass, momentum, force = k.p2g(points, fext, add)
+        stencil = None
+        if state.method.needs_consistent_mass:
+            with state.timer("mass_matrix"):
+                def add_mass(mass_copies, stiff_copies, touched):
+                    kernel(cell_mass)(coef, cells, self.ncx, tx, ty, self.degree, self.nbx,
+                                      mass_copies, stiff_copies, touched)
+                stencil = k.consistent_stencil(points, 0, self.ref.shape[0], add_mass)
+        return mass, momentum, force, stencil, (rule, rho)
+
+    def _cells_project(self, state, p, v_new, rule, rho):
+        """project of the 2D TLS with the cells' closed-form integrals."""
+        k = self.kernels
+        tx, ty = self.cell_tables
+        with state.timer("reconstruct"):
+            density = np.ascontiguousarray(rho[:, None] * v_new)
+            coef, cells = self._cell_fit(p, density, rule)
+        with state.timer("p2g"):
+            own = self._own_points(p, rule)
+
+            def add(copies, touched):
+                k.kernel(cell_momentum)(coef, cells, self.ncx, tx, ty, self.degree, self.nbx,
+                                        copies, touched)
+            return self._points_momentum(p.x[own], p.V[own], density[own], add)
+
     def tensor_cells(self, rule):
         """(cells, k): in 2D the rule's first ``cells`` blocks of k x k points
         are whole cells' tensor rules (gauss_rule_cells), which the
@@ -406,15 +506,21 @@ class CompiledReconstruction:
 
     def _momentum(self, rule, momentum_density):
         """sum_g w_g (rho v)_h(x_g) N_i(x_g) by g2p2g (a = 0) on points of mass w_g."""
-        ng = rule.w.shape[0]
-        points = QuadraturePoints(rule.x, momentum_density, rule.w, rule.w,
-                                  np.zeros((ng, self.dim, self.dim)))
+        return self._points_momentum(rule.x, rule.w, momentum_density)
+
+    def _points_momentum(self, x, w, momentum_density, cells=None):
+        """sum_g w_g (rho v)_g N_i(x_g) by g2p2g (a = 0) on points of mass w_g
+        (``cells``: Transfers.g2p2g's)."""
+        ng = w.shape[0]
+        points = QuadraturePoints(x, momentum_density, w, w, np.zeros((ng, self.dim, self.dim)))
         scratch = self.kernels.scratch("projected_v", (ng, self.dim))
-        return self.kernels.g2p2g(points, self._zero_a, 0.0, scratch)
+        return self.kernels.g2p2g(points, self._zero_a, 0.0, scratch, cells)
 
     def project(self, state, p, v_new, projection):
         """MUSL: the grid momentum of the reconstructed rho v^new."""
         rule, rho = projection
+        if self.cell_tables is not None:
+            return self._cells_project(state, p, v_new, rule, rho)
         with state.timer("reconstruct"):
             h = self.reconstruct(p, rho[:, None] * v_new, rule)
         with state.timer("p2g"):

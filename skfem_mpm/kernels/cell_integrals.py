@@ -1,0 +1,268 @@
+"""Grid integrals of per-cell quadratic polynomials on a 2D tensor B-spline
+grid, in closed form per axis (the TLS fit's grid side without its Gauss
+points).
+
+A per-cell reconstruction (:mod:`skfem_mpm.kernels.tls`) gives in each
+cell e = ix + nx iy a polynomial in the cell's frame
+
+    f_h(x) = sum_r c_r phi_r(xi, eta),   phi = (1, xi, eta, xi^2, xi eta, eta^2),
+    xi = (x - c^x_ix) / s^x_ix,   eta = (y - c^y_iy) / s^y_iy
+
+(c, s: centre and span of the cell's Gauss points per axis, the fit's own
+frame). Every grid quantity the step integrates is linear in c and the
+monomials and the B-splines are tensor products, so each integral over
+the cell splits into 1D integrals per axis (sum factorisation, Orszag
+1980), taken once per cell of each axis at setup (:func:`axis_tables`):
+
+    P[i, q, a]    = int_cell xi^q N_a dx          D[i, q, a] = int xi^q N_a' dx
+    Q[i, q, a, b] = int_cell xi^q N_a N_b dx      R[i, q, a] = int xi^q (N_a')^2 dx
+
+(N_a, a = 0..p, the cell's p + 1 B-splines of the axis; exact with the
+cell's k = p + 2 point Gauss rule, degree 2 + 2p <= 2k - 1). Then with
+U_q[a] = sum_p c_(p, q) T^x[ix, p, a] (the x sums of each y power q):
+
+    int f_h N_(a,b)           = sum_q U_q[a] P^y[iy, q, b]        (T^x = P^x)
+    int f_h dN_(a,b)/dx       = sum_q U_q[a] P^y[iy, q, b]        (T^x = D^x)
+    int f_h dN_(a,b)/dy       = sum_q U_q[a] D^y[iy, q, b]        (T^x = P^x)
+    int f_h N_(a,b) N_(a2,b2) = sum_q Q^y[iy, q, b, b2] (sum_p c_(p, q) Q^x[ix, p, a, a2])
+    int f_h |grad N_(a,b)|^2  = sum_q (U^R_q[a] Q^y[iy, q, b, b] + U^S_q[a] R^y[iy, q, b])
+
+(U^R with R^x, U^S with the diagonal of Q^x). These are the sums the
+Gauss points of the cell give (the same quadrature), in another order:
+equal to rounding. :func:`cell_p2g` adds the lumped mass, momentum and
+force (p2g's fields: m_k = int rho_h N_k, P_k = int (rho v)_h N_k,
+f_k = int (rho b)_h N_k - sym(sigma_h) grad N_k) into p2g's per-thread
+copies, :func:`cell_momentum` a momentum into g2p2g's, and
+:func:`cell_mass` the consistent mass and sum rho_h |grad N_k|^2 into the
+consistent mass kernels' copies (the slots of
+:func:`skfem_mpm.kernels.mpm.consistent_cells_2d`), each after the point
+kernel of the step has cleared and written its copies: the cells are split
+into one block per copy and each block widens its copy's touched range.
+"""
+import numpy as np
+from numba import njit, prange
+
+from .stencil import axis_functions
+from .weights import FAST
+
+__all__ = ["axis_tables", "cell_mass", "cell_momentum", "cell_p2g"]
+
+# IDX[q, p]: the index in phi of xi^p eta^q (-1: not a monomial of degree <= 2)
+IDX = np.array([[0, 1, 3], [2, 4, -1], [5, -1, -1]], dtype=np.int64)
+
+
+@njit(cache=True, error_model="numpy")
+def axis_tables(breaks, uniform, C, p, ref, wref):
+    """(P, D, Q, R) of one axis (see the module), each cell i taken whole,
+    its Gauss points x_j = u_i + h_i r_j (weights h_i w_j) and frame
+    centre 0.5 (x_min + x_max), span x_max - x_min, as
+    :func:`skfem_mpm.kernels.gauss_rule.gauss_rule_cells` and
+    :func:`skfem_mpm.kernels.tls.tls_factor` compute them. Entries beyond
+    p are 0."""
+    n = breaks.shape[0] - 1
+    inv_h = n / (breaks[n] - breaks[0])
+    k = ref.shape[0]
+    P = np.zeros((n, 3, 4))
+    D = np.zeros((n, 3, 4))
+    Q = np.zeros((n, 3, 4, 4))
+    R = np.zeros((n, 3, 4))
+    x = np.empty(k)
+    for i in range(n):
+        h = breaks[i + 1] - breaks[i]
+        lo = np.inf
+        hi = -np.inf
+        for j in range(k):
+            x[j] = breaks[i] + h * ref[j]
+            lo = min(lo, x[j])
+            hi = max(hi, x[j])
+        centre = 0.5 * (lo + hi)
+        span = hi - lo
+        for j in range(k):
+            _, w0, w1, w2, w3, g0, g1, g2, g3 = axis_functions(x[j], breaks, uniform, inv_h, C,
+                                                               p)
+            w = (w0, w1, w2, w3)
+            g = (g0, g1, g2, g3)
+            xi = (x[j] - centre) / span
+            power = h * wref[j]
+            for q in range(3):
+                for a in range(p + 1):
+                    P[i, q, a] += power * w[a]
+                    D[i, q, a] += power * g[a]
+                    R[i, q, a] += power * g[a] * g[a]
+                    for b in range(p + 1):
+                        Q[i, q, a, b] += power * w[a] * w[b]
+                power *= xi
+    return P, D, Q, R
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _x_sums(coef, s, col, T, ix, p, scale, U):
+    """U[q, a] = scale sum_p c_(p, q) T[ix, p, a] of column ``col`` of cell
+    slot s (U (3, 4))."""
+    for q in range(3):
+        for a in range(p + 1):
+            acc = 0.0
+            for e in range(3 - q):
+                acc += coef[s, IDX[q, e], col] * T[ix, e, a]
+            U[q, a] = scale * acc
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _sym_x_sums(coef, s, c0, c1, T, ix, p, U):
+    """:func:`_x_sums` of the mean of columns c0 and c1 (sym(sigma)_01)."""
+    for q in range(3):
+        for a in range(p + 1):
+            acc = 0.0
+            for e in range(3 - q):
+                r = IDX[q, e]
+                acc += 0.5 * (coef[s, r, c0] + coef[s, r, c1]) * T[ix, e, a]
+            U[q, a] = acc
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _y_sum(U, T, iy, a, b):
+    """sum_q U[q, a] T[iy, q, b]."""
+    return U[0, a] * T[iy, 0, b] + U[1, a] * T[iy, 1, b] + U[2, a] * T[iy, 2, b]
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _cell_nodes(first, last, ix, iy, p, nbx):
+    """The touched range (first, last) widened by the nodes of cell (ix, iy)."""
+    return min(first, iy * nbx + ix), max(last, (iy + p) * nbx + ix + p + 1)
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def cell_p2g(coef, cell, ncx, tx, ty, p, nbx, has_fext, copies, touched):
+    """Add p2g's fields (m, P, f) of the cells' fitted [rho, rho v,
+    sigma (row by row), rho b (with ``has_fext``)] (coef (ns, 6, k):
+    cell[s]'s coefficients) into the per-thread copies (nt, dofs, 5) after
+    the point kernel (see the module). ``tx``, ``ty``: :func:`axis_tables`
+    of the axes; ``ncx`` cells along x; ``nbx`` functions along x."""
+    ns = coef.shape[0]
+    nt, nk, nf = copies.shape
+    Px, Dx = tx[0], tx[1]
+    Py, Dy = ty[0], ty[1]
+    for t in prange(nt):
+        g = copies[t].reshape(nk * nf)
+        first = touched[t, 0]
+        last = touched[t, 1]
+        Um = np.empty((3, 4))
+        U0 = np.empty((3, 4))
+        U1 = np.empty((3, 4))
+        A00 = np.empty((3, 4))  # sigma_00 with D^x
+        A01 = np.empty((3, 4))  # sym sigma_01 with P^x
+        B01 = np.empty((3, 4))  # sym sigma_01 with D^x
+        A11 = np.empty((3, 4))  # sigma_11 with P^x
+        E0 = np.zeros((3, 4))
+        E1 = np.zeros((3, 4))
+        for s in range(t * ns // nt, (t + 1) * ns // nt):
+            ix = cell[s] % ncx
+            iy = cell[s] // ncx
+            _x_sums(coef, s, 0, Px, ix, p, 1.0, Um)
+            _x_sums(coef, s, 1, Px, ix, p, 1.0, U0)
+            _x_sums(coef, s, 2, Px, ix, p, 1.0, U1)
+            _x_sums(coef, s, 3, Dx, ix, p, 1.0, A00)
+            _sym_x_sums(coef, s, 4, 5, Px, ix, p, A01)
+            _sym_x_sums(coef, s, 4, 5, Dx, ix, p, B01)
+            _x_sums(coef, s, 6, Px, ix, p, 1.0, A11)
+            if has_fext:
+                _x_sums(coef, s, 7, Px, ix, p, 1.0, E0)
+                _x_sums(coef, s, 8, Px, ix, p, 1.0, E1)
+            for b in range(p + 1):
+                for a in range(p + 1):
+                    k = ((iy + b) * nbx + ix + a) * nf
+                    g[k] += _y_sum(Um, Py, iy, a, b)
+                    g[k + 1] += _y_sum(U0, Py, iy, a, b)
+                    g[k + 2] += _y_sum(U1, Py, iy, a, b)
+                    f0 = -(_y_sum(A00, Py, iy, a, b) + _y_sum(A01, Dy, iy, a, b))
+                    f1 = -(_y_sum(B01, Py, iy, a, b) + _y_sum(A11, Dy, iy, a, b))
+                    if has_fext:
+                        f0 += _y_sum(E0, Py, iy, a, b)
+                        f1 += _y_sum(E1, Py, iy, a, b)
+                    g[k + 3] += f0
+                    g[k + 4] += f1
+            first, last = _cell_nodes(first, last, ix, iy, p, nbx)
+        touched[t, 0] = first
+        touched[t, 1] = last
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def cell_momentum(coef, cell, ncx, tx, ty, p, nbx, copies, touched):
+    """Add int (rho v)_h N_k of the cells' fitted momentum density (coef
+    (ns, 6, 2)) into g2p2g's per-thread copies (nt, dofs, 2) after the
+    point kernel (see :func:`cell_p2g`)."""
+    ns = coef.shape[0]
+    nt, nk, nf = copies.shape
+    Px = tx[0]
+    Py = ty[0]
+    for t in prange(nt):
+        g = copies[t].reshape(nk * nf)
+        first = touched[t, 0]
+        last = touched[t, 1]
+        U0 = np.empty((3, 4))
+        U1 = np.empty((3, 4))
+        for s in range(t * ns // nt, (t + 1) * ns // nt):
+            ix = cell[s] % ncx
+            iy = cell[s] // ncx
+            _x_sums(coef, s, 0, Px, ix, p, 1.0, U0)
+            _x_sums(coef, s, 1, Px, ix, p, 1.0, U1)
+            for b in range(p + 1):
+                for a in range(p + 1):
+                    k = ((iy + b) * nbx + ix + a) * nf
+                    g[k] += _y_sum(U0, Py, iy, a, b)
+                    g[k + 1] += _y_sum(U1, Py, iy, a, b)
+            first, last = _cell_nodes(first, last, ix, iy, p, nbx)
+        touched[t, 0] = first
+        touched[t, 1] = last
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def cell_mass(coef, cell, ncx, tx, ty, p, nbx, mass_copies, stiff_copies, touched):
+    """Add the consistent mass int rho_h N_k N_l (upper half of the
+    stencil, the slots of kernels.mpm.consistent_cells_2d) and
+    int rho_h |grad N_k|^2 of the cells' fitted density (column 0 of coef)
+    into the consistent mass kernels' per-thread copies, after the point
+    kernel (see the module)."""
+    ns = coef.shape[0]
+    nt = mass_copies.shape[0]
+    width = 2 * p + 1
+    Qx, Rx = tx[2], tx[3]
+    Qy, Ry = ty[2], ty[3]
+    for t in prange(nt):
+        M = mass_copies[t]
+        K = stiff_copies[t]
+        first = touched[t, 0]
+        last = touched[t, 1]
+        T = np.empty((3, 4, 4))  # T[q, a, a2] = sum_p c_(p, q) Q^x[ix, p, a, a2]
+        UR = np.empty((3, 4))
+        for s in range(t * ns // nt, (t + 1) * ns // nt):
+            ix = cell[s] % ncx
+            iy = cell[s] // ncx
+            _x_sums(coef, s, 0, Rx, ix, p, 1.0, UR)
+            for q in range(3):
+                for a in range(p + 1):
+                    for a2 in range(a, p + 1):
+                        acc = 0.0
+                        for e in range(3 - q):
+                            acc += coef[s, IDX[q, e], 0] * Qx[ix, e, a, a2]
+                        T[q, a, a2] = acc
+                        T[q, a2, a] = acc
+            for b in range(p + 1):
+                for a in range(p + 1):
+                    kd = (iy + b) * nbx + ix + a
+                    K[kd] += (UR[0, a] * Qy[iy, 0, b, b] + UR[1, a] * Qy[iy, 1, b, b]
+                              + UR[2, a] * Qy[iy, 2, b, b] + T[0, a, a] * Ry[iy, 0, b]
+                              + T[1, a, a] * Ry[iy, 1, b] + T[2, a, a] * Ry[iy, 2, b])
+                    for a2 in range(a, p + 1):
+                        M[kd, a2 - a] += (Qy[iy, 0, b, b] * T[0, a, a2]
+                                          + Qy[iy, 1, b, b] * T[1, a, a2]
+                                          + Qy[iy, 2, b, b] * T[2, a, a2])
+                    for b2 in range(b + 1, p + 1):
+                        base = (b2 - b) * width - a
+                        for a2 in range(p + 1):
+                            M[kd, base + a2] += (Qy[iy, 0, b, b2] * T[0, a, a2]
+                                                 + Qy[iy, 1, b, b2] * T[1, a, a2]
+                                                 + Qy[iy, 2, b, b2] * T[2, a, a2])
+            first, last = _cell_nodes(first, last, ix, iy, p, nbx)
+        touched[t, 0] = first
+        touched[t, 1] = last
