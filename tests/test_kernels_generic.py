@@ -437,6 +437,37 @@ def test_consistent_stencil_of_any_dimension_is_n_transpose_m_n(p, parallel):
     assert np.abs(K - K2).max() <= 1e-15 * np.abs(K2).max() * 10
 
 
+@pytest.mark.parametrize("p", [1, 2])
+def test_consistent_stencil_rows_emptied_since_the_last_assembly_are_zero(p):
+    """reduce_stencil writes a row whose diagonal M_kk is 0 as zero without
+    summing or mirroring it: assembled once over a filled block and then
+    over two clumps apart (their touched ranges span the rows between
+    them, filled before and empty now), the stencil is N^T diag(m) N of the
+    second particles and K their sum m |grad N_k|^2; for p = 1 a particle
+    on a grid line has N_k = 0 but grad N_k != 0 on the row across it."""
+    grid = SplineGrid.rectangle((0, 1), (0, 2), (12, 10), p)
+    ref = tensor_grid(grid.breakpoints, p)
+    rng = np.random.default_rng(5)
+    kernels = mpm.Kernels(grid, True)
+    filled = rng.random((400, 2)) * [1.0, 2.0]
+    kernels.consistent_stencil(SimpleNamespace(x=filled, m=0.5 + rng.random(400)))
+    left = rng.random((60, 2)) * [0.2, 2.0]
+    right = [0.8, 0.0] + rng.random((60, 2)) * [0.2, 2.0]
+    on_line = np.array([[0.25, 1.0], [0.75, 0.5]])  # x on the grid lines 3 / 12 and 9 / 12
+    x = np.concatenate([left, on_line, right])
+    x = x[np.lexsort(x.T[::-1])]
+    clumps = SimpleNamespace(x=x, m=0.5 + rng.random(x.shape[0]))
+    stencil, K = kernels.consistent_stencil(clumps)
+    N, G = reference_matrices(ref, x)
+    M = (N.T @ sp.diags(clumps.m) @ N).toarray()
+    between = np.zeros((grid.basis_per_axis[1], grid.basis_per_axis[0]), dtype=bool)
+    between[:, p + 3:grid.basis_per_axis[0] - p - 3] = True
+    assert np.all(M[between.ravel()] == 0.0)  # the clumps leave rows empty between them
+    assert np.abs(kernels.stencil_csr(stencil).toarray() - M).max() <= TOL * np.abs(M).max()
+    stiff = sum(G[d].multiply(G[d]).T @ clumps.m for d in range(2))
+    assert np.abs(K - stiff).max() <= TOL * np.abs(stiff).max()
+
+
 def test_three_factor_kronecker_on_one_layer_is_the_two_factor_one():
     """apply_kronecker_axes with nz = 1 repeats apply_kronecker bit for bit
     (same passes, same order), and with three factors it is the inverse of

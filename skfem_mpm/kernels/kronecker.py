@@ -106,21 +106,20 @@ def banded_cholesky(bands, lo, hi):
     return L
 
 
-@njit(cache=True, error_model="numpy", fastmath=FAST)
-def _axis_marginals(A, coords, p, bands, sums):
-    """bands[d] = the lower bands of the marginal of A on axis d (box-local
-    numbering), sums[d] its row sums; returns the row sums of A (one per
-    row). A's slot (s_c w + s_b) w + s_a holds the dof at index offsets
-    (s_a, s_b, s_c) - p from its row's (w = 2 p + 1; compact_system's ELL
-    rows), so a slot's axes are known without decoding its column; each
-    row is first summed per offset (short dependency chains)."""
-    nr, ns = A.shape
+FIT_BLOCKS = 4
+"""Blocks of rows whose axis marginals :func:`fit_kronecker` sums in
+parallel (a constant: the factors' bits do not depend on the threads)."""
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _block_marginals(A, coords, p, lo, hi, along, bands, sums, row_sums):
+    """Rows lo..hi-1 of :func:`_axis_marginals` added into ``bands`` and
+    ``sums`` (one block's), their row sums into ``row_sums``."""
+    ns = A.shape[1]
     width = 2 * p + 1
     nsb = width if ns > width else 1  # slots per axis: 1 on an axis the grid lacks
     nsc = width if ns > width * width else 1
-    along = np.empty((3, width))  # one row's sums per index offset of each axis
-    row_sums = np.empty(nr)
-    for r in range(nr):
+    for r in range(lo, hi):
         a = coords[r, 0]
         b = coords[r, 1]
         c = coords[r, 2]
@@ -158,6 +157,34 @@ def _axis_marginals(A, coords, p, bands, sums):
         sums[0, a] += total
         sums[1, b] += total
         sums[2, c] += total
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def _axis_marginals(A, coords, p, bands, sums):
+    """bands[d] += the lower bands of the marginal of A on axis d (box-local
+    numbering), sums[d] += its row sums; returns the row sums of A (one per
+    row). A's slot (s_c w + s_b) w + s_a holds the dof at index offsets
+    (s_a, s_b, s_c) - p from its row's (w = 2 p + 1; compact_system's ELL
+    rows), so a slot's axes are known without decoding its column; each
+    row is first summed per offset (short dependency chains). The rows
+    are summed in FIT_BLOCKS blocks in parallel, each into its own bands
+    and sums, which are then added in block order."""
+    nr = A.shape[0]
+    width = 2 * p + 1
+    n = bands.shape[1]
+    part_bands = np.zeros((FIT_BLOCKS, 3, n, p + 1))
+    part_sums = np.zeros((FIT_BLOCKS, 3, n))
+    row_sums = np.empty(nr)
+    for t in prange(FIT_BLOCKS):
+        along = np.empty((3, width))  # one row's sums per index offset of each axis
+        _block_marginals(A, coords, p, t * nr // FIT_BLOCKS, (t + 1) * nr // FIT_BLOCKS, along,
+                         part_bands[t], part_sums[t], row_sums)
+    for t in range(FIT_BLOCKS):
+        for d in range(3):
+            for i in range(n):
+                sums[d, i] += part_sums[t, d, i]
+                for o in range(p + 1):
+                    bands[d, i, o] += part_bands[t, d, i, o]
     return row_sums
 
 

@@ -523,7 +523,15 @@ def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim,
     """Rows lo..hi-1 (the union of the touched ranges; the caller keeps the
     other rows zero): sum the per-thread upper halves into M[:, centre:] and
     K, then mirror the lower half, M[k, s] = M[j, ns - 1 - s] (j the dof at
-    slot s of k; a row outside lo..hi-1 has no entry pairing it with k)."""
+    slot s of k; a row outside lo..hi-1 has no entry pairing it with k).
+
+    A row whose diagonal M_kk = sum_p m_p N_k(x_p)^2 is 0 is zero: with
+    m_p >= 0 each term is, so m_p N_k(x_p) = 0 at every particle and
+    M_kj = sum_p m_p N_k(x_p) N_j(x_p) = 0 (the stencil is a Gram matrix).
+    Its other entries are written 0 without being summed or mirrored (the
+    rows of the touched ranges beside a body are mostly such rows); K_k is
+    summed still (for p = 1 a particle on the edge of N_k's support has
+    N_k = 0 but grad N_k != 0)."""
     nt, nk, nh = mass_copies.shape
     ns = 2 * nh - 1
     centre = nh - 1
@@ -538,11 +546,21 @@ def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim,
                 for i in range(count):
                     sk += stiff_copies[threads[i], k]
                 K[k] = sk
-                for s in range(nh):
+                diagonal = _take(mass_copies, threads, count, k, 0)
+                M[k, centre] = diagonal
+                if diagonal == 0.0:  # a zero row (see above)
+                    for s in range(1, nh):
+                        M[k, centre + s] = 0.0
+                    continue
+                for s in range(1, nh):
                     M[k, centre + s] = _take(mass_copies, threads, count, k, s)
     nbz = M.shape[0] // (nbx * nby)
     offsets = _slot_offsets(p, dim, ns)
     for k in prange(lo, hi):
+        if M[k, centre] == 0.0:  # a zero row: no entry to mirror
+            for s in range(centre):
+                M[k, s] = 0.0
+            continue
         a, b, c = _row_indices(k, nbx, nby, dim)
         for s in range(centre):
             j = _offset_dof(a, b, c, offsets, s, nbx, nby, nbz)
