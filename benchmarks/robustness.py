@@ -128,13 +128,12 @@ def main():
         with open(a.table) as f:
             print(table(f.readlines()))
         return
-    options = {}
-    for item in a.option:
-        name, _, value = item.partition("=")
-        try:
-            options[name] = json.loads(value)  # numbers
-        except json.JSONDecodeError:
-            options[name] = value
+    from skfem_mpm.study import keyword_options
+
+    try:
+        options = keyword_options(a.option)  # numbers as numbers
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
     if a.one:
         print(json.dumps(one(a.one[0], a.one[1], a.ppc, a.cfl, options, a.backend)), flush=True)
         return
