@@ -6,7 +6,7 @@ e = 1e-5, target 5) every method runs at every grid of its class: linear MPM
 (degree 1: lumped / consistent mass x musl / usl / cd, and hybrid musl) up
 to 1,024 cells, high order (degree 2 and 3, consistent mass, reconstruction
 none / spline / tls x cd / rk4, and lumped mass x cd / rk4) up to 128 cells
-(2D: 128 and 32 per axis); default cfl (0.5 of each scheme's own limit).
+(D2: 256 and 64 per axis); default cfl (0.5 of each scheme's own limit).
 S2 large (grid crossing, ``--cases s2``): the consistent high-order methods
 at 20-160 cells, errors against the same-model reference, no target.
 
@@ -59,7 +59,7 @@ HIGH = tuple(f"mpm-p{p}-consistent-{r}-{s}" for p in (2, 3) for r in ("none", "s
 # cells per axis: (linear, high order)
 CELLS = {"s1": ((8, 16, 32, 64, 128, 256, 512, 1024), (8, 16, 32, 64, 128)),
          "s3": ((8, 16, 32, 64, 128, 256, 512, 1024), (8, 16, 32, 64, 128)),
-         "d2": ((8, 16, 32, 64, 128), (8, 16, 32)),
+         "d2": ((8, 16, 32, 64, 128, 256), (8, 16, 32, 64)),
          "s2": ((), (20, 40, 80, 160))}
 # the study's 2 per cell in 1D; 3 x 3 in 2D, where the published tls is well posed
 PPC = {"s1": 2, "s3": 2, "d2": 3, "s2": 2}
@@ -222,6 +222,30 @@ def curve_table(records):
     return "\n".join(rows)
 
 
+def matrix_table(records, key="cpu_time_s"):
+    """Markdown, one row per method, one column per grid: "error (time
+    [ms])" of each run (``key``'s median), blank where the method has no
+    such grid, the status where the run failed."""
+    cells = sorted({r["cells"] for r in records})
+    by = {}
+    for r in records:
+        by.setdefault(r["method"], {})[r["cells"]] = r
+    rows = ["| method | " + " | ".join(str(c) for c in cells) + " |", "|---" * (len(cells) + 1)
+            + "|"]
+    for m, runs in by.items():
+        out = []
+        for c in cells:
+            r = runs.get(c)
+            if r is None:
+                out.append("")
+            elif r["status"] != "ok":
+                out.append(r["status"][:40])
+            else:
+                out.append(f"{_g(r.get('error'))} ({_g(1e3 * r[key], '.3g')})")
+        rows.append(f"| {m} | " + " | ".join(out) + " |")
+    return "\n".join(rows)
+
+
 def reach_table(records, target, key="cpu_time_s"):
     """Markdown: every method's time to reach ``target`` ('<=': its coarsest
     run already does, an upper bound; 'not reached': no run does), the
@@ -260,14 +284,14 @@ def verdict(records, target, ratio, key="cpu_time_s"):
             f"{'MET' if r >= ratio else 'NOT met'}")
 
 
-def report(records, case, key="cpu_time_s"):
+def report(records, case, key="cpu_time_s", compact=False):
     benchmark, variant, target, ratio, _ = CASES[case]
     rows = [r for r in records if r["case"] == case]
     against = sorted({r.get("compared_with", "") for r in rows if r["status"] == "ok"})
     options = {json.dumps(r.get("options", {}), sort_keys=True) for r in rows}
     parts = [f"### {case.upper()} {variant} ({benchmark}; errors against: "
              f"{', '.join(against)}; Method options {', '.join(sorted(options))})",
-             curve_table(rows)]
+             matrix_table(rows, key) if compact else curve_table(rows)]
     if target is not None:
         parts += [reach_table(rows, target, key), verdict(rows, target, ratio, key)]
     return "\n\n".join(parts)
@@ -292,6 +316,8 @@ def main():
     ap.add_argument("--json", default=None, help="append every record here as a JSON line")
     ap.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                     help="a further Method keyword of every run, e.g. frequency_guard=0")
+    ap.add_argument("--compact", action="store_true",
+                    help="one row per method (error (time [ms]) per grid) instead of one per run")
     ap.add_argument("--from", dest="source", default=None,
                     help="no runs: the tables of the records in this JSON-lines file")
     a = ap.parse_args()
@@ -305,7 +331,7 @@ def main():
             records = [json.loads(line) for line in f if line.strip()]
         for c in cases:
             if any(r["case"] == c for r in records):
-                print(report(records, c, key) + "\n")
+                print(report(records, c, key, a.compact) + "\n")
         return
     if os.environ.get("NUMBA_NUM_THREADS") != "1":
         raise SystemExit("set NUMBA_NUM_THREADS=1: the times are one thread's")
@@ -331,7 +357,7 @@ def main():
                   flush=True)
             records = time_alternating(jobs, a.rounds, a.budget, out)
             print(f"# {c}: done, load {os.getloadavg()[0]:.2f}", file=sys.stderr, flush=True)
-            print(report(records, c, key) + "\n", flush=True)
+            print(report(records, c, key, a.compact) + "\n", flush=True)
     finally:
         if out is not None:
             out.close()

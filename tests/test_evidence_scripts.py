@@ -101,6 +101,8 @@ def test_cheapest_of_each_class_and_their_ratio():
     table = wp.reach_table(records, 1e-6)
     assert "| high-b | not reached |  | 2e-06 |" in table
     assert "| high-a | 0.002 | 8-16 | 1e-07 |" in table
+    matrix = wp.matrix_table(records)
+    assert "| method | 8 | 16 |" in matrix and "| high-a | 1e-05 (1) | 1e-07 (4) |" in matrix
     # the wall time instead of the CPU time: 10x each, the same ratio
     assert wp.cheapest(records, 1e-6, key="wall_time_s")["high"][1] == pytest.approx(0.02)
 
