@@ -169,9 +169,10 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
         """The recorded result so far: the compiled loop's compiles at a
         first need (StepLoop.compile_seconds) count as compile time."""
         late = loop.compile_seconds if loop is not None else 0.0
+        late_cpu = loop.compile_cpu_seconds if loop is not None else 0.0
         return recorder.result(state, time.perf_counter() - t0 - late, jit_time + late,
                                extra={"path": path,
-                                      "cpu_time": max(0.0, time.process_time() - c0 - late)})
+                                      "cpu_time": time.process_time() - c0 - late_cpu})
 
     def failed(exc, last_good):
         state.particles = last_good
@@ -238,8 +239,9 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
             bar.close()
     end, cpu_end = time.perf_counter(), time.process_time()
     late = loop.compile_seconds if loop is not None else 0.0
+    late_cpu = loop.compile_cpu_seconds if loop is not None else 0.0
     loop = None  # its spare particle arrays and grid copies go before the last save
     if recorder.last_step_saved != state.step:
         recorder.save(state, share=True)  # no step writes the final arrays again
     return recorder.result(state, end - t0 - late, jit_time + late,
-                           extra={"path": path, "cpu_time": max(0.0, cpu_end - c0 - late)})
+                           extra={"path": path, "cpu_time": cpu_end - c0 - late_cpu})
