@@ -71,17 +71,26 @@ def orders(errors):
             for a, b in zip(errors[:-1], errors[1:])]
 
 
+def overall_order(errors):
+    """The order over all the grids, log2(e_first / e_last) / (grids - 1):
+    the mean of the consecutive orders (what "order over 16-32-64" reads
+    as; each consecutive order is in the table beside it)."""
+    a, b = errors[0], errors[-1]
+    return math.log2(a / b) / (len(errors) - 1) if a > 0 and b > 0 else float("nan")
+
+
 def table(name, spec, out=None, options=None):
     """The markdown table of one entry of TABLES (runs it); ``options``:
     further Method keyword arguments of every run (named in the title)."""
     options = options or {}
     cells = spec["cells"]
     head = ("| case | reconstruction | scheme | " + " | ".join(f"{c}" for c in cells) + " | "
-            + " | ".join(f"order {a}-{b}" for a, b in zip(cells[:-1], cells[1:])) + " |")
+            + " | ".join(f"order {a}-{b}" for a, b in zip(cells[:-1], cells[1:]))
+            + f" | order {cells[0]}-{cells[-1]} |")
     rows = [f"{name}: degree {spec['degree']}, {spec['ppc']} particles per cell"
             f"{' per axis' if spec['cases'] == ('d2',) else ''}, consistent mass, cfl 0.5"
             + "".join(f", {k}={v}" for k, v in options.items()),
-            "", head, "|---" * (3 + 2 * len(cells) - 1) + "|"]
+            "", head, "|---" * (3 + 2 * len(cells)) + "|"]
     for case in spec["cases"]:
         for recon in spec["recons"]:
             for scheme in spec["schemes"]:
@@ -103,7 +112,8 @@ def table(name, spec, out=None, options=None):
                         out.flush()
                 rows.append(f"| {case.upper()} small | {recon} | {scheme} | "
                             + " | ".join(f"{e:.3g}" for e in errs) + " | "
-                            + " | ".join(f"{o:.2f}" for o in orders(errs)) + " |")
+                            + " | ".join(f"{o:.2f}" for o in orders(errs))
+                            + f" | {overall_order(errs):.2f} |")
                 print(rows[-1], file=sys.stderr, flush=True)
     return "\n".join(rows)
 

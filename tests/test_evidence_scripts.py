@@ -187,4 +187,5 @@ def test_orders_passes_method_options_to_every_run(monkeypatch):
     assert "cfl 0.5, frequency_guard=0" in text
     assert seen == [("s1", 8, "spline", "rk4", {"frequency_guard": 0}),
                     ("s1", 16, "spline", "rk4", {"frequency_guard": 0})]
-    assert "| S1 small | spline | rk4 | 0.0625 | 0.00391 | 4.00 |" in text
+    assert "| S1 small | spline | rk4 | 0.0625 | 0.00391 | 4.00 | 4.00 |" in text
+    assert orders.overall_order([1.0, 2.0 ** -3, 2.0 ** -5]) == 2.5
