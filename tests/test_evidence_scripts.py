@@ -189,3 +189,20 @@ def test_orders_passes_method_options_to_every_run(monkeypatch):
                     ("s1", 16, "spline", "rk4", {"frequency_guard": 0})]
     assert "| S1 small | spline | rk4 | 0.0625 | 0.00391 | 4.00 | 4.00 |" in text
     assert orders.overall_order([1.0, 2.0 ** -3, 2.0 ** -5]) == 2.5
+
+
+def test_robustness_table_says_ran_or_fails_per_case_and_reconstruction():
+    robustness = script("robustness")
+    lines = [
+        '{"case": "block", "reconstruction": "none", "status": "ran", "steps": 4628, "t": 1.2}',
+        '{"case": "block", "reconstruction": "tls", "status": "failed", "t": 0.5097, "why": '
+        '"step 1967 (t = 0.509767 -> 0.510026) failed: J = det(I + dt L) <= 0 at particle 80"}',
+        '{"case": "s2", "reconstruction": "none", "status": "ran", "steps": 2973, "t": 0.8, '
+        '"error": 0.0123, "compared_with": "same-model reference"}',
+        '{"case": "s2", "reconstruction": "tls", "status": "timeout", "timeout": 600}',
+        "not a run",
+    ]
+    assert robustness.table(lines).splitlines() == [
+        "| case | none | tls |", "|---|---|---|",
+        "| block | ran (4628 steps) | fails, step 1967, t = 0.51: J = det(I + dt L) <= 0 |",
+        "| s2 | ran, 0.0123 (2973 steps) | timeout |"]
