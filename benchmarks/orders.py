@@ -12,6 +12,7 @@ central-difference one, see skfem_mpm.solve.timestep).
     python benchmarks/orders.py                      # every table
     python benchmarks/orders.py --tables cubic       # one table: cubic, quadratic, d2
     python benchmarks/orders.py --json runs.jsonl    # also the runs as JSON lines
+    python benchmarks/orders.py --option frequency_guard=0   # a Method keyword for every run
 
 Tables:
   cubic      S1 small and S3 small, p = 3, 2 particles per cell, spline
@@ -43,17 +44,18 @@ BENCHMARKS = {"s1": ("vibrating-string", "small"), "s3": ("traction-bar", "small
               "d2": ("vibrating-plate-2d", "small")}
 
 
-def error(case, cells, degree, ppc, recon, scheme, cfl=0.5):
-    """The benchmark's primary error of one run (relative), its steps and wall time."""
+def error(case, cells, degree, ppc, recon, scheme, cfl=0.5, **options):
+    """The benchmark's primary error of one run (relative), its steps and wall
+    time; ``options``: further Method keyword arguments (e.g. frequency_guard)."""
     from skfem_mpm import Method, simulate
     from skfem_mpm.benchmarks import get_benchmark
     from skfem_mpm.solve import prepare
 
     b = get_benchmark(*BENCHMARKS[case])
     name, _, option = recon.partition(":")  # "spline:knots=grid": with that option
-    options = dict([option.split("=", 1)]) if option else None
+    recon_options = dict([option.split("=", 1)]) if option else None
     method = Method(scheme=scheme, mass="consistent", reconstruction=name, cfl=cfl,
-                    reconstruction_options=options)
+                    reconstruction_options=recon_options, **options)
     scene = b.scene(cells, degree, ppc)
     save_every = None
     if b.saves > 1:  # as the study does for an error over the saves
@@ -69,21 +71,34 @@ def orders(errors):
             for a, b in zip(errors[:-1], errors[1:])]
 
 
-def table(name, spec, out=None):
-    """The markdown table of one entry of TABLES (runs it)."""
+def overall_order(errors):
+    """The order over all the grids, log2(e_first / e_last) / (grids - 1):
+    the mean of the consecutive orders (what "order over 16-32-64" reads
+    as; each consecutive order is in the table beside it)."""
+    a, b = errors[0], errors[-1]
+    return math.log2(a / b) / (len(errors) - 1) if a > 0 and b > 0 else float("nan")
+
+
+def table(name, spec, out=None, options=None):
+    """The markdown table of one entry of TABLES (runs it); ``options``:
+    further Method keyword arguments of every run (named in the title)."""
+    options = options or {}
     cells = spec["cells"]
     head = ("| case | reconstruction | scheme | " + " | ".join(f"{c}" for c in cells) + " | "
-            + " | ".join(f"order {a}-{b}" for a, b in zip(cells[:-1], cells[1:])) + " |")
+            + " | ".join(f"order {a}-{b}" for a, b in zip(cells[:-1], cells[1:]))
+            + f" | order {cells[0]}-{cells[-1]} |")
     rows = [f"{name}: degree {spec['degree']}, {spec['ppc']} particles per cell"
-            f"{' per axis' if spec['cases'] == ('d2',) else ''}, consistent mass, cfl 0.5",
-            "", head, "|---" * (3 + 2 * len(cells) - 1) + "|"]
+            f"{' per axis' if spec['cases'] == ('d2',) else ''}, consistent mass, cfl 0.5"
+            + "".join(f", {k}={v}" for k, v in options.items()),
+            "", head, "|---" * (3 + 2 * len(cells)) + "|"]
     for case in spec["cases"]:
         for recon in spec["recons"]:
             for scheme in spec["schemes"]:
                 errs = []
                 for c in cells:
                     try:
-                        e, steps, wall = error(case, c, spec["degree"], spec["ppc"], recon, scheme)
+                        e, steps, wall = error(case, c, spec["degree"], spec["ppc"], recon, scheme,
+                                               **options)
                     except Exception as exc:  # a failed run is a result of the table
                         e, steps, wall = float("nan"), None, None
                         print(f"# {case} {recon} {scheme} {c}: {exc}"[:200], file=sys.stderr)
@@ -92,11 +107,13 @@ def table(name, spec, out=None):
                         out.write(json.dumps({"table": name, "case": case, "cells": c,
                                               "degree": spec["degree"], "ppc": spec["ppc"],
                                               "reconstruction": recon, "scheme": scheme,
+                                              "options": options,
                                               "error": e, "steps": steps, "wall": wall}) + "\n")
                         out.flush()
                 rows.append(f"| {case.upper()} small | {recon} | {scheme} | "
                             + " | ".join(f"{e:.3g}" for e in errs) + " | "
-                            + " | ".join(f"{o:.2f}" for o in orders(errs)) + " |")
+                            + " | ".join(f"{o:.2f}" for o in orders(errs))
+                            + f" | {overall_order(errs):.2f} |")
                 print(rows[-1], file=sys.stderr, flush=True)
     return "\n".join(rows)
 
@@ -108,18 +125,27 @@ def main():
     ap.add_argument("--cells", default=None,
                     help="override the grids, e.g. 8,16 (comma-separated, each twice the last)")
     ap.add_argument("--json", default=None, help="also write every run as a JSON line here")
+    ap.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
+                    help="a further Method keyword of every run, e.g. frequency_guard=0 "
+                         "(the value read as JSON where it parses, else a string)")
     a = ap.parse_args()
     names = a.tables.split(",")
     for n in names:
         if n not in TABLES:
             raise SystemExit(f"--tables: {n!r} is not one of {', '.join(TABLES)}")
+    from skfem_mpm.study import keyword_options
+
+    try:
+        options = keyword_options(a.option)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
     out = open(a.json, "a") if a.json else None
     try:
         for n in names:
             spec = dict(TABLES[n])
             if a.cells:
                 spec["cells"] = tuple(int(c) for c in a.cells.split(","))
-            print(table(n, spec, out) + "\n", flush=True)
+            print(table(n, spec, out, options) + "\n", flush=True)
     finally:
         if out is not None:
             out.close()

@@ -31,11 +31,15 @@ the reconstruction included, whatever ``warm_up_kernels`` covers); then
 ``repeat`` timed runs, whose median is ``wall_time_s`` (the range in
 ``wall_time_min_s``/``wall_time_max_s``). ``timed_compiles`` counts the
 numba kernels compiled or loaded during the timed runs: 0 means no
-compilation leaked into the figures.
+compilation leaked into the figures. ``cpu_time_s`` (MPM runs) is the median
+CPU time of the same interval (``Result.cpu_time``): on one thread, little
+touched by the load of a shared machine; ``time_to_reach(records, e,
+key="cpu_time_s")`` reads it.
 """
 import contextlib
 import csv
 import inspect
+import json
 import math
 import multiprocessing
 import os
@@ -59,6 +63,10 @@ __all__ = [
     "STUDY_CELLS",
     "WARM_UP_STEPS",
     "convergence",
+    "job_errors",
+    "job_method",
+    "job_scene",
+    "keyword_options",
     "markdown_table",
     "parse_method",
     "run_one",
@@ -112,7 +120,7 @@ FIELDS = ("benchmark", "variant", "method", "kind", "degree", "mass", "reconstru
           "cells", "h", "ppc", "dofs", "particles", "steps", "dt", "error", "error_measure",
           "compared_with", "error_exact", "error_rms", "error_max",
           "error_rms_abs", "velocity_error_rms", "stress_error_rms", "order", "wall_time_s",
-          "wall_time_min_s", "wall_time_max_s", "repeats", "jit_time_s", "timed_compiles") \
+          "wall_time_min_s", "wall_time_max_s", "cpu_time_s", "repeats", "jit_time_s", "timed_compiles") \
     + tuple(f"phase_{p}_s" for p in PHASES) + ("status",)
 
 
@@ -153,6 +161,22 @@ def parse_method(name, scheme=DEFAULTS["scheme"], cfl=DEFAULTS["cfl"]):
                          f"(e.g. mpm-p2-hybrid-spline-musl), got {name!r} with scheme "
                          f"{spec['scheme']!r}")
     return spec
+
+
+def keyword_options(items, argument="--option"):
+    """{name: value} of ``NAME=VALUE`` strings (a command line's repeated
+    ``argument``): the value read as JSON where it parses (numbers,
+    true/false, lists), else kept as the string."""
+    out = {}
+    for item in items:
+        name, sep, value = str(item).partition("=")
+        if not sep or not name:
+            raise ValueError(f"{argument} must be NAME=VALUE, got {item!r}")
+        try:
+            out[name] = json.loads(value)
+        except json.JSONDecodeError:
+            out[name] = value
+    return out
 
 
 def _limit_threads():
@@ -211,17 +235,9 @@ def run_one(job):
     repeat = int(job.get("repeat", 1))
     if repeat < 1:
         raise ValueError(f"repeat must be a positive integer, got {repeat}")
-    method = _job_method(job)
+    method = job_method(job)
     fem_run = spec["kind"] == "fem"
-    scene = bench.scene(job["cells"], spec["degree"], job["ppc"], fem=fem_run,
-                        t_end=job.get("t_end"))
-    save_every = None
-    if bench.saves > 1:
-        from .solve import prepare
-
-        steps = prepare(bench.scene(job["cells"], spec["degree"], job["ppc"],
-                                    t_end=job.get("t_end")), method).n_steps or bench.saves
-        save_every = max(1, steps // bench.saves)
+    scene, save_every = job_scene(bench, job, method)
     record = {"benchmark": bench.name, "variant": bench.variant, "method": spec["name"],
               "kind": spec["kind"], "degree": spec["degree"], "mass": spec["mass"],
               "reconstruction": spec["reconstruction"], "scheme": spec["scheme"],
@@ -230,7 +246,7 @@ def run_one(job):
     try:
         first_use = warm_up_run(bench, job["cells"], spec["degree"], job["ppc"], method,
                                 fem_run, scene.t_end)
-        times, compiles = [], 0
+        times, cpus, compiles = [], [], 0
         budget = job.get("repeat_budget")
         while len(times) < repeat and not (
                 budget is not None and len(times) >= 2 and sum(times) >= budget):
@@ -239,35 +255,71 @@ def run_one(job):
                       else simulate(scene, method, save_every=save_every))
             compiles += _kernels_added(before)
             times.append(result.wall_time)
+            if getattr(result, "cpu_time", None) is not None:  # MPM runs
+                cpus.append(result.cpu_time)
     except (SimulationError, ValueError) as exc:
         record["status"] = f"failed: {str(exc).splitlines()[0][:200]}"
         return record
     record.update(particles=result.counts["particles"], steps=result.counts["steps"],
                   dt=result.dt, wall_time_s=statistics.median(times),
                   wall_time_min_s=min(times), wall_time_max_s=max(times), repeats=len(times),
-                  jit_time_s=first_use, timed_compiles=compiles)
+                  jit_time_s=first_use, timed_compiles=compiles,
+                  cpu_time_s=statistics.median(cpus) if cpus else None)
     for p, s in result.timings.items():
         record[f"phase_{p}_s"] = s
-    if bench.has_exact:
-        # fem's LinearElastic is small strain: the linear model, whose solution
-        # is the exact one; MPM's is hypoelastic (see model_reference)
-        reference = (model_reference(bench) if job.get("compare_with", "auto") == "auto"
-                     and not fem_run else None)
-        if reference is None:
-            record.update(bench.errors(result), compared_with="exact")
-        else:
-            record.update(reference.errors(result), compared_with="same-model reference",
-                          error_exact=bench.errors(result)[bench.primary_error])
-        record["error_measure"] = bench.primary_error
-        record["error"] = record[bench.primary_error]
+    record.update(job_errors(bench, result, job))
     return record
 
 
-def _job_method(job):
-    """The Method of a job."""
+def job_scene(bench, job, method):
+    """(scene, save_every) of a job: the benchmark's scene at the job's
+    cells, degree and particles per cell (fem: its FEM scene), saved often
+    enough for the benchmark's primary error (``bench.saves`` saves when it
+    is a maximum over time, else only the end)."""
+    spec = job["method"]
+    scene = bench.scene(job["cells"], spec["degree"], job["ppc"], fem=spec["kind"] == "fem",
+                        t_end=job.get("t_end"))
+    save_every = None
+    if bench.saves > 1:
+        from .solve import prepare
+
+        steps = prepare(bench.scene(job["cells"], spec["degree"], job["ppc"],
+                                    t_end=job.get("t_end")), method).n_steps or bench.saves
+        save_every = max(1, steps // bench.saves)
+    return scene, save_every
+
+
+def job_errors(bench, result, job):
+    """The error columns of a job's record ({} without an exact solution):
+    the benchmark's error measures against its exact solution, or, with
+    ``job["compare_with"]`` ``"auto"`` (the default) for an MPM run of a
+    variant whose exact solution is not MPM's model, against the same-model
+    reference (:func:`skfem_mpm.model_reference.model_reference`;
+    ``error_exact`` keeps the error against the exact solution);
+    ``error`` is the primary measure, ``compared_with`` says which."""
+    if not bench.has_exact:
+        return {}
+    # fem's LinearElastic is small strain: the linear model, whose solution
+    # is the exact one; MPM's is hypoelastic (see model_reference)
+    reference = (model_reference(bench) if job.get("compare_with", "auto") == "auto"
+                 and job["method"]["kind"] != "fem" else None)
+    if reference is None:
+        out = dict(bench.errors(result), compared_with="exact")
+    else:
+        out = dict(reference.errors(result), compared_with="same-model reference",
+                   error_exact=bench.errors(result)[bench.primary_error])
+    out["error_measure"] = bench.primary_error
+    out["error"] = out[bench.primary_error]
+    return out
+
+
+def job_method(job):
+    """The Method of a job (``job["method_options"]``: further Method
+    keyword arguments, e.g. ``frequency_guard``)."""
     spec = job["method"]
     return Method(scheme=spec["scheme"], mass=spec["mass"],
-                  reconstruction=spec["reconstruction"], cfl=spec["cfl"], dt=job.get("dt"))
+                  reconstruction=spec["reconstruction"], cfl=spec["cfl"], dt=job.get("dt"),
+                  **job.get("method_options", {}))
 
 
 def precompile(job):
@@ -286,7 +338,7 @@ def precompile(job):
 
     bench = get_benchmark(job["benchmark"], job.get("variant"), **job.get("params", {}))
     state = prepare(bench.scene(job["cells"], spec["degree"], job["ppc"], t_end=job.get("t_end")),
-                    _job_method(job))
+                    job_method(job))
     if compiled_executor_applies(state)[0]:
         precompile_mass(state, CompiledExecutor(state))
     return []

@@ -44,6 +44,12 @@ class Result:
     time, final_time
         The time of ``particles``.
     dt, dt_crit, wall_time, jit_time, method, kind ('mpm' or 'fem').
+    cpu_time
+        MPM runs: the CPU seconds of this process (``time.process_time``,
+        every thread) over the interval ``wall_time`` measures, the steps
+        (the compiled loop's compiles at a first need excluded, as there);
+        on one thread it depends little on the machine's load, the wall
+        time does.
     """
 
     def __init__(self, **fields):

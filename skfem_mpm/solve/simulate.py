@@ -163,14 +163,16 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
     jit_time = warm_up(state, fast, loop)
     bar = _progress_bar(progress, state.n_steps)
     threads = ThreadPolicy(ops.kernels.nthreads) if fast else None
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
 
     def result_now():
         """The recorded result so far: the compiled loop's compiles at a
         first need (StepLoop.compile_seconds) count as compile time."""
         late = loop.compile_seconds if loop is not None else 0.0
+        late_cpu = loop.compile_cpu_seconds if loop is not None else 0.0
         return recorder.result(state, time.perf_counter() - t0 - late, jit_time + late,
-                               extra={"path": path})
+                               extra={"path": path,
+                                      "cpu_time": time.process_time() - c0 - late_cpu})
 
     def failed(exc, last_good):
         state.particles = last_good
@@ -235,9 +237,11 @@ def simulate(scene, method=None, save_every=None, progress=False, callback=None,
             threads.restore()
         if bar is not None:
             bar.close()
-    end = time.perf_counter()
+    end, cpu_end = time.perf_counter(), time.process_time()
     late = loop.compile_seconds if loop is not None else 0.0
+    late_cpu = loop.compile_cpu_seconds if loop is not None else 0.0
     loop = None  # its spare particle arrays and grid copies go before the last save
     if recorder.last_step_saved != state.step:
         recorder.save(state, share=True)  # no step writes the final arrays again
-    return recorder.result(state, end - t0 - late, jit_time + late, extra={"path": path})
+    return recorder.result(state, end - t0 - late, jit_time + late,
+                           extra={"path": path, "cpu_time": cpu_end - c0 - late_cpu})
