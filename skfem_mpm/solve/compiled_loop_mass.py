@@ -168,7 +168,7 @@ def load_band(cm, g, rows, factor):
     ``rows``."""
     n, w1 = factor.shape
     cm.band_kept[g, 0] = n
-    cm.band_kept[g, 1] = w1 - 1
+    cm.band_kept[g, 1] = factor_band(w1)
     copy_into(cm.band_rows[g, :n], rows)
     copy_into(cm.band[g, :n * w1], factor.reshape(n * w1))
 
@@ -326,13 +326,15 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
             merged = count > 0
         cm.merged[g] = merged
         n = 0
+        group_rows = cm.rows[g]  # (each field read of a structref costs a reference count)
+        group_index = cm.index[g]
         for k in range(nd):
             if not mask[k, c0] and mass[k] > 0.0:
-                cm.rows[g, n] = k
-                cm.index[g, k] = n
+                group_rows[n] = k
+                group_index[k] = n
                 n += 1
             else:
-                cm.index[g, k] = -1
+                group_index[k] = -1
         cm.n_rows[g] = n
         rows = cm.rows[g, :n]
         COMPACT_SYSTEM(stencil, p, nbx, nby, dim, rows, cm.index[g], cm.fast, cm.A[g, :n],
@@ -351,8 +353,9 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
             rows = cm.kept_rows[g, :n]
             fit = cm.merged_fit[:n * ns].reshape((n, ns))
         else:
+            inv_diag = cm.inv_diag[g]
             for r in range(n):
-                cm.inv_diag[g, r] = 1.0 / mass[rows[r]]
+                inv_diag[r] = 1.0 / mass[rows[r]]
         cm.band_width[g] = -1
         if n == 0:
             continue
@@ -367,8 +370,9 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
                     continue
                 cm.band_kept[g, 0] = -1
                 w = ELL_BAND_WIDTH(cm.cols[g, :n])
+                wf = factor_columns(w)
                 if w <= cm.band_max and FIT_BAND_FACTOR(cm.A[g, :n], cm.cols[g, :n],
-                                                        cm.band[g, :n * (w + 1)].reshape((n, w + 1))):
+                                                        cm.band[g, :n * wf].reshape((n, wf))):
                     cm.band_width[g] = w
                     cm.band_kept[g, 0] = n
                     cm.band_kept[g, 1] = w
@@ -397,8 +401,9 @@ def _kept_band(cm, g, rows):
     n = rows.shape[0]
     if cm.band_kept[g, 0] != n or cm.band_kept[g, 1] > cm.band_max:
         return False
+    kept = cm.band_rows[g]
     for r in range(n):
-        if cm.band_rows[g, r] != rows[r]:
+        if kept[r] != rows[r]:
             return False
     return True
 
