@@ -254,10 +254,11 @@ def _kronecker_box(cm, g, rows, nbx, nby):
     (c nby + b) nbx + a; 1D and 2D have c = 0), unless they were built for
     the same rows."""
     n = rows.shape[0]
+    boxed = cm.boxed_rows[g]
     if cm.n_boxed[g] == n:
         same = True
         for r in range(n):
-            if cm.boxed_rows[g, r] != rows[r]:
+            if boxed[r] != rows[r]:
                 same = False
                 break
         if same:
@@ -274,15 +275,17 @@ def _kronecker_box(cm, g, rows, nbx, nby):
         b1 = max(b1, b + 1)
         c0 = min(c0, c)
         c1 = max(c1, c + 1)
+    box_index = cm.box_index[g]
+    box_coords = cm.box_coords[g]
     for r in range(n):
         a = rows[r] % nbx - a0
         b = (rows[r] // nbx) % nby - b0
         c = rows[r] // (nbx * nby) - c0
-        cm.box_index[g, r] = (c * (b1 - b0) + b) * (a1 - a0) + a
-        cm.box_coords[g, r, 0] = a
-        cm.box_coords[g, r, 1] = b
-        cm.box_coords[g, r, 2] = c
-        cm.boxed_rows[g, r] = rows[r]
+        box_index[r] = (c * (b1 - b0) + b) * (a1 - a0) + a
+        box_coords[r, 0] = a
+        box_coords[r, 1] = b
+        box_coords[r, 2] = c
+        boxed[r] = rows[r]
     cm.n_boxed[g] = n
     cm.box_shape[g, 0] = c1 - c0
     cm.box_shape[g, 1] = b1 - b0
