@@ -437,6 +437,30 @@ def test_consistent_stencil_of_any_dimension_is_n_transpose_m_n(p, parallel):
     assert np.abs(K - K2).max() <= 1e-15 * np.abs(K2).max() * 10
 
 
+@pytest.mark.parametrize("dim", [1, 2])
+def test_serial_consistent_mass_gives_the_parallel_bits_in_boundary_cells(dim):
+    """The serial copies of consistent_1d and consistent_2d (their boundary
+    cells' weights from a copy of _axis compiled without numba's runtime,
+    serial._NO_RUNTIME) give the parallel kernels' stencil and stiffness
+    weights to a few units of round-off (the compilers contract a * b + c
+    into one rounding in different places), on uniform and non-uniform
+    axes (the latter in every cell), particles in every cell."""
+    for kind in ("uniform", "nonuniform"):
+        rng = np.random.default_rng(dim)
+        axes = breakpoints(kind, dim, 8, rng)
+        grid = SplineGrid(np.asarray(axes[0], dtype=float) if dim == 1 else
+                          tuple(np.asarray(b, dtype=float) for b in axes), 2)
+        lo = np.array([b[0] for b in axes])
+        hi = np.array([b[-1] for b in axes])
+        x = lo + (hi - lo) * rng.random((500, dim))
+        x = x[np.lexsort(x.T[::-1])]
+        particles = SimpleNamespace(x=x, m=0.5 + rng.random(500))
+        got = [[a.copy() for a in mpm.Kernels(grid, parallel).consistent_stencil(particles)]
+               for parallel in (True, False)]
+        for a, b in zip(*got):
+            assert np.abs(a - b).max() <= 4e-16 * np.abs(a).max(), kind
+
+
 def test_three_factor_kronecker_on_one_layer_is_the_two_factor_one():
     """apply_kronecker_axes with nz = 1 repeats apply_kronecker bit for bit
     (same passes, same order), and with three factors it is the inverse of
