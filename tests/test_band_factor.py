@@ -9,7 +9,7 @@ import pytest
 import skfem_mpm.solve.compiled_loop as compiled_loop
 from skfem_mpm.benchmarks import get_benchmark
 from skfem_mpm.kernels.band_factor import (apply_band_factor, ell_band_width, factor_columns,
-                                           fit_band_factor)
+                                           factor_layout_ok, fit_band_factor)
 from skfem_mpm.solve import Method, simulate
 from skfem_mpm.solve.stencil_system import StencilSystem, preconditioned_with
 
@@ -42,6 +42,11 @@ def test_band_factor_solves_its_system_to_round_off():
     z = np.empty_like(r)
     apply_band_factor(C, r, z)
     assert np.abs(z - np.linalg.solve(dense, r)).max() <= 1e-13 * np.abs(z).max()
+    assert factor_layout_ok(C)
+    # kept warm data of the earlier layout (the columns of L only, w + 1
+    # wide; a checkpoint may hold it) is refused, of odd and of even width
+    assert not factor_layout_ok(np.ascontiguousarray(C[:, :w + 1]))
+    assert not factor_layout_ok(np.ascontiguousarray(C[:, :w]))
     dense[n // 2, n // 2] = -1.0  # not positive definite
     A, cols = _ell(dense)
     assert not fit_band_factor(A, cols, C)

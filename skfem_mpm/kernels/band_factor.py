@@ -34,8 +34,8 @@ from numba.extending import register_jitable
 
 from .weights import FAST
 
-__all__ = ["ell_band_width", "factor_columns", "factor_band", "fit_band_factor",
-           "apply_band_factor"]
+__all__ = ["ell_band_width", "factor_columns", "factor_band", "factor_layout_ok",
+           "fit_band_factor", "apply_band_factor"]
 
 
 @register_jitable
@@ -48,6 +48,19 @@ def factor_columns(w):
 def factor_band(columns):
     """The band w of a factor array with ``columns`` columns."""
     return (columns - 1) // 2
+
+
+def factor_layout_ok(C):
+    """Whether the array C (kept warm data, possibly from a checkpoint)
+    has the layout of fit_band_factor: an odd width and the rows' part
+    mirroring the columns' (C[1, 2w] = L_10 = C[0, 1]); an array of the
+    earlier layout (columns only, w + 1 wide) is refused, so that the
+    system factorises anew."""
+    n, width = C.shape
+    if width % 2 == 0:
+        return False
+    w = factor_band(width)
+    return n < 2 or w < 1 or C[1, 2 * w] == C[0, 1]
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)

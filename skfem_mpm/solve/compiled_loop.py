@@ -909,7 +909,8 @@ class StepLoop:
         self.module.load_warm(cm, warm, has, banded)
         for g in range(self._groups):  # the kept band factors (StencilSystem._band)
             rows, factor = state.warm.get(f"band{g}_rows"), state.warm.get(f"band{g}_factor")
-            if rows is not None and factor is not None:
+            if rows is not None and factor is not None and factor.ndim == 2 \
+                    and band_factor.factor_layout_ok(factor):
                 self.module.load_band(cm, g, np.ascontiguousarray(rows, dtype=np.int64),
                                       np.ascontiguousarray(factor, dtype=np.float64))
 
