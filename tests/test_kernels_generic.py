@@ -468,6 +468,30 @@ def test_consistent_stencil_rows_emptied_since_the_last_assembly_are_zero(p):
     assert np.abs(K - stiff).max() <= TOL * np.abs(stiff).max()
 
 
+@pytest.mark.parametrize("dim", [1, 2])
+def test_serial_consistent_mass_gives_the_parallel_bits_in_boundary_cells(dim):
+    """The serial copies of consistent_1d and consistent_2d (their boundary
+    cells' weights from a copy of _axis compiled without numba's runtime,
+    serial._NO_RUNTIME) give the parallel kernels' stencil and stiffness
+    weights to a few units of round-off (the compilers contract a * b + c
+    into one rounding in different places), on uniform and non-uniform
+    axes (the latter in every cell), particles in every cell."""
+    for kind in ("uniform", "nonuniform"):
+        rng = np.random.default_rng(dim)
+        axes = breakpoints(kind, dim, 8, rng)
+        grid = SplineGrid(np.asarray(axes[0], dtype=float) if dim == 1 else
+                          tuple(np.asarray(b, dtype=float) for b in axes), 2)
+        lo = np.array([b[0] for b in axes])
+        hi = np.array([b[-1] for b in axes])
+        x = lo + (hi - lo) * rng.random((500, dim))
+        x = x[np.lexsort(x.T[::-1])]
+        particles = SimpleNamespace(x=x, m=0.5 + rng.random(500))
+        got = [[a.copy() for a in mpm.Kernels(grid, parallel).consistent_stencil(particles)]
+               for parallel in (True, False)]
+        for a, b in zip(*got):
+            assert np.abs(a - b).max() <= 4e-16 * np.abs(a).max(), kind
+
+
 def test_three_factor_kronecker_on_one_layer_is_the_two_factor_one():
     """apply_kronecker_axes with nz = 1 repeats apply_kronecker bit for bit
     (same passes, same order), and with three factors it is the inverse of

@@ -8,7 +8,12 @@ r - w .. r + w, w = max_r (r - min_s cols[r, s]) (about p (n_x + 1) in 2D,
 n_x the free dofs' box width). Its Cholesky factor L stays in that band
 (Golub & Van Loan, *Matrix Computations*, 4th ed., Thm. 4.3.1), costs
 about n w^2 / 2 multiply-adds, and each application of (L L^T)^-1 two
-banded triangular solves of n w each. With P = L L^T = A conjugate
+banded triangular solves of n w each. The factor is held twice, by
+columns of L (the forward solve L y = b) and by rows (the backward solve
+L^T x = y): each solve then updates a contiguous run of the unknowns per
+row (an axpy; its only serial dependence is the one unknown the next row
+needs), where the backward solve by columns would be a chain of dot
+products, each waiting for the last. With P = L L^T = A conjugate
 gradients stop after one iteration (its residual is round-off); the
 particles move little in a step, so the factor of an earlier step's A
 still makes CG stop after two, and the consistent-mass systems keep a
@@ -25,10 +30,37 @@ rule.
 """
 import numpy as np
 from numba import njit
+from numba.extending import register_jitable
 
 from .weights import FAST
 
-__all__ = ["ell_band_width", "fit_band_factor", "apply_band_factor"]
+__all__ = ["ell_band_width", "factor_columns", "factor_band", "factor_layout_ok",
+           "fit_band_factor", "apply_band_factor"]
+
+
+@register_jitable
+def factor_columns(w):
+    """Columns of the factor array of band w: 2 w + 1 (see fit_band_factor)."""
+    return 2 * w + 1
+
+
+@register_jitable
+def factor_band(columns):
+    """The band w of a factor array with ``columns`` columns."""
+    return (columns - 1) // 2
+
+
+def factor_layout_ok(C):
+    """Whether the array C (kept warm data, possibly from a checkpoint)
+    has the layout of fit_band_factor: an odd width and the rows' part
+    mirroring the columns' (C[1, 2w] = L_10 = C[0, 1]); an array of the
+    earlier layout (columns only, w + 1 wide) is refused, so that the
+    system factorises anew."""
+    n, width = C.shape
+    if width % 2 == 0:
+        return False
+    w = factor_band(width)
+    return n < 2 or w < 1 or C[1, 2 * w] == C[0, 1]
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
@@ -44,15 +76,16 @@ def ell_band_width(cols):
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
 def fit_band_factor(A, cols, C):
-    """C (n, w + 1): the Cholesky factor L of the ELL matrix A (n rows,
-    columns ``cols``, symmetric positive definite, band w) by columns,
-    C[k, d] = L_(k + d, k) for d >= 1 and C[k, 0] = 1 / L_kk. Column k
-    scales by the pivot and updates the columns after it (right-looking,
-    Golub & Van Loan, Alg. 4.3.5 by columns; the inner loops run along
-    contiguous columns). Returns False when a pivot is not positive (A not
-    positive definite to round-off)."""
+    """C (n, factor_columns(w)): the Cholesky factor L of the ELL matrix A
+    (n rows, columns ``cols``, symmetric positive definite, band w) by
+    columns, C[k, d] = L_(k + d, k) for 1 <= d <= w and C[k, 0] = 1 / L_kk,
+    and by rows, C[k, w + 1 + e] = L_(k, k - w + e) for 0 <= e < w (0 where
+    k - w + e < 0). Column k scales by the pivot and updates the columns
+    after it (right-looking, Golub & Van Loan, Alg. 4.3.5 by columns; the
+    inner loops run along contiguous columns). Returns False when a pivot
+    is not positive (A not positive definite to round-off)."""
     n = A.shape[0]
-    w = C.shape[1] - 1
+    w = factor_band(C.shape[1])
     C[:, :] = 0.0
     for r in range(n):  # the lower band of A by columns (unused slots add 0)
         for s in range(A.shape[1]):
@@ -74,28 +107,36 @@ def fit_band_factor(A, cols, C):
             later = C[k + d1]
             for d2 in range(d1, m + 1):
                 later[d2 - d1] -= l1 * col[d2]
+    for k in range(n):  # the rows of L
+        for d in range(1, min(w, n - 1 - k) + 1):
+            C[k + d, 2 * w + 1 - d] = C[k, d]
     return True
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
 def _band_solve(C, y):
     """y = (L L^T)^-1 y in place, one contiguous column: L y' = y forward by
-    columns of L, then L^T y = y' backward by rows of L^T (dot products
-    along the columns of L)."""
+    columns of L (y'_k, then y_(k+1..k+w) -= L_(k+1..k+w, k) y'_k), then
+    L^T y = y' backward by rows of L (y_k, then y_(k-w..k-1) -= L_(k,
+    k-w..k-1) y_k)."""
     n = y.shape[0]
-    w = C.shape[1] - 1
+    w = factor_band(C.shape[1])
     for k in range(n):
         m = min(w, n - 1 - k)
         v = y[k] * C[k, 0]
         y[k] = v
-        for d in range(1, m + 1):
-            y[k + d] -= C[k, d] * v
+        column = C[k, 1:m + 1]
+        below = y[k + 1:k + m + 1]
+        for d in range(m):
+            below[d] -= column[d] * v
     for k in range(n - 1, -1, -1):
-        m = min(w, n - 1 - k)
-        s = y[k]
-        for d in range(1, m + 1):
-            s -= C[k, d] * y[k + d]
-        y[k] = s * C[k, 0]
+        v = y[k] * C[k, 0]
+        y[k] = v
+        lo = max(0, k - w)
+        row = C[k, 2 * w + 1 - (k - lo):]
+        above = y[lo:k]
+        for e in range(k - lo):
+            above[e] -= row[e] * v
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)

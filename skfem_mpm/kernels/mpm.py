@@ -1041,10 +1041,17 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
     centre = (ns - 1) // 2
     nbz = M.shape[0] // (nbx * nby)
     offsets = _slot_offsets(p, dim, ns)
+    step = np.empty(ns, dtype=np.int64)  # each slot's dof offset (rows p or more from the edges)
+    for s in range(ns):
+        step[s] = (offsets[s, 2] * nby + offsets[s, 1]) * nbx + offsets[s, 0]
+    pb = p if dim >= 2 else 0
+    pc = p if dim == 3 else 0
     for r in prange(nr):
         k = rows[r]
         diag = M[k, centre]
         a, b, c = _row_indices(k, nbx, nby, dim)
+        inside = p <= a < nbx - p and pb <= b < nby - pb and pc <= c < nbz - pc
+        fast_k = fast[k]
         for s in range(ns):
             A[r, s] = 0.0
             if write_cols:
@@ -1054,11 +1061,14 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
                 fcols[r, s] = k
             if s == centre:
                 continue
-            j = _offset_dof(a, b, c, offsets, s, nbx, nby, nbz)
-            if j < 0:
-                continue
+            if inside:
+                j = k + step[s]
+            else:
+                j = _offset_dof(a, b, c, offsets, s, nbx, nby, nbz)
+                if j < 0:
+                    continue
             mks = M[k, s]
-            theta = fast[k] if fast[k] > fast[j] else fast[j]
+            theta = fast_k if fast_k > fast[j] else fast[j]
             diag += theta * mks
             if index[j] >= 0:
                 A[r, s] = (1.0 - theta) * mks

@@ -315,6 +315,7 @@ def _prelude(dim, parallel, window, variant):
              "",
              "from skfem_mpm.kernels.by_symbol import call, call_at",
              "from skfem_mpm.kernels.clock import monotonic_ns",
+             "from skfem_mpm.kernels.band_factor import factor_band, factor_columns",
              "from skfem_mpm.kernels.mpm import work_increment as WORK_INCREMENT",
              "from skfem_mpm.kernels.step_size import (adaptive_step, critical_step, "
              "guard_limit, reached_end,",
@@ -350,7 +351,8 @@ def _prelude(dim, parallel, window, variant):
                  if dim == 1 else  # (the band factor is 2D's)
                  "w = cm.band_width[g]\n"
                  "    m = n if w >= 0 else 0  # the band factor's rows (none: Kronecker)\n"
-                 "    band = cm.band[g, :m * (w + 1)].reshape((m, max(w, 0) + 1))\n"
+                 "    wf = factor_columns(max(w, 0))\n"
+                 "    band = cm.band[g, :m * wf].reshape((m, wf))\n"
                  "    return (cm.Lx[g], cm.Ly[g], cm.box_index[g, :n], cm.inv_scale[g, :n], "
                  "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)), band, w >= 0)")
     pcg = ("return ELL_PCG(A, cols, inv_diag, KRONECKER_ARGS(cm, g, n, nc, nt), None, b, x, "
@@ -837,7 +839,7 @@ class StepLoop:
             banded_on=zeros(G, dtype=np.bool_), band_max=band_max,
             band_from=int(cls.BAND_FROM), band_width=np.full(G, -1, dtype=np.int64),
             # (np.zeros: only the rows of a group whose factor is on are written)
-            band=zeros((G, nd * (band_max + 1) if band_max > 0 else 1)),
+            band=zeros((G, nd * band_factor.factor_columns(band_max) if band_max > 0 else 1)),
             band_keep=int(cls.BAND_KEEP), band_kept=np.full((G, 2), -1, dtype=np.int64),
             band_rows=zeros((G, nd if band_max > 0 else 1), dtype=np.int64),
             warm=zeros((2, nd, dim)), has_warm=zeros(2, dtype=np.bool_),
@@ -918,7 +920,8 @@ class StepLoop:
         self.module.load_warm(cm, warm, has, banded)
         for g in range(self._groups):  # the kept band factors (StencilSystem._band)
             rows, factor = state.warm.get(f"band{g}_rows"), state.warm.get(f"band{g}_factor")
-            if rows is not None and factor is not None:
+            if rows is not None and factor is not None and factor.ndim == 2 \
+                    and band_factor.factor_layout_ok(factor):
                 self.module.load_band(cm, g, np.ascontiguousarray(rows, dtype=np.int64),
                                       np.ascontiguousarray(factor, dtype=np.float64))
 
@@ -939,7 +942,8 @@ class StepLoop:
             n, w = (int(v) for v in kept[g])
             if n >= 0:
                 state.warm[f"band{g}_rows"] = band_rows[g, :n].copy()
-                state.warm[f"band{g}_factor"] = band[g, :n * (w + 1)].reshape(n, w + 1).copy()
+                wf = band_factor.factor_columns(w)
+                state.warm[f"band{g}_factor"] = band[g, :n * wf].reshape(n, wf).copy()
             else:
                 state.warm.pop(f"band{g}_rows", None)
                 state.warm.pop(f"band{g}_factor", None)

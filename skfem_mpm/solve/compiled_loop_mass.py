@@ -168,7 +168,7 @@ def load_band(cm, g, rows, factor):
     ``rows``."""
     n, w1 = factor.shape
     cm.band_kept[g, 0] = n
-    cm.band_kept[g, 1] = w1 - 1
+    cm.band_kept[g, 1] = factor_band(w1)
     copy_into(cm.band_rows[g, :n], rows)
     copy_into(cm.band[g, :n * w1], factor.reshape(n * w1))
 
@@ -254,10 +254,11 @@ def _kronecker_box(cm, g, rows, nbx, nby):
     (c nby + b) nbx + a; 1D and 2D have c = 0), unless they were built for
     the same rows."""
     n = rows.shape[0]
+    boxed = cm.boxed_rows[g]
     if cm.n_boxed[g] == n:
         same = True
         for r in range(n):
-            if cm.boxed_rows[g, r] != rows[r]:
+            if boxed[r] != rows[r]:
                 same = False
                 break
         if same:
@@ -274,15 +275,17 @@ def _kronecker_box(cm, g, rows, nbx, nby):
         b1 = max(b1, b + 1)
         c0 = min(c0, c)
         c1 = max(c1, c + 1)
+    box_index = cm.box_index[g]
+    box_coords = cm.box_coords[g]
     for r in range(n):
         a = rows[r] % nbx - a0
         b = (rows[r] // nbx) % nby - b0
         c = rows[r] // (nbx * nby) - c0
-        cm.box_index[g, r] = (c * (b1 - b0) + b) * (a1 - a0) + a
-        cm.box_coords[g, r, 0] = a
-        cm.box_coords[g, r, 1] = b
-        cm.box_coords[g, r, 2] = c
-        cm.boxed_rows[g, r] = rows[r]
+        box_index[r] = (c * (b1 - b0) + b) * (a1 - a0) + a
+        box_coords[r, 0] = a
+        box_coords[r, 1] = b
+        box_coords[r, 2] = c
+        boxed[r] = rows[r]
     cm.n_boxed[g] = n
     cm.box_shape[g, 0] = c1 - c0
     cm.box_shape[g, 1] = b1 - b0
@@ -326,13 +329,15 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
             merged = count > 0
         cm.merged[g] = merged
         n = 0
+        group_rows = cm.rows[g]  # (each field read of a structref costs a reference count)
+        group_index = cm.index[g]
         for k in range(nd):
             if not mask[k, c0] and mass[k] > 0.0:
-                cm.rows[g, n] = k
-                cm.index[g, k] = n
+                group_rows[n] = k
+                group_index[k] = n
                 n += 1
             else:
-                cm.index[g, k] = -1
+                group_index[k] = -1
         cm.n_rows[g] = n
         rows = cm.rows[g, :n]
         COMPACT_SYSTEM(stencil, p, nbx, nby, dim, rows, cm.index[g], cm.fast, cm.A[g, :n],
@@ -351,8 +356,9 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
             rows = cm.kept_rows[g, :n]
             fit = cm.merged_fit[:n * ns].reshape((n, ns))
         else:
+            inv_diag = cm.inv_diag[g]
             for r in range(n):
-                cm.inv_diag[g, r] = 1.0 / mass[rows[r]]
+                inv_diag[r] = 1.0 / mass[rows[r]]
         cm.band_width[g] = -1
         if n == 0:
             continue
@@ -367,8 +373,9 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
                     continue
                 cm.band_kept[g, 0] = -1
                 w = ELL_BAND_WIDTH(cm.cols[g, :n])
+                wf = factor_columns(w)
                 if w <= cm.band_max and FIT_BAND_FACTOR(cm.A[g, :n], cm.cols[g, :n],
-                                                        cm.band[g, :n * (w + 1)].reshape((n, w + 1))):
+                                                        cm.band[g, :n * wf].reshape((n, wf))):
                     cm.band_width[g] = w
                     cm.band_kept[g, 0] = n
                     cm.band_kept[g, 1] = w
@@ -397,8 +404,9 @@ def _kept_band(cm, g, rows):
     n = rows.shape[0]
     if cm.band_kept[g, 0] != n or cm.band_kept[g, 1] > cm.band_max:
         return False
+    kept = cm.band_rows[g]
     for r in range(n):
-        if cm.band_rows[g, r] != rows[r]:
+        if kept[r] != rows[r]:
             return False
     return True
 

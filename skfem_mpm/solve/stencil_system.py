@@ -11,7 +11,8 @@ from contextlib import contextmanager
 import numpy as np
 
 from ..errors import InvalidState
-from ..kernels.band_factor import ell_band_width, fit_band_factor
+from ..kernels.band_factor import (ell_band_width, factor_columns, factor_layout_ok,
+                                   fit_band_factor)
 from ..kernels.fringe import FringeFactor, FringePattern
 from ..kernels.kronecker import KroneckerData
 from ..kernels.merged_mass import EXTRA, merged_expand, merged_problem, merged_system
@@ -290,14 +291,16 @@ class StencilSystem:
         key = f"band{g}"
         kept_rows, L = self.warm.get(key + "_rows"), self.warm.get(key + "_factor")
         if kept_rows is not None and L is not None and np.array_equal(kept_rows, rows) \
-                and L.shape[0] == A.shape[0] and L.shape[1] <= self._band_width() + 1:
+                and L.shape[0] == A.shape[0] \
+                and L.shape[1] <= factor_columns(self._band_width()) and factor_layout_ok(L):
             return _BandFactor(L)
         self.warm.pop(key + "_rows", None)
         self.warm.pop(key + "_factor", None)
         w = int(self.k.kernel(ell_band_width)(cols))
         if w > self._band_width():
             return None
-        L = np.empty((A.shape[0], w + 1))  # (a new array: warm data may sit in a checkpoint)
+        # (a new array: warm data may sit in a checkpoint)
+        L = np.empty((A.shape[0], factor_columns(w)))
         if not fit_band_factor(A, cols, L):
             return None
         self.warm.update({key + "_rows": rows.copy(), key + "_factor": L})
