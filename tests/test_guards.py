@@ -179,7 +179,7 @@ def test_removal_with_two_bodies_rebinds_to_the_survivors(backend):
 
 
 # --------------------------------------------------------------- restart, every field
-MEASURED = {"wall_time", "jit_time"}  # seconds: differ between any two runs
+MEASURED = {"wall_time", "jit_time", "cpu_time"}  # seconds: differ between any two runs
 KEYS_ONLY = {"timings", "phase_counts"}  # seconds and timed intervals per phase (the
 # compiled loop times a call of many steps at once): compare which phases ran
 
