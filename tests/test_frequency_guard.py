@@ -9,7 +9,7 @@ from skfem_mpm import Method, SplineGrid, simulate
 from skfem_mpm.benchmarks import get_benchmark
 from skfem_mpm.solve.timestep import (_mass, _stiffness, covered_weights, fast_dof_weights,
                                       full_grid_mass_ratios, full_grid_quotients,
-                                      interior_rayleigh_quotient)
+                                      interior_rayleigh_quotient, tail_weight)
 
 
 @pytest.mark.parametrize("degree", [1, 2, 3])
@@ -47,19 +47,25 @@ def test_a_filled_grid_trips_no_guard_at_the_default_cfl(backend, scheme):
     assert np.array_equal(guarded.particles.u, free.particles.u)
 
 
-def test_a_dof_its_particles_see_only_at_the_tail_keeps_the_plain_limit():
-    """tau = M_ii / (m_i mu_i): about 1 on covered functions (relaxed
-    threshold), small where particles sit only at the tail (plain one)."""
+def test_a_dof_its_particles_see_only_at_the_tail_gets_the_first_functions_weight():
+    """tau = M_ii / (m_i mu_i): about 1 on covered functions (their own
+    full-grid weight), small where particles sit only at the tail, which is
+    weighed as the open knot vector's first function (tail_weight: q / Q_1;
+    the plain limit, weight 1, lumped S3's end dof and cost up to 400x)."""
     from skfem_mpm import Particles
     from skfem_mpm.quadrature import transfer_matrices
 
     grid = SplineGrid.line(0.0, 1.0, 16, 3)
     w, mu = fast_dof_weights(grid)
+    assert tail_weight(3) == pytest.approx(w[0], rel=1e-12)  # the first function's
+    # Q_1 = int (3 s^2)^2 / int (s^3)^2 = 63 / 5 on a unit cell
+    assert tail_weight(3) == pytest.approx(interior_rayleigh_quotient(3) / 12.6, rel=1e-9)
     for region, relaxed in (((0.0, 1.0), True), ((0.0, 0.93), False)):
         p = Particles.seed(grid, 2, 1.0, region=(region,))
         N = transfer_matrices(grid, p.x)[0].tocsr()
         lumped, diagonal = N.T @ p.m, N.multiply(N).T @ p.m
-        scale = covered_weights(w, mu, lumped, diagonal)
-        expected = w[-2] if relaxed else 1.0  # 0.93: tau = 0.16 at dof -2
+        scale, addend = covered_weights(w, mu, lumped, diagonal, tail_weight(3))
+        assert np.all(addend == 0.0)  # 1D: no covered axis to put back
+        expected = w[-2] if relaxed else tail_weight(3)  # 0.93: tau = 0.16 at dof -2
         assert scale[-2] == pytest.approx(expected, rel=1e-6), (region, scale[-2], w[-2])
         assert scale[1] == pytest.approx(w[1], rel=1e-6)  # the left end stays covered

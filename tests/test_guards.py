@@ -415,16 +415,20 @@ def test_effective_mass_is_the_schur_complement_of_the_patch(dim, p):
         assert abs(s - s_twin) <= 1e-12 * scale, (k, s, s_twin)
 
 
+@pytest.mark.parametrize("rule", ["plain", "effective mass", "tail"])
 @pytest.mark.parametrize("backend", ["numpy", "numba"])
-def test_the_guard_still_lumps_a_body_ending_inside_a_cell(backend, monkeypatch):
+def test_the_guard_still_lumps_a_body_ending_inside_a_cell(backend, rule, monkeypatch):
     """Half the last cell filled (cubic, consistent CD, cfl 0.5): the end
     dof's effective mass makes it fast (estimate ~ 3-5 Lambda), and the
     guard must lump it: without the guard the run fails at step 16
     (J <= 0); with it, 220 steps and |v| stays below its initial 1e-3.
-    ~5 s per backend. With the effective-mass rule on (off by default)."""
+    ~5 s per backend. With the plain rule (the default), the effective-mass
+    rule and the tail rule (the end dof weighed as the open knot vector's
+    first function, timestep.tail_weight: r ~ cfl^2 / l^2 = 1 at l = 1/2)."""
     from skfem_mpm.solve import timestep
 
-    monkeypatch.setattr(timestep, "EFFECTIVE_MASS_RULE", True)
+    monkeypatch.setattr(timestep, "EFFECTIVE_MASS_RULE", rule == "effective mass")
+    monkeypatch.setattr(timestep, "TAIL_RULE", rule == "tail")
     r = simulate(_sliver_scene(), Method(scheme="cd", mass="consistent", backend=backend))
     assert r.counts["steps"] == 220
     assert np.abs(r.particles.v).max() < 1e-3

@@ -86,24 +86,28 @@ def test_rk4_with_spline_reconstruction_reaches_fourth_order_in_space():
 
 
 @pytest.mark.slow(reason="a convergence study (its loop run types compile for it alone)")
-def test_rk4_with_spline_reconstruction_reaches_fourth_order_on_the_traction_bar(monkeypatch):
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_rk4_with_spline_reconstruction_reaches_fourth_order_on_the_traction_bar(backend,
+                                                                                monkeypatch):
     """S3 small (free end at a knot, dynamic end traction), cubic + spline,
-    consistent mass, 2 particles per cell, default cfl and frequency guard:
+    consistent mass, 2 particles per cell, default cfl, the guard's tail rule:
     order >= 3.5 from 8 to 16 cells (measured 1.229e-5 -> 5.055e-7, order
-    4.60, the same as with the guard off). The guard's plain rule lumped the
-    end dof (r = 2.25 against its threshold 1/2) and the error stayed at
-    5.2e-3 at 8 cells; the effective-mass rule gives r = 0.21 there
-    (skfem_mpm.solve.timestep.guarded_stiffness, switched on here: it is off
-    by default, see there). ~15 s."""
+    4.60, the same as with the guard off). With the plain limit on the end
+    dof, which the bar covers over one cell of its support only (weight 1,
+    r = 2.25 against the threshold 1/2), the guard lumped it and the error
+    stayed at 5.2e-3 at 8 cells; that tail is now weighed as the open knot
+    vector's first function (skfem_mpm.solve.timestep.tail_weight, with
+    TAIL_RULE, off by default: see covered_parameters), r = 0.25. ~15 s."""
     from skfem_mpm.solve import prepare, timestep
 
-    monkeypatch.setattr(timestep, "EFFECTIVE_MASS_RULE", True)
+    monkeypatch.setattr(timestep, "TAIL_RULE", True)
 
     b = get_benchmark("traction-bar", "small")
     errors = []
     for cells in (8, 16):
         scene = b.scene(cells, 3, 2)
-        method = Method(scheme="rk4", mass="consistent", reconstruction="spline")
+        method = Method(scheme="rk4", mass="consistent", reconstruction="spline",
+                        backend=backend)
         save_every = max(1, prepare(scene, method).n_steps // b.saves)
         errors.append(b.errors(simulate(scene, method, save_every=save_every))["error_max"])
     assert errors[0] < 5e-5 and orders(errors)[0] > 3.5, errors

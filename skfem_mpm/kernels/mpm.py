@@ -1081,18 +1081,22 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def covered_stiffness(stiffness, stencil, mass, weights, mass_ratios, moving, lo, hi, out):
-    """out_k = K_k (c_k moving_k): the fast-dof guard's stiffness weights
-    scaled by :func:`skfem_mpm.solve.timestep.covered_weights`,
-    c_k = 1 - (1 - w_k) s_k, s_k = smoothstep over (lo, hi) of
-    tau_k = M_kk / (m_k mu_k), and zero on the dofs that never move (the
+def covered_stiffness(stiffness, stencil, mass, weights, mass_ratios, moving, lo, hi, tail,
+                      floor, out):
+    """out_k = K_k (c_k moving_k) + a_k moving_k: the fast-dof guard's
+    stiffness of :func:`skfem_mpm.solve.timestep.covered_weights`,
+    c_k = tail + (w_k - tail) s_k, a_k = (1 - s_k) (1 - tail) floor M_kk,
+    s_k = smoothstep over (lo, hi) of tau_k = M_kk / (m_k mu_k), and zero on the dofs that never move (the
     same operations as the NumPy function, so the same bits)."""
     centre = (stencil.shape[1] - 1) // 2
     for k in prange(mass.shape[0]):
-        tau = stencil[k, centre] / (max(mass[k], 1e-300) * mass_ratios[k])
+        diagonal = stencil[k, centre]
+        tau = diagonal / (max(mass[k], 1e-300) * mass_ratios[k])
         s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
-        w = 1.0 - (1.0 - weights[k]) * (s * s * (3.0 - 2.0 * s))
-        out[k] = stiffness[k] * (w * moving[k])
+        smooth = s * s * (3.0 - 2.0 * s)
+        w = tail + (weights[k] - tail) * smooth
+        a = (1.0 - smooth) * (1.0 - tail) * floor * diagonal
+        out[k] = stiffness[k] * (w * moving[k]) + a * moving[k]
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)

@@ -61,7 +61,7 @@ from .compiled_modifiers import CompiledModifiers
 from .compiled_runge_kutta import CompiledRungeKutta
 from .grid_system import GridSystem
 from .stencil_system import StencilSystem
-from .timestep import COVERED, effective_mass_ratio, fast_dof_limit, lumping_fraction
+from .timestep import covered_parameters, effective_mass_ratio, fast_dof_limit, lumping_fraction
 
 __all__ = ["compiled_executor_applies", "CompiledExecutor", "side_traction"]
 
@@ -355,7 +355,8 @@ class CompiledExecutor(CompiledRungeKutta):
                 weights, ratios, moving = state.fast_dof_guard_arrays()
                 self._guard_arrays = (weights, ratios, moving.astype(np.float64))
             self.kernels.kernel(covered_stiffness)(K, stencil, mass, *self._guard_arrays,
-                                                   *COVERED, guarded)
+                                                   *covered_parameters(state.grid, state.method),
+                                                   guarded)
             grid = state.grid
             nbx, nby = (grid.ndofs, 1) if grid.dim == 1 else tuple(grid.basis_per_axis[:2])
             self.kernels.kernel(limit_by_effective_mass)(

@@ -83,8 +83,8 @@ from . import schemes
 from .compiled import side_traction
 from .compiled_loop_tables import ForceTable, PrescribedTable, TractionTable, reference_forces
 from .stencil_system import StencilSystem, stencil_residual
-from .timestep import (COVERED, RECONSTRUCTION_EVERY, STABILITY_LIMIT, effective_mass_ratio,
-                       fast_dof_limit, stiffness_root)
+from .timestep import (RECONSTRUCTION_EVERY, STABILITY_LIMIT, covered_parameters,
+                       effective_mass_ratio, fast_dof_limit, stiffness_root)
 
 __all__ = ["ENABLED", "StepLoop", "loop_applies", "precompile_mass"]
 
@@ -808,7 +808,7 @@ class StepLoop:
             guard=bool(guard > 0), limit=float(limit),
             weights=np.ascontiguousarray(weights, dtype=np.float64),
             mass_ratios=np.ascontiguousarray(ratios, dtype=np.float64),
-            moving=np.asarray(moving, dtype=np.float64), covered=np.array(COVERED, dtype=float),
+            moving=np.asarray(moving, dtype=np.float64), covered=np.array(covered_parameters(grid, method), dtype=float),
             guarded=zeros(nd), fast=zeros(nd), effective_ratio=effective_mass_ratio(p),
             group_comps=group_comps,
             group_size=np.array([len(c) for c in groups.values()], dtype=np.int64),

@@ -75,7 +75,7 @@ MASS_FIELDS = (
     # extraction)
     "stencil", "stiffness", "copies", "stiff_copies", "touched", "row_range", "axes",
     # fast-dof guard: on?, its limit, covered_weights' w, mu, the moving
-    # dofs (1.0 / 0.0), COVERED, the scaled K, the lumping fractions,
+    # dofs (1.0 / 0.0), timestep.covered_parameters (lo, hi, tail, floor), the scaled K, the lumping fractions,
     # q / Lambda (timestep.effective_mass_ratio)
     "guard", "limit", "weights", "mass_ratios", "moving", "covered", "guarded", "fast",
     "effective_ratio",
@@ -305,7 +305,8 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
     nd, ns = stencil.shape
     if cm.guard:  # K_k covered_weights_k moving_k (timestep.guarded_stiffness), then theta
         COVERED_STIFFNESS(cm.stiffness, stencil, mass, cm.weights, cm.mass_ratios, cm.moving,
-                          cm.covered[0], cm.covered[1], cm.guarded)
+                          cm.covered[0], cm.covered[1], cm.covered[2], cm.covered[3],
+                          cm.guarded)
         LIMIT_BY_EFFECTIVE_MASS(cm.guarded, cm.stiffness, stencil, mass, cm.limit,
                                 cm.effective_ratio, p, nbx, nby, dim)
         FAST_ROW_FRACTIONS(cm.guarded, stencil, mass, cm.limit, cm.fast)

@@ -54,10 +54,12 @@ h_d^-2 / Q_i), Q_i the Gauss full-grid quotient, while particles cover the
 function, blending to 1 where they see only its tail (from
 M_ii / (m_i mu_i), see :func:`skfem_mpm.solve.timestep.covered_weights`),
 and w_i = 0 on dofs constrained in every component (they never move;
-lumping their rows only moved mass onto their free neighbours). It fires only where
-the step would go unstable: on the bar with a free end (S3) it never does
-and costs no accuracy, where a guard on M_ii / m_i alone cost up to three
-orders of magnitude.
+lumping their rows only moved mass onto their free neighbours). A dof
+its particles see only at the tail keeps w_i = 1: on the bar whose free end
+is a knot (S3) that lumps the last function's rows (it is no faster than
+the step allows) and costs up to 400x in accuracy; the tail rule that
+weighs such a dof as the open knot vector's first function fixes S3 and is
+off by default (see :func:`skfem_mpm.solve.timestep.covered_parameters`).
 
 Consistent mass is solved with a sparse LU factorisation (reused for every
 solve of the step with the same free set) or with conjugate gradients

@@ -12,8 +12,9 @@ from ..spline import SplineGrid
 from .grid_system import Constraints, dof_adjacency
 from .runge_kutta import check_staged
 from ..reconstruct import RECONSTRUCTORS
-from .timestep import (RECONSTRUCTION_EVERY, critical_time_step, covered_weights,
-                       fast_dof_weights, reconstruction_factor, stable_time_step)
+from .timestep import (RECONSTRUCTION_EVERY, covered_parameters, covered_weights,
+                       critical_time_step, fast_dof_weights, reconstruction_factor,
+                       stable_time_step)
 from .timing import PhaseTimer
 
 __all__ = ["State", "prepare"]
@@ -122,14 +123,16 @@ class State:
 
     # ------------------------------------------------------------ time step
     def guard_weights(self, lumped, diagonal):
-        """Per-dof scale of the fast-dof guard's ratio from the step's lumped
-        mass and consistent diagonal (see
-        :func:`skfem_mpm.solve.timestep.covered_weights`; 1 off spline grids;
-        0 on dofs constrained in every component, which never move)."""
+        """Per-dof scale and addend of the fast-dof guard's stiffness from
+        the step's lumped mass and consistent diagonal (see
+        :func:`skfem_mpm.solve.timestep.covered_weights`; 1 and 0 off spline
+        grids; 0 on dofs constrained in every component, which never move)."""
         if not isinstance(self.grid, SplineGrid):
-            return 1.0
+            return 1.0, 0.0
         w, mu, moving = self.fast_dof_guard_arrays()
-        return covered_weights(w, mu, lumped, diagonal) * moving
+        _, _, tail, floor = covered_parameters(self.grid, self.method)
+        scale, addend = covered_weights(w, mu, lumped, diagonal, tail, floor)
+        return scale * moving, addend * moving
 
     def fast_dof_guard_arrays(self):
         """(w, mu, moving) of :meth:`guard_weights` on a spline grid: the

@@ -281,9 +281,9 @@ def step_system(state, data, kind="acceleration"):
 
             def fast_rows(mass_diagonal):
                 # sum over points of mass |grad N_i|^2, scaled per dof
-                k = guarded_stiffness(state.grid, data.stiffness_weights(),
-                                      state.guard_weights(data.lumped, mass_diagonal), limit,
-                                      data.consistent, data.lumped)
+                scale, addend = state.guard_weights(data.lumped, mass_diagonal)
+                k = guarded_stiffness(state.grid, data.stiffness_weights(), scale, limit,
+                                      data.consistent, data.lumped, addend)
                 return lumping_fraction(k / (limit * np.maximum(mass_diagonal, 1e-300)))
 
         data.system = GridSystem(data.lumped, state.constraints, consistent,

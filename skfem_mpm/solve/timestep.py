@@ -45,7 +45,8 @@ from .compiled_reconstruct import CompiledReconstruction, unsupported
 __all__ = ["spectral_radius", "interior_rayleigh_quotient", "critical_time_step", "STABILITY_LIMIT",
            "stable_time_step", "stiffness_root",
            "fast_dof_limit", "full_grid_quotients", "full_grid_mass_ratios", "fast_dof_weights",
-           "covered_weights", "EFFECTIVE_MASS_RULE", "effective_mass_ratio",
+           "covered_weights", "tail_weight", "covered_parameters", "TAIL_RULE",
+           "EFFECTIVE_MASS_RULE", "effective_mass_ratio",
            "guarded_stiffness", "lumping_fraction", "ReconstructedOperator", "power_iteration",
            "compiled_twin", "reconstruction_factor"]
 
@@ -149,9 +150,68 @@ def fast_dof_weights(grid):
 COVERED = (0.8, 0.95)
 
 
-def covered_weights(weights, mass_ratios, lumped, diagonal):
-    """The fast-dof guard's per-dof scale: 1 - (1 - w_i) s_i, s_i =
-    smoothstep over COVERED of tau_i = M_ii / (m_i mu_i).
+@lru_cache(maxsize=None)
+def tail_weight(degree):
+    """t(p) = q(p) / Q_1(p): the weight of :func:`fast_dof_weights` of the
+    first function of an open knot vector (Q_1 its full-grid K_ii / M_ii on
+    unit cells; 1 / 3.7 for p = 2, 1 / 9.1 for p = 3). A function the body
+    covers over the last j cells of its support only (the body ends at a
+    knot) is there the restriction of a uniform B-spline, and the
+    restricted space is the open-knot space of the body's cells, whose top
+    frequency Lambda(p) already bounds the step: over one cell the function
+    is (s^p / p!), the open knot vector's first function up to scale, so
+    its quotient is Q_1 and it is no faster than that function. A body
+    ending a fraction l of a cell into the support gives a quotient
+    ~ Q_1 / l^2 and a top frequency ~ Lambda / l^2 (the cut cell's outlier),
+    so with this weight the guard's ratio r ~ cfl^2 / l^2 lumps that dof
+    fully where the cut cell would break the step (l <= cfl)."""
+    from ..spline import SplineGrid
+
+    grid = SplineGrid.line(0.0, 64.0, 64, degree)
+    return float(interior_rayleigh_quotient(degree) / full_grid_quotients(grid)[0])
+
+
+TAIL_RULE = False
+"""Whether the fast-dof guard weighs a dof its particles see only at the
+tail as the open knot vector's first function (:func:`tail_weight`), or
+with weight 1, the plain limit (the default; see :func:`covered_parameters`
+for what the rule fixes and what it breaks)."""
+
+
+def covered_parameters(grid, method=None):
+    """(lo, hi, t, F): COVERED, :func:`tail_weight` of the grid's degree and
+    F = q(p) (sum_d h_d^-2 - min_d h_d^-2) (h_d the smallest cell of axis
+    d), the scalars of :func:`covered_weights` (and of its compiled twin,
+    :func:`skfem_mpm.kernels.mpm.covered_stiffness`); (lo, hi, 1, 0), the
+    plain limit on tails, while TAIL_RULE is off.
+
+    With the plain limit the guard fires on S3 (the bar's free end is a
+    knot; cubic, 2 particles per cell, consistent mass, cfl 0.5): the last
+    function, which the bar covers over one cell of its support, has the
+    Gauss quotient of the open knot vector's first function (12.6, 9.1
+    q(p)), r = 2.25 against the threshold 1/2 with either scheme, and its
+    rows are lumped: spline + rk4 5.2e-3, 4.5e-3, 2.2e-3 at 8-16-32 cells
+    (1.2e-5, 5.1e-7, 9.6e-8 with the rule). What the rule breaks: with a
+    reconstruction the guard's K_ii and M_ii are integrated at the Gauss
+    points of every cell the body touches, so the cell S3's bar fills and
+    the cell S2's free top cuts give the same quotient; on S2 large (cubic,
+    spline, consistent CD, 40 cells; tests/hard/test_free_surface) the rule
+    then never lumps the moving top and a particle leaves the grid. A rule
+    for reconstructed methods needs the particles' own coverage of the
+    cell, which the guard does not measure yet."""
+    if not TAIL_RULE:
+        return (COVERED[0], COVERED[1], 1.0, 0.0)
+    inv = 1.0 / np.asarray(grid.h, dtype=np.float64) ** 2
+    floor = interior_rayleigh_quotient(grid.degree) * float(np.sum(inv) - np.min(inv))
+    return (COVERED[0], COVERED[1], tail_weight(grid.degree), floor)
+
+
+def covered_weights(weights, mass_ratios, lumped, diagonal, tail=1.0, floor=0.0):
+    """The fast-dof guard's per-dof scale c_i and addend a_i (its stiffness
+    is K_i c_i + a_i): c_i = t + (w_i - t) s_i (``tail`` t:
+    :func:`tail_weight`, or 1), a_i = (1 - s_i) (1 - t) F M_ii
+    (``floor``: F of :func:`covered_parameters`), s_i = smoothstep over
+    COVERED of tau_i = M_ii / (m_i mu_i).
 
     The guard compares a dof's Rayleigh quotient with a limit built on an
     interior dof of the smallest cells. The first functions of an open knot
@@ -159,15 +219,24 @@ def covered_weights(weights, mass_ratios, lumped, diagonal):
     for p = 2, 4.9 and 9.1 for p = 3) without being faster than the time
     step allows (Lambda includes those outlier modes), so a filled grid
     tripped the guard there at cfl 0.5 and lost accuracy. Such a dof gets
-    the limit times 1 / w_i, but only while it is covered: tau_i, the
-    particles' consistent diagonal over their lumped mass relative to the
-    full-grid value, is about 1 when particles cover the function (0.98-0.99
-    for the second function at 2-4 particles per cell) and drops when they
-    see only its tail (0.16-0.45 measured), where the plain limit applies."""
+    the limit times 1 / w_i while it is covered: tau_i, the particles'
+    consistent diagonal over their lumped mass relative to the full-grid
+    value, is about 1 when particles cover the function (0.98-0.99 for the
+    second function at 2-4 particles per cell) and drops when they see only
+    its tail (0.16-0.45 measured). With TAIL_RULE a tail is weighed as the
+    open knot vector's first function (see :func:`tail_weight`): a body ending at a
+    knot (S3's free end) leaves a tail whose quotient is that function's
+    and which is no faster than the step allows; with weight 1 there (the
+    plain limit) the guard lumped S3's end dof (r = 2.25 at cubic, rk4,
+    cfl 0.5) and cost up to 400x in accuracy. In 2D and 3D a dof is
+    usually a tail along one axis only; t weighs its whole quotient, the
+    covered axes' share too, so the addend puts back an interior quotient
+    for every axis but one: (1 - t) F, F = q sum_(d != e) h_d^-2."""
     tau = diagonal / (np.maximum(lumped, 1e-300) * mass_ratios)
     lo, hi = COVERED
     s = np.clip((tau - lo) / (hi - lo), 0.0, 1.0)
-    return 1.0 - (1.0 - weights) * (s * s * (3.0 - 2.0 * s))
+    smooth = s * s * (3.0 - 2.0 * s)
+    return tail + (weights - tail) * smooth, (1.0 - smooth) * (1.0 - tail) * floor * diagonal
 
 
 EFFECTIVE_MASS_RULE = False
@@ -233,8 +302,8 @@ def effective_masses(grid, consistent, lumped, dofs):
     return np.where(indefinite, -1.0, pivot)
 
 
-def guarded_stiffness(grid, stiffness, weights, limit, consistent, lumped):
-    """K_k w'_k, the stiffness the fast-dof guard compares with ``limit``
+def guarded_stiffness(grid, stiffness, weights, limit, consistent, lumped, addend=0.0):
+    """K_k w'_k (+ ``addend``, the a_k of :func:`covered_weights`), the stiffness the fast-dof guard compares with ``limit``
     M_kk (``fast_row_fractions``): w'_k = min(w_k, (q / Lambda) M_kk / S_k)
     on the dofs where K_k w_k > limit M_kk / 2 (those the plain rule would
     lump; w_k from :func:`covered_weights`, times 0 on dofs that never
@@ -267,7 +336,7 @@ def guarded_stiffness(grid, stiffness, weights, limit, consistent, lumped):
     1.03% of the work with the radius-1 patch (limit 1%), 0.87% with
     radius p."""
     w = np.broadcast_to(np.asarray(weights, dtype=np.float64), np.shape(stiffness))
-    guarded = stiffness * w
+    guarded = stiffness * w + addend
     ratio = effective_mass_ratio(grid.degree) if hasattr(grid, "degree") else np.inf
     if not ratio < np.inf:
         return guarded
