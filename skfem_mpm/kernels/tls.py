@@ -774,12 +774,31 @@ def _fit_block(block, x, V, values, xg, factor, out, coef, at_points):
         fmax[:] = -np.inf
         for i in range(pstart[s], pstart[s + 1]):
             q = porder[i]
-            phi[0], phi[1], phi[2], phi[3], phi[4], phi[5], phi[6], phi[7], phi[8], \
-                phi[9] = _monomials(x[q, 0], x[q, y], x[q, z], c0, c1, c2, s0, s1, s2, dim)
-            for r in range(m):
-                wr = V[q] * phi[r]
+            if dim == 2:  # the loop below written out (the same sums)
+                w = V[q]
+                xi = (x[q, 0] - c0) / s0
+                eta = (x[q, 1] - c1) / s1
+                w1 = w * xi
+                w2 = w * eta
+                w3 = w * (xi * xi)
+                w4 = w * (xi * eta)
+                w5 = w * (eta * eta)
                 for col in range(k):
-                    b[r, col] += wr * values[q, col]
+                    f = values[q, col]
+                    b[0, col] += w * f
+                    b[1, col] += w1 * f
+                    b[2, col] += w2 * f
+                    b[3, col] += w3 * f
+                    b[4, col] += w4 * f
+                    b[5, col] += w5 * f
+            else:
+                phi[0], phi[1], phi[2], phi[3], phi[4], phi[5], phi[6], phi[7], phi[8], \
+                    phi[9] = _monomials(x[q, 0], x[q, y], x[q, z], c0, c1, c2, s0, s1, s2,
+                                        dim)
+                for r in range(m):
+                    wr = V[q] * phi[r]
+                    for col in range(k):
+                        b[r, col] += wr * values[q, col]
             for col in range(k):
                 S[col] += V[q] * values[q, col]
                 fmin[col] = min(fmin[col], values[q, col])
