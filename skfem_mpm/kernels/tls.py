@@ -29,19 +29,28 @@ within [min_p f_pc - s_c, max_p f_pc + s_c], s_c = TLS_BOUND_TOL (max - min)
 leave it take the next level (the bound test of the oracle). The eigenvalue test is
 made as a Cholesky factorisation of D^(-1/2) A D^(-1/2) - TLS_RANK_TOL I
 (D = diag A, all > 0): it succeeds exactly when the smallest eigenvalue
-exceeds TLS_RANK_TOL. The Lagrange system (symmetric indefinite) is solved
-by Gaussian elimination with partial pivoting.
+exceeds TLS_RANK_TOL. In 1D and 3D the Lagrange system (symmetric
+indefinite) is solved by Gaussian elimination with partial pivoting; in 2D
+the constraint eliminates the constant (a_0 = (S - sum_(r>=1) G_r a_r) / G_0,
+G_0 > 0 the cell's Gauss weight sum), which leaves a symmetric positive
+definite system of n - 1 unknowns (5 quadratic, 2 linear) per cell and
+level, factored once by Cholesky without pivoting (:func:`_reduced_factor_2d`;
+a pivot <= 0 from rounding drops the level, so never a singular solve) and
+solved per value column on scalars (:func:`_reduced_solve_6`,
+:func:`_reduced_solve_3`). Both give the Lagrange system's solution: the
+results agree to rounding, not bit for bit.
 
 Particles are binned to their cells by a counting sort (stable: each
 cell's sums run in particle order, as the oracle's np.add.at does), the
 Gauss points likewise; the fit of cell e is then evaluated at its points.
 
-A, G, the eigenvalue tests and the factorisation P K = L U of each level's
-Lagrange matrix depend on the positions alone: :func:`tls_factor` computes
+A, G, the eigenvalue tests and the factorisation of each level's system
+(P K = L U of the Lagrange matrix, in 2D L L^T of the reduced one) depend on
+the positions alone: :func:`tls_factor` computes
 them once for a set of particles and a rule, and :func:`tls_apply` fits
 each field on them (b, S, the solves with the stored factors, the bound
 test); a step fits [rho, rho v, sigma] and its MUSL projection fits
-rho v^new on one factor. Each row of the right-hand side takes the
+rho v^new on one factor. In 1D and 3D each row of the right-hand side takes the
 operations of eliminating [K | R] at once, in the same order, so the fit
 has the bits of a solve of the whole system (:func:`tls_reconstruct`, both
 halves, is the one-call form). The loops over cells run in blocks of
@@ -622,7 +631,8 @@ def tls_factor(x, V, pcell, xg, wg, gcell, ncells):
     particles' x, V and the rule), computed once for every field fitted on
     them (:func:`tls_apply`): the cells' bins, frames, G, whether each
     level is well posed and the factorised Lagrange matrices
-    K = [[A, G], [G^T, 0]] of both levels. Arguments as
+    K = [[A, G], [G^T, 0]] of both levels (in 2D the Cholesky factors of
+    the reduced systems, :func:`_reduced_factor_2d`; ``pivots`` unused). Arguments as
     :func:`tls_reconstruct`'s; returns the tuple :func:`tls_apply` takes."""
     dim = x.shape[1]
     y = min(1, dim - 1)  # the coordinates' columns (beyond the dimension: read, not used)
