@@ -528,3 +528,47 @@ def test_the_banded_cholesky_of_the_2d_spline_solves_and_refuses_an_indefinite_m
     assert np.abs(got - expected).max() <= 1e-13 * np.abs(expected).max()
     stencil[5, WIDTH * WIDTH // 2] = -3.0
     assert BandedCholesky(stencil, fit.nbx) is None
+
+
+@pytest.mark.parametrize("skew", [0.0, 0.3])
+def test_the_2d_tls_fit_takes_the_fallback_levels_of_the_reference(skew):
+    """2D cells at every fallback level (whole cells, the rule of the held
+    cells, its weights also skewed so that the frame's G_1, G_2 are not 0,
+    as in the cut cells' rules): 9 jittered particles (quadratic), 3 not
+    on a line and 6 on two vertical lines (xi^2 a combination of 1 and xi:
+    linear), 4 on a diagonal, 2, and 1 at the cell's centre (A_11 = 0: the
+    conserving constant). The 2D fit (the constant eliminated, a Cholesky
+    factor per level) marks exactly these levels well posed, agrees with
+    the reference to 1e-12, and each cell's Gauss integral of the fit is
+    its particle integral."""
+    grid = SplineGrid.rectangle((0.0, 3.0), (0.0, 2.0), (3, 2), 2)
+    rng = np.random.default_rng(5)
+    q = (np.arange(3) + 0.5) / 3
+    nine = np.column_stack((np.repeat(q, 3), np.tile(q, 3))) + rng.uniform(-0.05, 0.05, (9, 2))
+    cells = [(0, 0, nine, (True, True)),
+             (1, 0, np.array([[0.2, 0.3], [0.7, 0.4], [0.4, 0.8]]), (False, True)),
+             (2, 0, np.column_stack((np.linspace(0.1, 0.8, 4), np.linspace(0.2, 0.9, 4))),
+              (False, False)),
+             (0, 1, np.array([[0.3, 0.4], [0.6, 0.7]]), (False, False)),
+             (1, 1, np.array([[0.5, 0.5]]), (False, False)),  # at the frame's centre: A_11 = 0
+             (2, 1, np.column_stack((np.repeat([0.25, 0.7], 3), np.tile([0.2, 0.5, 0.85], 2))),
+              (False, True))]
+    x = np.concatenate([c[2] + [c[0], c[1]] for c in cells])
+    p = Particles(x, np.ones(len(x)), rng.uniform(0.5, 1.5, len(x)) / 9)
+    values = np.column_stack((1.0 + x[:, 0] ** 2 - x[:, 0] * x[:, 1],
+                              np.sin(3 * x[:, 1]) + x[:, 0]))
+    pcell = locate_cells(p.x, *axes_of(grid))
+    xg, wg, cell = grid.gauss_rule(grid.degree + 2, np.unique(pcell))
+    wg = wg * (1.0 + skew * np.sin(7.0 * xg[:, 0] + 3.0 * xg[:, 1]))
+    factor = tls_factor(p.x, p.V, pcell, xg, wg, cell, grid.ncells)
+    assert skew == 0.0 or np.abs(factor[5][:, 1:3]).min() > 1e-3 * factor[5][:, 0].min()
+    posed = dict(zip(tls_kernel.slot_cells(factor, cell), factor[6].tolist()))
+    assert posed == {ix + 3 * iy: list(levels) for ix, iy, _, levels in cells}
+    out = np.empty((wg.size, 2))
+    tls_apply(p.x, p.V, values, xg, factor, out)
+    expected = reconstruct_tls(grid, p, values, reconstruct.IntegrationRule(xg, wg, cell))
+    assert np.abs(out - expected).max() <= 1e-12 * np.abs(expected).max()
+    for e in range(grid.ncells):
+        integral = (wg[cell == e, None] * out[cell == e]).sum(axis=0)
+        assert np.abs(integral - (p.V[pcell == e, None] * values[pcell == e]).sum(axis=0)).max() \
+            <= 1e-13 * np.abs(values).max()
