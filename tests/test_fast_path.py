@@ -296,6 +296,31 @@ def test_fitted_kronecker_is_exact_where_the_mass_is_a_kronecker_product():
     assert 0.7 < eigenvalues[0] and eigenvalues[-lumped - 1] < 1.2
 
 
+@pytest.mark.parametrize("rows", [300, 2100])
+def test_kronecker_marginals_in_blocks_and_in_one_agree(rows):
+    """fit_kronecker sums its axis marginals in kronecker.FIT_BLOCKS blocks
+    in parallel from FIT_BLOCKS_FROM rows on and in one block below: on
+    the same ELL rows (2D slots, p = 2, some diagonal rows) both give the
+    bands, axis sums and row sums to round-off, so each size's tests check
+    the other path too."""
+    from skfem_mpm.kernels.kronecker import _axis_marginals, _one_block_marginals
+
+    p, n = 2, 40
+    rng = np.random.default_rng(rows)
+    A = rng.random((rows, (2 * p + 1) ** 2))
+    coords = np.column_stack((rng.integers(0, n, rows), rng.integers(0, n, rows),
+                              np.zeros(rows, dtype=np.int64)))
+    coords[rng.random(rows) < 0.05] = -1  # diagonal rows: a row sum only
+    got = []
+    for marginals in (_axis_marginals, _one_block_marginals):
+        bands, sums = np.zeros((3, n, p + 1)), np.zeros((3, n))
+        row_sums = marginals(A, coords, p, bands, sums)
+        got.append((bands, sums, row_sums))
+    for a, b in zip(*got):
+        assert np.abs(a - b).max() <= 1e-13 * np.abs(a).max()
+    assert np.abs(got[0][2] - A.sum(axis=1)).max() <= 1e-13 * A.sum(axis=1).max()
+
+
 def test_kronecker_preconditioner_cuts_cg_iterations():
     """On a block of particles (the 2D benchmark's layout, 32 x 32 cells)
     the Kronecker preconditioner needs far fewer CG iterations than the

@@ -110,6 +110,11 @@ FIT_BLOCKS = 4
 """Blocks of rows whose axis marginals :func:`fit_kronecker` sums in
 parallel (a constant: the factors' bits do not depend on the threads)."""
 
+FIT_BLOCKS_FROM = 2048
+"""Systems of fewer rows sum their marginals in one block, straight into
+the work space: on a small system the blocks' partial arrays and the
+parallel region cost more than the sums (S1, 32 cells: about 1 us a step)."""
+
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _block_marginals(A, coords, p, lo, hi, along, bands, sums, row_sums):
@@ -168,7 +173,8 @@ def _axis_marginals(A, coords, p, bands, sums):
     rows), so a slot's axes are known without decoding its column; each
     row is first summed per offset (short dependency chains). The rows
     are summed in FIT_BLOCKS blocks in parallel, each into its own bands
-    and sums, which are then added in block order."""
+    and sums, which are then added in block order (below FIT_BLOCKS_FROM
+    rows :func:`fit_kronecker` calls :func:`_one_block_marginals`)."""
     nr = A.shape[0]
     width = 2 * p + 1
     n = bands.shape[1]
@@ -185,6 +191,17 @@ def _axis_marginals(A, coords, p, bands, sums):
                 sums[d, i] += part_sums[t, d, i]
                 for o in range(p + 1):
                     bands[d, i, o] += part_bands[t, d, i, o]
+    return row_sums
+
+
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def _one_block_marginals(A, coords, p, bands, sums):
+    """:func:`_axis_marginals` of a small system: every row in one block,
+    straight into ``bands`` and ``sums``, outside any parallel region (the
+    bits depend on the system's size, never on the threads)."""
+    row_sums = np.empty(A.shape[0])
+    _block_marginals(A, coords, p, 0, A.shape[0], np.empty((3, 2 * p + 1)), bands, sums,
+                     row_sums)
     return row_sums
 
 
@@ -207,7 +224,10 @@ def fit_kronecker(A, coords, Lx, Ly, Lz, inv_scale, bands, sums):
     concatenated ones."""
     bands[:] = 0.0
     sums[:] = 0.0
-    row_sums = _axis_marginals(A, coords, Lx.shape[1] - 1, bands, sums)
+    if A.shape[0] < FIT_BLOCKS_FROM:
+        row_sums = _one_block_marginals(A, coords, Lx.shape[1] - 1, bands, sums)
+    else:
+        row_sums = _axis_marginals(A, coords, Lx.shape[1] - 1, bands, sums)
     for d, L in enumerate((Lx, Ly, Lz)):
         n = L.shape[0]
         if n == 1:  # not applied: the identity (1 / L_00 = 1), its sums left out below
