@@ -437,7 +437,7 @@ def test_consistent_stencil_of_any_dimension_is_n_transpose_m_n(p, parallel):
     assert np.abs(K - K2).max() <= 1e-15 * np.abs(K2).max() * 10
 
 
-@pytest.mark.parametrize("p", [1, 2])
+@pytest.mark.parametrize("p", [pytest.param(1, marks=pytest.mark.slow), 2])  # p = 1 compiles its own kernels
 def test_consistent_stencil_rows_emptied_since_the_last_assembly_are_zero(p):
     """reduce_stencil writes a row whose diagonal M_kk is 0 as zero without
     summing or mirroring it: assembled once over a filled block and then
