@@ -160,7 +160,7 @@ class CompiledExecutor(CompiledRungeKutta):
         self._owned_F = []  # F arrays the constitutive kernel may write
         self._owned = set()
         self._acc = None
-        self._guard_arrays = None  # the fast-dof guard's (w, mu, moving) as the kernel takes them
+        self._guard_arrays = None  # the fast-dof guard's (w, mu, moving, rule scalars)
         nd, dim = state.grid.ndofs, state.grid.dim
         self._v_old = np.empty((nd, dim))
         # the grid velocity and acceleration: the one-pass USL grid step
@@ -351,11 +351,11 @@ class CompiledExecutor(CompiledRungeKutta):
             limit = guard_limit(guard * fast_dof_limit(state.grid.degree, state.method.scheme),
                                 state.dt, state.wave_speed_now)
             guarded = self.kernels.scratch("guard_K", K.size)
-            if self._guard_arrays is None:  # (w, mu, moving as 1.0 / 0.0), fixed for the run
-                weights, ratios, moving = state.fast_dof_guard_arrays()
-                self._guard_arrays = (weights, ratios, moving.astype(np.float64))
+            if self._guard_arrays is None:  # (w, mu, moving as 1.0 / 0.0, the rule's
+                weights, ratios, moving = state.fast_dof_guard_arrays()  # scalars): the run's
+                self._guard_arrays = (weights, ratios, moving.astype(np.float64),
+                                      *covered_parameters(state.grid))
             self.kernels.kernel(covered_stiffness)(K, stencil, mass, *self._guard_arrays,
-                                                   *covered_parameters(state.grid, state.method),
                                                    guarded)
             grid = state.grid
             nbx, nby = (grid.ndofs, 1) if grid.dim == 1 else tuple(grid.basis_per_axis[:2])

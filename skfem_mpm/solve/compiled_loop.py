@@ -808,7 +808,7 @@ class StepLoop:
             guard=bool(guard > 0), limit=float(limit),
             weights=np.ascontiguousarray(weights, dtype=np.float64),
             mass_ratios=np.ascontiguousarray(ratios, dtype=np.float64),
-            moving=np.asarray(moving, dtype=np.float64), covered=np.array(covered_parameters(grid, method), dtype=float),
+            moving=np.asarray(moving, dtype=np.float64), covered=np.array(covered_parameters(grid), dtype=float),
             guarded=zeros(nd), fast=zeros(nd), effective_ratio=effective_mass_ratio(p),
             group_comps=group_comps,
             group_size=np.array([len(c) for c in groups.values()], dtype=np.int64),

@@ -130,7 +130,7 @@ class State:
         if not isinstance(self.grid, SplineGrid):
             return 1.0, 0.0
         w, mu, moving = self.fast_dof_guard_arrays()
-        _, _, tail, floor = covered_parameters(self.grid, self.method)
+        _, _, tail, floor = covered_parameters(self.grid)
         scale, addend = covered_weights(w, mu, lumped, diagonal, tail, floor)
         return scale * moving, addend * moving
 

@@ -178,7 +178,7 @@ with weight 1, the plain limit (the default; see :func:`covered_parameters`
 for what the rule fixes and what it breaks)."""
 
 
-def covered_parameters(grid, method=None):
+def covered_parameters(grid):
     """(lo, hi, t, F): COVERED, :func:`tail_weight` of the grid's degree and
     F = q(p) (sum_d h_d^-2 - min_d h_d^-2) (h_d the smallest cell of axis
     d), the scalars of :func:`covered_weights` (and of its compiled twin,
