@@ -1,6 +1,9 @@
 """skfem-mpm: the Material Point Method with B-spline bases, as a scikit-fem plugin."""
 __version__ = "0.1.0"
 
+# numba's customizations (kernels.wrappers, kernels.cache_files) before any
+# module of the package defines a compiled function
+from . import kernels  # noqa: F401, I001
 from .effects import BodyForce, Damping, Fixed, Footing, Gravity, Prescribed, Traction, Wall
 from .errors import SimulationError
 from .geostatic import geostatic_stress

@@ -8,9 +8,10 @@ environment variable ``SKFEM_MPM_BACKEND=numpy`` says otherwise.
 import os
 
 from ..validation import check_choice
-from . import wrappers
+from . import cache_files, wrappers
 
 wrappers.install()  # before anything compiles (kernels.wrappers)
+cache_files.install()  # before any cached function is defined (kernels.cache_files)
 
 BACKENDS = ("numba", "numpy")
 
