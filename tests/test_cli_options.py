@@ -244,7 +244,7 @@ def test_the_quick_study_prints_its_settings_table_and_verdict(tmp_path, capsys,
                  "mpm-p2-consistent", "--out", str(out)]) == 0
     kwargs = _synthetic_study.kwargs
     assert (kwargs["repeat"], kwargs["repeat_budget"], kwargs["scheme"], kwargs["cfl"],
-            kwargs["ppc"]) == (3, 2.0, "musl", 0.5, 2)
+            kwargs["ppc"]) == (3, 2.0, "musl", None, 2)
     printed = capsys.readouterr().out
     report = (out / "study.md").read_text()
     for text in (printed, report):
