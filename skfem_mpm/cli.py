@@ -127,6 +127,13 @@ def _method_default(name):
     return inspect.signature(Method).parameters[name].default
 
 
+def _cfl_default_text():
+    """How --cfl's help names its default (Method's DEFAULT_CFL)."""
+    from .solve.method import default_cfl
+
+    return f"the scheme's, {default_cfl('rk4')} for rk4 and {default_cfl('musl')} for the others"
+
+
 def _run_options(p):
     from .solve.method import MASSES, RECONSTRUCTIONS, SCHEMES
 
@@ -148,8 +155,8 @@ def _run_options(p):
     p.add_argument("--scheme", default=_method_default("scheme"), choices=SCHEMES,
                    help="time-stepping scheme (default: %(default)s)")
     p.add_argument("--cfl", type=float, default=_method_default("cfl"),
-                   help="time step as a fraction of the critical one (default: the "
-                   "scheme's, 0.7 for rk4 and 0.5 for the others, as Method())")
+                   help=f"time step as a fraction of the critical one (default: "
+                   f"{_cfl_default_text()}, as Method())")
     p.add_argument("--dt", type=float, default=None,
                    help="a fixed time step instead of --cfl (default: cfl * dt_crit)")
     p.add_argument("--t-end", type=float, default=None, dest="t_end",
@@ -203,9 +210,8 @@ def build_parser():
                    help="scheme of methods that name none (default: %(default)s, as "
                    "study.convergence() and Method())")
     s.add_argument("--cfl", type=float, default=DEFAULTS["cfl"],
-                   help="time step as a fraction of the critical one (default: the "
-                   "scheme's, 0.7 for rk4 and 0.5 for the others, as study.convergence() "
-                   "and Method())")
+                   help=f"time step as a fraction of the critical one (default: "
+                   f"{_cfl_default_text()}, as study.convergence() and Method())")
     s.add_argument("--repeat", type=int, default=None,
                    help="timed runs per job, the median is reported (default: "
                    f"{QUICK['repeat']} with --quick, else {DEFAULTS['repeat']} as "
