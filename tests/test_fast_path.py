@@ -265,6 +265,19 @@ def _preconditioned_system(k, stencil, mass, constraints, fast):
     return inverse @ dense, dense
 
 
+def _random_line_system(seed, fast_seed):
+    """(grid, kernels, stencil, lumped mass, fast-row fractions in [0, 0.6])
+    of 3 randomly placed particles per cell on 12 quadratic cells."""
+    from skfem_mpm.kernels.mpm import Kernels
+
+    grid = SplineGrid.line(0.0, 1.0, 12, 2)
+    particles = Particles.seed(grid, 3, 1.0, layout="random", seed=seed)
+    k = Kernels(grid)
+    mass = k.p2g(particles, None)[0].copy()
+    stencil, _ = k.consistent_stencil(particles)
+    return grid, k, stencil, mass, np.random.default_rng(fast_seed).uniform(0.0, 0.6, mass.size)
+
+
 def test_fitted_kronecker_is_exact_where_the_mass_is_a_kronecker_product():
     """The factors are the axis marginals of the free-dof matrix A, so P = A
     (a) in 1D for any particle layout and fast-row lumping (P is A's banded
@@ -272,15 +285,9 @@ def test_fitted_kronecker_is_exact_where_the_mass_is_a_kronecker_product():
     without lumping (its particle mass is M_y (x) M_x); (c) with the
     block's corners lumped, P^-1 A is not I, but all its eigenvalues other
     than the corners' four lie in [0.7, 1.2]."""
-    from skfem_mpm.kernels.mpm import Kernels
     from skfem_mpm.solve.grid_system import Constraints
 
-    grid = SplineGrid.line(0.0, 1.0, 12, 2)
-    particles = Particles.seed(grid, 3, 1.0, layout="random", seed=4)
-    k = Kernels(grid)
-    mass = k.p2g(particles, None)[0].copy()
-    stencil, _ = k.consistent_stencil(particles)
-    fast = np.random.default_rng(6).uniform(0.0, 0.6, mass.size)
+    grid, k, stencil, mass, fast = _random_line_system(4, 6)
     constraints = Constraints(grid, [Fixed("left")])
     product, _ = _preconditioned_system(k, stencil.copy(), mass, constraints, fast)
     assert np.abs(product - np.eye(len(product))).max() < 1e-12
@@ -304,16 +311,10 @@ def test_a_1d_consistent_solve_is_direct_whatever_the_warm_start():
     column moved to the right-hand side), and the same bits from a wrong
     warm start as from none."""
     from skfem_mpm import Prescribed
-    from skfem_mpm.kernels.mpm import Kernels
     from skfem_mpm.solve.grid_system import Constraints
     from skfem_mpm.solve.stencil_system import StencilSystem
 
-    grid = SplineGrid.line(0.0, 1.0, 12, 2)
-    particles = Particles.seed(grid, 3, 1.0, layout="random", seed=5)
-    k = Kernels(grid)
-    mass = k.p2g(particles, None)[0].copy()
-    stencil, _ = k.consistent_stencil(particles)
-    fast = np.random.default_rng(7).uniform(0.0, 0.6, mass.size)
+    grid, k, stencil, mass, fast = _random_line_system(5, 7)
     constraints = Constraints(grid, [Fixed("left"), Prescribed("right", 0, lambda t: 0.3)])
     values = constraints.values(0.0)
     rng = np.random.default_rng(8)
