@@ -78,8 +78,9 @@ def test_rk4_with_spline_reconstruction_reaches_fourth_order_in_space():
     per cell: the error falls >= 2^3.5 from 8 to 16 cells (measured 2.45e-5
     -> 6.76e-7, order 5.2; CD on the same runs: 2.9e-4 -> 7.2e-5, 2.0), at
     rk4's default cfl 0.7 (the same errors as at 0.5 in 28 steps instead of
-    39; at 0.75 the fast-dof guard lumps rows and the error is 1.3e-4 at 16
-    cells: see skfem_mpm.solve.method.DEFAULT_CFL)."""
+    39; above 1 / sqrt(2) the fast-dof guard lumps every interior row a
+    little, and at 0.75 the error is 1.3e-4 at 16 cells: see
+    skfem_mpm.solve.method.DEFAULT_CFL)."""
     b = get_benchmark("vibrating-string", "small")
     errors = [b.errors(simulate(b.scene(cells, 3, 2), Method(
         scheme="rk4", mass="consistent", reconstruction="spline")))["error_rms"]
@@ -118,13 +119,18 @@ def test_rk4_with_spline_reconstruction_reaches_fourth_order_on_the_traction_bar
 
 def test_each_scheme_takes_its_default_cfl_unless_one_is_given():
     """rk4 0.7 of its own limit, the second-order schemes 0.5 (DEFAULT_CFL);
-    an explicit cfl wins."""
+    an explicit cfl wins; 0.7 is below 1 / sqrt(2), where the fast-dof
+    guard starts lumping covered interior rows."""
     from skfem_mpm.solve.method import DEFAULT_CFL, SCHEMES
 
     assert Method(scheme="rk4").cfl == DEFAULT_CFL["rk4"] == 0.7
     assert [Method(scheme=s).cfl for s in SCHEMES if s != "rk4"] == [0.5] * (len(SCHEMES) - 1)
     assert Method(scheme="rk4", cfl=0.5).cfl == 0.5
     assert Method(scheme="rk4").as_dict()["cfl"] == 0.7
+    # a covered interior dof's guard ratio is cfl^2: the default leaves it unlumped
+    from skfem_mpm.solve.timestep import lumping_fraction
+
+    assert lumping_fraction(DEFAULT_CFL["rk4"] ** 2) == 0.0 < lumping_fraction(0.75 ** 2)
 
 
 def test_rk4_time_step_is_sqrt2_times_the_central_difference_one():
