@@ -5,9 +5,10 @@ Each table row is one method; its columns the error at each grid and the
 observed order between consecutive grids, log2(e_h / e_(h/2)) (the grids
 double). Errors are each benchmark's primary error relative to the exact
 displacement amplitude (S1 small: RMS at t_end; S3 small and D2 small: as
-the study measures them). Mass is consistent throughout; cfl the default
-0.5 of each scheme's own stable limit (rk4's limit is sqrt(2) times the
-central-difference one, see skfem_mpm.solve.timestep).
+the study measures them). Mass is consistent throughout; cfl each
+scheme's default fraction of its own stable limit (0.7 for rk4, whose limit
+is sqrt(2) times the central-difference one, 0.5 for the others; see
+skfem_mpm.solve.method.DEFAULT_CFL).
 
     python benchmarks/orders.py                      # every table
     python benchmarks/orders.py --tables cubic       # one table: cubic, quadratic, d2
@@ -44,7 +45,7 @@ BENCHMARKS = {"s1": ("vibrating-string", "small"), "s3": ("traction-bar", "small
               "d2": ("vibrating-plate-2d", "small")}
 
 
-def error(case, cells, degree, ppc, recon, scheme, cfl=0.5, **options):
+def error(case, cells, degree, ppc, recon, scheme, cfl=None, **options):
     """The benchmark's primary error of one run (relative), its steps and wall
     time; ``options``: further Method keyword arguments (e.g. frequency_guard)."""
     from skfem_mpm import Method, simulate
@@ -88,7 +89,7 @@ def table(name, spec, out=None, options=None):
             + " | ".join(f"order {a}-{b}" for a, b in zip(cells[:-1], cells[1:]))
             + f" | order {cells[0]}-{cells[-1]} |")
     rows = [f"{name}: degree {spec['degree']}, {spec['ppc']} particles per cell"
-            f"{' per axis' if spec['cases'] == ('d2',) else ''}, consistent mass, cfl 0.5"
+            f"{' per axis' if spec['cases'] == ('d2',) else ''}, consistent mass, default cfl"
             + "".join(f", {k}={v}" for k, v in options.items()),
             "", head, "|---" * (3 + 2 * len(cells)) + "|"]
     for case in spec["cases"]:

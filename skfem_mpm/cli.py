@@ -127,6 +127,13 @@ def _method_default(name):
     return inspect.signature(Method).parameters[name].default
 
 
+def _cfl_default_text():
+    """How --cfl's help names its default (Method's DEFAULT_CFL)."""
+    from .solve.method import default_cfl
+
+    return f"the scheme's, {default_cfl('rk4')} for rk4 and {default_cfl('musl')} for the others"
+
+
 def _run_options(p):
     from .solve.method import MASSES, RECONSTRUCTIONS, SCHEMES
 
@@ -148,7 +155,8 @@ def _run_options(p):
     p.add_argument("--scheme", default=_method_default("scheme"), choices=SCHEMES,
                    help="time-stepping scheme (default: %(default)s)")
     p.add_argument("--cfl", type=float, default=_method_default("cfl"),
-                   help="time step as a fraction of the critical one (default: %(default)s)")
+                   help=f"time step as a fraction of the critical one (default: "
+                   f"{_cfl_default_text()}, as Method())")
     p.add_argument("--dt", type=float, default=None,
                    help="a fixed time step instead of --cfl (default: cfl * dt_crit)")
     p.add_argument("--t-end", type=float, default=None, dest="t_end",
@@ -202,8 +210,8 @@ def build_parser():
                    help="scheme of methods that name none (default: %(default)s, as "
                    "study.convergence() and Method())")
     s.add_argument("--cfl", type=float, default=DEFAULTS["cfl"],
-                   help="time step as a fraction of the critical one (default: %(default)s, "
-                   "as study.convergence() and Method())")
+                   help=f"time step as a fraction of the critical one (default: "
+                   f"{_cfl_default_text()}, as study.convergence() and Method())")
     s.add_argument("--repeat", type=int, default=None,
                    help="timed runs per job, the median is reported (default: "
                    f"{QUICK['repeat']} with --quick, else {DEFAULTS['repeat']} as "
@@ -370,9 +378,9 @@ def _cmd_study(args):
         raise _UsageError(f"--cells must be positive integers, got {cells}")
     if args.ppc < 1:
         raise _UsageError(f"--ppc must be a positive integer, got {args.ppc}")
-    if not args.cfl > 0:
+    if args.cfl is not None and not args.cfl > 0:
         raise _UsageError(f"--cfl must be a positive number, got {args.cfl}")
-    if args.cfl > 1:  # every job would fail on it
+    if args.cfl is not None and args.cfl > 1:  # every job would fail on it
         raise _UsageError(f"--cfl must be at most 1 (above it the time step exceeds the "
                           f"critical one), got {args.cfl}")
     if args.repeat is not None and args.repeat < 1:

@@ -215,6 +215,7 @@ def test_study_defaults_are_the_apis():
     import inspect
 
     from skfem_mpm import Method
+    from skfem_mpm.solve.method import default_cfl
     from skfem_mpm.study import DEFAULTS, convergence, parse_method
 
     api = {name: p.default for name, p in inspect.signature(convergence).parameters.items()}
@@ -225,7 +226,12 @@ def test_study_defaults_are_the_apis():
     text = " ".join(parser.format_help().split())
     for name in ("ppc", "scheme", "cfl"):
         assert options[name].default == api[name] == DEFAULTS[name], name
-        assert f"default: {api[name]}, as study.convergence()" in text, name
+        if name != "cfl":
+            assert f"default: {api[name]}, as study.convergence()" in text, name
+    # cfl None: each scheme's own (Method's DEFAULT_CFL)
+    assert api["cfl"] is None
+    assert (f"default: the scheme's, {default_cfl('rk4')} for rk4 and {default_cfl('musl')} "
+            f"for the others, as study.convergence()") in text
     for name in ("scheme", "cfl"):
         assert api[name] == method[name] == parsed[name], name
     assert api["repeat"] == DEFAULTS["repeat"]
@@ -244,7 +250,7 @@ def test_the_quick_study_prints_its_settings_table_and_verdict(tmp_path, capsys,
                  "mpm-p2-consistent", "--out", str(out)]) == 0
     kwargs = _synthetic_study.kwargs
     assert (kwargs["repeat"], kwargs["repeat_budget"], kwargs["scheme"], kwargs["cfl"],
-            kwargs["ppc"]) == (3, 2.0, "musl", 0.5, 2)
+            kwargs["ppc"]) == (3, 2.0, "musl", None, 2)
     printed = capsys.readouterr().out
     report = (out / "study.md").read_text()
     for text in (printed, report):

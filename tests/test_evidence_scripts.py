@@ -184,7 +184,7 @@ def test_orders_passes_method_options_to_every_run(monkeypatch):
     spec = dict(cases=("s1",), degree=3, ppc=2, cells=(8, 16), recons=("spline",),
                 schemes=("rk4",))
     text = orders.table("cubic", spec, options={"frequency_guard": 0})
-    assert "cfl 0.5, frequency_guard=0" in text
+    assert "default cfl, frequency_guard=0" in text
     assert seen == [("s1", 8, "spline", "rk4", {"frequency_guard": 0}),
                     ("s1", 16, "spline", "rk4", {"frequency_guard": 0})]
     assert "| S1 small | spline | rk4 | 0.0625 | 0.00391 | 4.00 | 4.00 |" in text

@@ -265,6 +265,19 @@ def _preconditioned_system(k, stencil, mass, constraints, fast):
     return inverse @ dense, dense
 
 
+def _random_line_system(seed, fast_seed):
+    """(grid, kernels, stencil, lumped mass, fast-row fractions in [0, 0.6])
+    of 3 randomly placed particles per cell on 12 quadratic cells."""
+    from skfem_mpm.kernels.mpm import Kernels
+
+    grid = SplineGrid.line(0.0, 1.0, 12, 2)
+    particles = Particles.seed(grid, 3, 1.0, layout="random", seed=seed)
+    k = Kernels(grid)
+    mass = k.p2g(particles, None)[0].copy()
+    stencil, _ = k.consistent_stencil(particles)
+    return grid, k, stencil, mass, np.random.default_rng(fast_seed).uniform(0.0, 0.6, mass.size)
+
+
 def test_fitted_kronecker_is_exact_where_the_mass_is_a_kronecker_product():
     """The factors are the axis marginals of the free-dof matrix A, so P = A
     (a) in 1D for any particle layout and fast-row lumping (P is A's banded
@@ -272,15 +285,9 @@ def test_fitted_kronecker_is_exact_where_the_mass_is_a_kronecker_product():
     without lumping (its particle mass is M_y (x) M_x); (c) with the
     block's corners lumped, P^-1 A is not I, but all its eigenvalues other
     than the corners' four lie in [0.7, 1.2]."""
-    from skfem_mpm.kernels.mpm import Kernels
     from skfem_mpm.solve.grid_system import Constraints
 
-    grid = SplineGrid.line(0.0, 1.0, 12, 2)
-    particles = Particles.seed(grid, 3, 1.0, layout="random", seed=4)
-    k = Kernels(grid)
-    mass = k.p2g(particles, None)[0].copy()
-    stencil, _ = k.consistent_stencil(particles)
-    fast = np.random.default_rng(6).uniform(0.0, 0.6, mass.size)
+    grid, k, stencil, mass, fast = _random_line_system(4, 6)
     constraints = Constraints(grid, [Fixed("left")])
     product, _ = _preconditioned_system(k, stencil.copy(), mass, constraints, fast)
     assert np.abs(product - np.eye(len(product))).max() < 1e-12
@@ -294,6 +301,41 @@ def test_fitted_kronecker_is_exact_where_the_mass_is_a_kronecker_product():
     lumped = np.count_nonzero(_edge_lumping(mass))
     assert lumped == 4
     assert 0.7 < eigenvalues[0] and eigenvalues[-lumped - 1] < 1.2
+
+
+def test_a_1d_consistent_solve_is_direct_whatever_the_warm_start():
+    """In 1D P = A (above), so StencilSystem solves directly, x = P^-1 b: one
+    application for both right-hand sides, the solution to round-off
+    (relative residual <= 1e-14, where CG stops at 1e-13) for random
+    particles, fast-row lumping and a nonzero prescribed value (its fixed
+    column moved to the right-hand side), and the same bits from a wrong
+    warm start as from none."""
+    from skfem_mpm import Prescribed
+    from skfem_mpm.solve.grid_system import Constraints
+    from skfem_mpm.solve.stencil_system import StencilSystem
+
+    grid, k, stencil, mass, fast = _random_line_system(5, 7)
+    constraints = Constraints(grid, [Fixed("left"), Prescribed("right", 0, lambda t: 0.3)])
+    values = constraints.values(0.0)
+    rng = np.random.default_rng(8)
+    force, momentum = rng.normal(size=(mass.size, 1)), rng.normal(size=(mass.size, 1))
+    solutions = []
+    for warm in ({}, {"acceleration": rng.normal(size=(mass.size, 1)),
+                      "velocity": rng.normal(size=(mass.size, 1))}):
+        system = StencilSystem(k, stencil.copy(), mass, constraints, fast, warm)
+        solutions.append(system.solve_many([(force, None, "acceleration"),
+                                            (momentum, values, "velocity")]))
+        assert system.iterations == 1
+    for a, b in zip(*solutions):
+        assert np.array_equal(a, b)
+    A, cols, F, fcols, *_ = system._compact(next(iter(system.groups.values())), True)
+    rows = next(iter(system.groups.values()))[1]
+    for x, rhs, fixed in zip(solutions[0], (force, momentum), (None, values)):
+        fixed_part = np.zeros(rows.size) if fixed is None else (F * fixed[fcols, 0]).sum(axis=1)
+        residual = (A * x[rows][cols, 0]).sum(axis=1) + fixed_part - rhs[rows, 0]
+        assert np.abs(residual).max() <= 1e-14 * np.abs(rhs[rows, 0]).max()
+        if fixed is not None:
+            assert np.array_equal(x[constraints.mask[:, 0]], fixed[constraints.mask[:, 0]])
 
 
 @pytest.mark.parametrize("rows", [300, 2100])

@@ -156,6 +156,7 @@ _GRID_KERNELS = {
     "COMPACT_PROBLEM": mpm.compact_problem,
     "EXPAND_PROBLEM": mpm.expand_problem,
     "ELL_PCG": mpm.ell_pcg,
+    "APPLY_KRONECKER": kronecker.apply_kronecker,
     "FIT_KRONECKER": kronecker.fit_kronecker,
     "ELL_BAND_WIDTH": band_factor.ell_band_width,
     "FIT_BAND_FACTOR": band_factor.fit_band_factor,
@@ -357,6 +358,11 @@ def _prelude(dim, parallel, window, variant):
                  "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)), band, w >= 0)")
     pcg = ("return ELL_PCG(A, cols, inv_diag, KRONECKER_ARGS(cm, g, n, nc, nt), None, b, x, "
            "problem, cm.rtol, limit, nt, work)")
+    if dim == 1:  # P = A: the solution at once (StencilSystem.solve_many)
+        pcg = ("if not cm.merged[g]:\n"
+               "        k = KRONECKER_ARGS(cm, g, n, nc, nt)\n"
+               "        APPLY_KRONECKER(k[0], k[1], k[2], k[3], k[4], k[5], b, x)\n"
+               "        return 1\n    " + pcg)
     if dim == 2:
         pcg = ("if cm.n_boxes[g] > 1 and cm.band_width[g] < 0:\n"
                "        return ELL_PCG(A, cols, inv_diag, BOX_ARGS(cm, g, n, nc, nt), None, b, x, "
@@ -404,7 +410,9 @@ def KRONECKER_ARGS(cm, g, n, nc, nt):
 def KRONECKER_PCG(cm, g, n, nc, nt, A, cols, inv_diag, b, x, problem, limit, work):
     """Group g's CG run (ell_pcg) with its Kronecker preconditioner; in 2D
     with the boxes of its coupled components when it has two or more
-    (apply_kronecker_axes' arguments, as KroneckerData.args gives them)."""
+    (apply_kronecker_axes' arguments, as KroneckerData.args gives them);
+    in 1D, unless merged, x = P^-1 b at once (P = A there: see
+    StencilSystem.solve_many)."""
     {pcg}
 '''
     return "\n".join(lines) + "\n\n" + body

@@ -14,7 +14,7 @@ from ..errors import InvalidState
 from ..kernels.band_factor import (ell_band_width, factor_columns, factor_layout_ok,
                                    fit_band_factor)
 from ..kernels.fringe import FringeFactor, FringePattern
-from ..kernels.kronecker import KroneckerData
+from ..kernels.kronecker import KroneckerData, apply_kronecker
 from ..kernels.merged_mass import EXTRA, merged_expand, merged_problem, merged_system
 from ..kernels.mpm import (compact_problem, compact_system, ell_pcg, expand_problem,
                            stencil_rows_product)
@@ -53,7 +53,13 @@ class StencilSystem:
     the rest of the run, to the banded Cholesky factor of its system
     (:mod:`skfem_mpm.kernels.band_factor`; 0: never), kept over the steps
     while its free-dof set stays and CG needs at most ``BAND_KEEP``
-    iterations with it.
+    iterations with it. In 1D the Kronecker factor is the banded Cholesky
+    factor of the free-dof matrix A itself (the marginal of A on its one
+    axis is A: P = A up to round-off, for any particles and lumped rows),
+    so a group that is not merged is solved directly, x = P^-1 b (one
+    application, counted as one iteration), and its warm start is not
+    read: the solution is A^-1 b to round-off (a backward-stable Cholesky
+    solve of a mass matrix), within the CG tolerance of any warm start.
 
     Tiny masses (``small_mass`` > 0, the relative threshold of
     ``Method(small_mass=...)``): each constraint pattern with small dofs
@@ -386,8 +392,14 @@ class StencilSystem:
                 limit = self.max_iterations or 10 * rows.size + 100
                 problem = np.repeat(np.arange(len(problems)), comps.size)
                 pcg = self.k.kernel(ell_pcg)
-                its = pcg(A, cols, inv_diag, pre, extra, b, x, problem, self.rtol, limit, nt,
-                          work)
+                if self.geometry[-1] == 1 and merge is None and isinstance(kron, KroneckerData):
+                    # P = A (fit_kronecker: in 1D the marginal is A), so
+                    # x = P^-1 b is the solution; no iteration
+                    self.k.kernel(apply_kronecker)(*kron.args(b.shape[1], nt), b, x)
+                    its = 1
+                else:
+                    its = pcg(A, cols, inv_diag, pre, extra, b, x, problem, self.rtol, limit,
+                              nt, work)
                 if its < 0 and fringe is not None and self._stale_fringe[g]:
                     # factors of an earlier step: retry with the current block's
                     self.warm.pop(f"fringe{g}_rows", None)
