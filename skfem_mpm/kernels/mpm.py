@@ -756,6 +756,7 @@ class Kernels:
         self.nbx = grid.basis_per_axis[0]
         self._scratch = {}
         self._small = np.empty(grid.ndofs, dtype=np.bool_)
+        self._coverage = None  # particle_coverage's copies, touched ranges and sums
 
     def kernel(self, kernel):
         """``kernel`` as this run calls it: itself, or its serial copy."""
@@ -892,6 +893,21 @@ class Kernels:
         self.kernel(reduce_stencil)(self._stencil_copies, self._stiff_copies, touched, lo, hi,
                        *self.stencil_geometry, stencil, K)
         return stencil, K
+
+    def particle_coverage(self, particles):
+        """The fast-dof guard's coverage sums of ``particles`` (3, dofs):
+        rows K, D, m of :func:`particle_coverage`; reused by the next call."""
+        if self._coverage is None:
+            self._coverage = (np.zeros((self.nthreads, 3, self.ndofs)),
+                              np.zeros((self.nthreads, 2), dtype=np.int64),
+                              np.zeros((3, self.ndofs)))
+        copies, touched, out = self._coverage
+        axes = list(self.args) + [self.args[0]] * (3 - self.dim)
+        nby = self.grid.basis_per_axis[1] if self.dim > 1 else 1
+        self.kernel(particle_coverage)(particles.x, particles.m, *axes[0], *axes[1], *axes[2],
+                                       self.p, self.nbx, nby, copies, touched)
+        self.kernel(reduce_coverage)(copies, touched, out)
+        return out
 
     @property
     def stencil_geometry(self):
@@ -1080,36 +1096,127 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
         A[r, centre] = diag
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
-def covered_stiffness(stiffness, stencil, mass, weights, mass_ratios, moving, lo, hi, tail,
-                      floor, out):
-    """out_k = K_k (c_k moving_k) + a_k moving_k: the fast-dof guard's
-    stiffness of :func:`skfem_mpm.solve.timestep.covered_weights`,
-    c_k = tail + (w_k - tail) s_k, a_k = (1 - s_k) (1 - tail) floor M_kk,
-    s_k = smoothstep over (lo, hi) of tau_k = M_kk / (m_k mu_k), and zero on the dofs that never move (the
-    same operations as the NumPy function, so the same bits)."""
-    centre = (stencil.shape[1] - 1) // 2
-    for k in prange(mass.shape[0]):
-        diagonal = stencil[k, centre]
-        tau = diagonal / (max(mass[k], 1e-300) * mass_ratios[k])
-        s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
-        smooth = s * s * (3.0 - 2.0 * s)
-        w = tail + (weights[k] - tail) * smooth
-        a = (1.0 - smooth) * (1.0 - tail) * floor * diagonal
-        out[k] = stiffness[k] * (w * moving[k]) + a * moving[k]
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def particle_coverage(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, nbx, nby,
+                      copies, touched):
+    """The fast-dof guard's coverage sums of the particles, per dof k:
+    K_k = sum_p m_p |grad N_k(x_p)|^2, D_k = sum_p m_p N_k(x_p)^2 and
+    m_k = sum_p m_p N_k(x_p) (rows 0, 1, 2), into per-thread copies
+    (threads, 3, dofs) over the node ranges each thread's particle block
+    touches (``touched``, as the scatter kernels); :func:`reduce_coverage`
+    sums them. The axes as :func:`consistent_axes` takes them (those from
+    dim = x.shape[1] on are not read), N_k and grad N_k as it forms them.
+    The NumPy twin: :func:`skfem_mpm.solve.steps.particle_coverage`."""
+    n = x.shape[0]
+    dim = x.shape[1]
+    nt = copies.shape[0]
+    nq = (p + 1) ** dim
+    for t in prange(nt):
+        g = copies[t]
+        g[:, touched[t, 0]:touched[t, 1]] = 0.0
+        first = g.shape[1]
+        last = 0
+        w = np.zeros((3, 4))
+        dw = np.zeros((3, 4))
+        lo = t * n // nt
+        hi = (t + 1) * n // nt
+        for i in range(lo, hi):
+            mi = m[i]
+            base = 0
+            stride = 1
+            for d in range(dim):
+                if d == 0:
+                    e = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
+                elif d == 1:
+                    e = _axis(x[i, 1], b1, u1, ih1, C1, p, w[1], dw[1])
+                else:
+                    e = _axis(x[i, 2], b2, u2, ih2, C2, p, w[2], dw[2])
+                base += e * stride
+                stride *= nbx if d == 0 else nby
+            node = 0
+            for q in range(nq):
+                rest = q
+                value = 1.0
+                node = 0
+                stride = 1
+                for d in range(dim):
+                    a = rest % (p + 1)
+                    rest //= p + 1
+                    value *= w[d, a]
+                    node += a * stride
+                    stride *= nbx if d == 0 else nby
+                grad2 = 0.0
+                for c in range(dim):
+                    rest = q
+                    s = 1.0
+                    for d in range(dim):
+                        a = rest % (p + 1)
+                        rest //= p + 1
+                        s *= dw[d, a] if d == c else w[d, a]
+                    grad2 += s * s
+                k = base + node
+                mv = mi * value
+                g[0, k] += mi * grad2
+                g[1, k] += mv * value
+                g[2, k] += mv
+            first = min(first, base)
+            last = max(last, base + node + 1)
+        touched[t, 0] = first
+        touched[t, 1] = last
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def fast_row_fractions(stiffness, stencil, mass, limit, out):
-    """out_k = theta(K_k / (limit M_kk)) on dofs with mass, 0 on the others:
-    the fast-row lumping fractions of :func:`skfem_mpm.solve.timestep.lumping_fraction`
-    (theta(q) = smoothstep(2 q - 1)) in one pass; returns their count > 0."""
-    centre = (stencil.shape[1] - 1) // 2
+def reduce_coverage(copies, touched, out):
+    """out (3, dofs) = the sum of :func:`particle_coverage`'s per-thread
+    copies (zero outside every touched range)."""
+    nt, nc, nk = copies.shape
+    for r in prange(nt):
+        cuts, threads, counts = holders(touched, r * nk // nt, (r + 1) * nk // nt)
+        for j in range(cuts.shape[0] - 1):
+            count = counts[j]
+            for k in range(cuts[j], cuts[j + 1]):
+                for c in range(nc):
+                    s = 0.0
+                    for i in range(count):
+                        s += copies[threads[j, i], c, k]
+                    out[c, k] = s
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def covered_stiffness(stiffness, diagonal, mass, weights, mass_ratios, moving, lo, hi, tail,
+                      floor, out):
+    """out_k = K_k (c_k moving_k) + a_k moving_k: the fast-dof guard's
+    stiffness of :func:`skfem_mpm.solve.timestep.covered_stiffness`,
+    c_k = tail + (w_k - tail) s_k, a_k = (1 - s_k) (1 - tail) floor D_k,
+    s_k = smoothstep over (lo, hi) of tau_k = D_k / (m_k mu_k) (K, D = M_kk
+    and m the particles' coverage sums, :func:`particle_coverage`); inf on
+    a moving dof no particle sees (D_k = 0), zero on the dofs that never
+    move (the same operations as the NumPy function, so the same bits)."""
+    for k in prange(mass.shape[0]):
+        d = diagonal[k]
+        tau = d / (max(mass[k], 1e-300) * mass_ratios[k])
+        s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
+        smooth = s * s * (3.0 - 2.0 * s)
+        w = tail + (weights[k] - tail) * smooth
+        a = (1.0 - smooth) * (1.0 - tail) * floor * d
+        if d > 0.0:
+            out[k] = stiffness[k] * (w * moving[k]) + a * moving[k]
+        else:
+            out[k] = np.inf if moving[k] > 0.0 else 0.0
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def fast_row_fractions(stiffness, diagonal, mass, limit, out):
+    """out_k = theta(k_k / (limit D_k)) on dofs with ``mass``, 0 on the
+    others: the fast-row lumping fractions of
+    :func:`skfem_mpm.solve.timestep.lumping_fraction` (theta(q) =
+    smoothstep(2 q - 1); k the guard's stiffness, D the diagonal it was
+    formed with) in one pass; returns their count > 0."""
     count = 0
     for k in prange(mass.shape[0]):
         theta = 0.0
         if mass[k] > 0.0:
-            q = stiffness[k] / (limit * max(stencil[k, centre], 1e-300))
+            q = stiffness[k] / (limit * max(diagonal[k], 1e-300))
             t = min(max(2.0 * q - 1.0, 0.0), 1.0)
             theta = t * t * (3.0 - 2.0 * t)
         out[k] = theta
