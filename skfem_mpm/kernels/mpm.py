@@ -429,6 +429,55 @@ def consistent_cells_2d(x, m, ncells, k, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nb
         touched[t, 1] = last
 
 
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _tensor_point(x, i, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, nbx, nby, w, dw):
+    """The first of point i's (p + 1)^dim nodes, its axes' B-spline values
+    and derivatives in w[d], dw[d] (:func:`_axis`; dim = x.shape[1])."""
+    base = 0
+    stride = 1
+    for d in range(x.shape[1]):
+        if d == 0:
+            e = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
+        elif d == 1:
+            e = _axis(x[i, 1], b1, u1, ih1, C1, p, w[1], dw[1])
+        else:
+            e = _axis(x[i, 2], b2, u2, ih2, C2, p, w[2], dw[2])
+        base += e * stride
+        stride *= nbx if d == 0 else nby
+    return base
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _tensor_node(q, w, dw, p, nbx, nby, dim):
+    """(N_q, |grad N_q|^2, node offset, stencil slot offset) of node q of a
+    point's (p + 1)^dim nodes (see :func:`consistent_axes`)."""
+    width = 2 * p + 1
+    rest = q
+    value = 1.0
+    node = 0
+    offset = 0
+    stride = 1
+    power = 1
+    for d in range(dim):
+        a = rest % (p + 1)
+        rest //= p + 1
+        value *= w[d, a]
+        node += a * stride
+        offset += a * power
+        stride *= nbx if d == 0 else nby
+        power *= width
+    grad2 = 0.0
+    for c in range(dim):
+        rest = q
+        g = 1.0
+        for d in range(dim):
+            a = rest % (p + 1)
+            rest //= p + 1
+            g *= dw[d, a] if d == c else w[d, a]
+        grad2 += g * g
+    return value, grad2, node, offset
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def consistent_axes(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, nbx, nby,
                     mass_copies, stiff_copies, touched):
@@ -450,7 +499,6 @@ def consistent_axes(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, 
     n = x.shape[0]
     dim = x.shape[1]
     nt = mass_copies.shape[0]
-    width = 2 * p + 1
     nq = (p + 1) ** dim
     for t in prange(nt):
         M = mass_copies[t]
@@ -468,44 +516,13 @@ def consistent_axes(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, 
         hi = (t + 1) * n // nt
         for i in range(lo, hi):
             mi = m[i]
-            base = 0
-            stride = 1
-            for d in range(dim):
-                if d == 0:
-                    e = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
-                elif d == 1:
-                    e = _axis(x[i, 1], b1, u1, ih1, C1, p, w[1], dw[1])
-                else:
-                    e = _axis(x[i, 2], b2, u2, ih2, C2, p, w[2], dw[2])
-                base += e * stride
-                stride *= nbx if d == 0 else nby
+            base = _tensor_point(x, i, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p,
+                                 nbx, nby, w, dw)
             for q in range(nq):
-                rest = q
-                value = 1.0
-                node = 0
-                offset = 0
-                stride = 1
-                power = 1
-                for d in range(dim):
-                    a = rest % (p + 1)
-                    rest //= p + 1
-                    value *= w[d, a]
-                    node += a * stride
-                    offset += a * power
-                    stride *= nbx if d == 0 else nby
-                    power *= width
+                value, grad2, node, offset = _tensor_node(q, w, dw, p, nbx, nby, dim)
                 N[q] = value
                 dof[q] = base + node
                 slot[q] = offset
-                grad2 = 0.0
-                for c in range(dim):
-                    rest = q
-                    g = 1.0
-                    for d in range(dim):
-                        a = rest % (p + 1)
-                        rest //= p + 1
-                        g *= dw[d, a] if d == c else w[d, a]
-                    grad2 += g * g
                 K[base + node] += mi * grad2
             for q in range(nq):
                 k = dof[q]
@@ -1122,38 +1139,11 @@ def particle_coverage(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p
         hi = (t + 1) * n // nt
         for i in range(lo, hi):
             mi = m[i]
-            base = 0
-            stride = 1
-            for d in range(dim):
-                if d == 0:
-                    e = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
-                elif d == 1:
-                    e = _axis(x[i, 1], b1, u1, ih1, C1, p, w[1], dw[1])
-                else:
-                    e = _axis(x[i, 2], b2, u2, ih2, C2, p, w[2], dw[2])
-                base += e * stride
-                stride *= nbx if d == 0 else nby
+            base = _tensor_point(x, i, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p,
+                                 nbx, nby, w, dw)
             node = 0
             for q in range(nq):
-                rest = q
-                value = 1.0
-                node = 0
-                stride = 1
-                for d in range(dim):
-                    a = rest % (p + 1)
-                    rest //= p + 1
-                    value *= w[d, a]
-                    node += a * stride
-                    stride *= nbx if d == 0 else nby
-                grad2 = 0.0
-                for c in range(dim):
-                    rest = q
-                    s = 1.0
-                    for d in range(dim):
-                        a = rest % (p + 1)
-                        rest //= p + 1
-                        s *= dw[d, a] if d == c else w[d, a]
-                    grad2 += s * s
+                value, grad2, node, _ = _tensor_node(q, w, dw, p, nbx, nby, dim)
                 k = base + node
                 mv = mi * value
                 g[0, k] += mi * grad2

@@ -41,7 +41,7 @@ _SKIPPED_NAMES = ("np", "njit", "prange", "FAST", "overload", "len")
 # consistent_2d's time on a 16 x 16 grid, where a quarter of the particles
 # per axis sit in boundary cells). The parallel kernels keep the inlined
 # helper: there it costs nothing and the call would cost.
-_NO_RUNTIME = ("_axis",)
+_NO_RUNTIME = ("_axis", "_tensor_point")
 
 
 def _is_kernel(value):

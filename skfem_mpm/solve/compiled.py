@@ -19,7 +19,8 @@ this executor fuses them into few kernels:
     update_stress                the materials' update (nothing when fused)
 
 Consistent mass: a kernel assembles M into a fixed stencil pattern (and the
-per-dof stiffness weights of the fast-dof guard); :class:`StencilSystem`
+per-dof stiffness weights of the fast-dof guard; with a reconstruction the
+guard's sums are the particles', Kernels.particle_coverage); :class:`StencilSystem`
 solves it by conjugate gradients, or the grid system of
 :mod:`skfem_mpm.solve.grid_system` by sparse LU. Hybrid mass: the same
 system solves the velocities (no fast-dof guard), the lumped solve the
