@@ -76,7 +76,8 @@ def test_the_particle_coverage_kernel_is_its_numpy_twin(dim, p):
     """Kernels.particle_coverage (kernels.mpm.particle_coverage and
     reduce_coverage: K = sum m |grad N|^2, D = sum m N^2, m = sum m N per
     dof) against steps.particle_coverage on the transfer matrices, to
-    1e-12, on graded axes with particles in part of the grid (the serial
+    1e-12, on uniform (interior cells: the closed form) and graded axes
+    (Bezier extraction) with particles in part of the grid (the serial
     copies other default tests compile: one type for every dim and p)."""
     from types import SimpleNamespace
 
@@ -85,7 +86,7 @@ def test_the_particle_coverage_kernel_is_its_numpy_twin(dim, p):
 
 
     rng = np.random.default_rng(7)
-    axes = [np.linspace(0.0, 1.0, 6), np.array([0.0, 0.2, 0.45, 0.7, 1.0]),
+    axes = [np.linspace(0.0, 1.0, 13), np.array([0.0, 0.2, 0.45, 0.7, 1.0]),
             np.linspace(0.0, 1.0, 4)][:dim]
     grid = SplineGrid(tuple(axes), p)
     x = rng.uniform(0.05, 0.8, (300, dim))
@@ -102,11 +103,15 @@ def test_the_particle_coverage_kernel_is_its_numpy_twin(dim, p):
 
 
 def test_the_guard_kernel_is_its_numpy_twin():
-    """kernels.mpm.covered_stiffness against timestep.covered_stiffness,
-    bit for bit, on covered, tail and unseen dofs (D = 0: inf where the
-    dof moves, 0 where it never does)."""
-    from skfem_mpm.kernels.mpm import covered_stiffness as kernel
+    """kernels.mpm.covered_stiffness (its serial copy, which other default
+    tests compile) against timestep.covered_stiffness, bit for bit, on
+    covered, tail and unseen dofs (D = 0: inf where the dof moves, 0 where
+    it never does)."""
+    from skfem_mpm.kernels import mpm
+    from skfem_mpm.kernels.serial import for_threads
     from skfem_mpm.solve.timestep import COVERED
+
+    kernel = for_threads(mpm.covered_stiffness, False)  # the copy small runs call
 
     rng = np.random.default_rng(5)
     n = 400

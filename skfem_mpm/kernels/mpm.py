@@ -1137,20 +1137,83 @@ def particle_coverage(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p
         dw = np.zeros((3, 4))
         lo = t * n // nt
         hi = (t + 1) * n // nt
-        for i in range(lo, hi):
-            mi = m[i]
-            base = _tensor_point(x, i, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p,
-                                 nbx, nby, w, dw)
-            node = 0
-            for q in range(nq):
-                value, grad2, node, _ = _tensor_node(q, w, dw, p, nbx, nby, dim)
-                k = base + node
-                mv = mi * value
-                g[0, k] += mi * grad2
-                g[1, k] += mv * value
-                g[2, k] += mv
-            first = min(first, base)
-            last = max(last, base + node + 1)
+        if dim == 1:  # interior cells in registers (closed_axis_functions), as consistent_1d
+            x0, ncx = b0[0], b0.shape[0] - 1
+            for i in range(lo, hi):
+                mi = m[i]
+                closed, base, v0, v1, v2, v3, d0, d1, d2, d3 = closed_axis_functions(
+                    x[i, 0], x0, ncx, u0, ih0, p)
+                if not closed:
+                    base = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
+                    v0, v1, v2, v3 = w[0, 0], w[0, 1], w[0, 2], w[0, 3]
+                    d0, d1, d2, d3 = dw[0, 0], dw[0, 1], dw[0, 2], dw[0, 3]
+                mv = mi * v0
+                g[0, base] += mi * (d0 * d0)
+                g[1, base] += mv * v0
+                g[2, base] += mv
+                mv = mi * v1
+                g[0, base + 1] += mi * (d1 * d1)
+                g[1, base + 1] += mv * v1
+                g[2, base + 1] += mv
+                if p >= 2:
+                    mv = mi * v2
+                    g[0, base + 2] += mi * (d2 * d2)
+                    g[1, base + 2] += mv * v2
+                    g[2, base + 2] += mv
+                if p >= 3:
+                    mv = mi * v3
+                    g[0, base + 3] += mi * (d3 * d3)
+                    g[1, base + 3] += mv * v3
+                    g[2, base + 3] += mv
+                first = min(first, base)
+                last = max(last, base + p + 1)
+        elif dim == 2:  # written out: no digit arithmetic per node
+            x0, ncx, y0, ncy = b0[0], b0.shape[0] - 1, b1[0], b1.shape[0] - 1
+            for i in range(lo, hi):
+                mi = m[i]
+                closed, ex, w00, w01, w02, w03, g00, g01, g02, g03 = closed_axis_functions(
+                    x[i, 0], x0, ncx, u0, ih0, p)
+                if not closed:
+                    ex = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
+                    w00, w01, w02, w03 = w[0, 0], w[0, 1], w[0, 2], w[0, 3]
+                    g00, g01, g02, g03 = dw[0, 0], dw[0, 1], dw[0, 2], dw[0, 3]
+                closed, ey, w10, w11, w12, w13, g10, g11, g12, g13 = closed_axis_functions(
+                    x[i, 1], y0, ncy, u1, ih1, p)
+                if not closed:
+                    ey = _axis(x[i, 1], b1, u1, ih1, C1, p, w[1], dw[1])
+                    w10, w11, w12, w13 = w[1, 0], w[1, 1], w[1, 2], w[1, 3]
+                    g10, g11, g12, g13 = dw[1, 0], dw[1, 1], dw[1, 2], dw[1, 3]
+                base = ex + nbx * ey
+                for b in range(p + 1):
+                    wy = w10 if b == 0 else w11 if b == 1 else w12 if b == 2 else w13
+                    dy = g10 if b == 0 else g11 if b == 1 else g12 if b == 2 else g13
+                    row = base + b * nbx
+                    for a in range(p + 1):
+                        wx = w00 if a == 0 else w01 if a == 1 else w02 if a == 2 else w03
+                        dx = g00 if a == 0 else g01 if a == 1 else g02 if a == 2 else g03
+                        value = wx * wy
+                        gx = dx * wy
+                        gy = wx * dy
+                        mv = mi * value
+                        g[0, row + a] += mi * (gx * gx + gy * gy)
+                        g[1, row + a] += mv * value
+                        g[2, row + a] += mv
+                first = min(first, base)
+                last = max(last, base + p * nbx + p + 1)
+        else:
+            for i in range(lo, hi):
+                mi = m[i]
+                base = _tensor_point(x, i, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2,
+                                     p, nbx, nby, w, dw)
+                node = 0
+                for q in range(nq):
+                    value, grad2, node, _ = _tensor_node(q, w, dw, p, nbx, nby, dim)
+                    mv = mi * value
+                    g[0, base + node] += mi * grad2
+                    g[1, base + node] += mv * value
+                    g[2, base + node] += mv
+                first = min(first, base)
+                last = max(last, base + node + 1)
         touched[t, 0] = first
         touched[t, 1] = last
 
