@@ -90,21 +90,17 @@ def test_rk4_with_spline_reconstruction_reaches_fourth_order_in_space():
 
 @pytest.mark.slow(reason="a convergence study (its loop run types compile for it alone)")
 @pytest.mark.parametrize("backend", ["numpy", "numba"])
-def test_rk4_with_spline_reconstruction_reaches_fourth_order_on_the_traction_bar(backend,
-                                                                                monkeypatch):
+def test_rk4_with_spline_reconstruction_reaches_fourth_order_on_the_traction_bar(backend):
     """S3 small (free end at a knot, dynamic end traction), cubic + spline,
-    consistent mass, 2 particles per cell, default cfl (0.7), the guard's tail
-    rule: order >= 3.5 from 8 to 16 cells (measured 1.249e-5 -> 5.26e-7,
-    order 4.57; at cfl 0.5 1.229e-5 -> 5.055e-7, order 4.60, the same as
-    with the guard off). With the plain limit on the end
-    dof, which the bar covers over one cell of its support only (weight 1,
-    r = 2.25 against the threshold 1/2), the guard lumped it and the error
-    stayed at 5.2e-3 at 8 cells; that tail is now weighed as the open knot
-    vector's first function (skfem_mpm.solve.timestep.tail_weight, with
-    TAIL_RULE, off by default: see covered_parameters), r = 0.25. ~15 s."""
-    from skfem_mpm.solve import prepare, timestep
-
-    monkeypatch.setattr(timestep, "TAIL_RULE", True)
+    consistent mass, 2 particles per cell, default cfl (0.7): order >= 3.5
+    from 8 to 16 cells (at cfl 0.5 1.229e-5 -> 5.055e-7, order 4.60, the
+    same as with the guard off). With the plain limit on the end dof, which
+    the bar covers over one cell of its support only (weight 1, r = 2.25
+    against the threshold 1/2), the guard lumped it and the error stayed at
+    5.2e-3 at 8 cells; that tail is now weighed as the open knot vector's
+    first function (skfem_mpm.solve.timestep.tail_weight), r = 0.25,
+    measured with the particles' own sums (covered_stiffness). ~15 s."""
+    from skfem_mpm.solve import prepare
 
     b = get_benchmark("traction-bar", "small")
     errors = []
