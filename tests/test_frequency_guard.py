@@ -139,7 +139,7 @@ def test_a_bar_ending_at_a_knot_trips_no_guard_with_a_reconstruction(backend):
     the one without the guard. With weight 1 on tails (the plain limit) it
     lumped that dof (r = 2.25) and the error grew 400-fold."""
     b = get_benchmark("traction-bar", "small")
-    scene = b.scene(8, 3, 2, t_end=0.03)
+    scene = b.scene(8, 3, 2, t_end=0.04)
     runs = [simulate(scene, Method(scheme="rk4", mass="consistent", reconstruction="spline",
                                    backend=backend, frequency_guard=g)) for g in (1.0, 0.0)]
     assert runs[0].counts["steps"] >= 10
