@@ -1169,7 +1169,7 @@ class StepLoop:
         if taken == n and self.row_by_row:
             taken += self._row_by_row(state, wanted - taken)
         self._stop = int(mod.clock(run)[2])
-        if self._stop == STOP_FRINGE_FACTOR:  # (not the partial step again first)
+        if self._stop == STOP_FRINGE_FACTOR and taken:  # (not the partial step again first)
             self._executor_next = True
         if taken:
             per_step = (time.perf_counter() - start) / taken

@@ -530,24 +530,23 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
 def _kept_band(cm, g, rows):
     """Whether group g keeps a band factor made for the free ``rows``
     within the band limit (StencilSystem._band)."""
-    n = rows.shape[0]
-    if cm.band_kept[g, 0] != n or cm.band_kept[g, 1] > cm.band_max:
-        return False
-    kept = cm.band_rows[g]
-    for r in range(n):
-        if kept[r] != rows[r]:
-            return False
-    return True
+    return cm.band_kept[g, 1] <= cm.band_max and _same_rows(cm.band_rows[g], cm.band_kept[g, 0],
+                                                            rows)
 
 
 @njit(cache=True)
 def _kept_fringe(cm, g, rows):
     """Whether group g has a fringe factor loaded for the free ``rows``
     (StencilSystem._fringe keeps the warm data's block while they stay)."""
+    return _same_rows(cm.fringe_rows[g], cm.fringe_kept[g], rows)
+
+
+@njit(cache=True, inline="always")
+def _same_rows(kept, count, rows):
+    """Whether the first ``count`` entries of ``kept`` are ``rows``."""
     n = rows.shape[0]
-    if cm.fringe_kept[g] != n:
+    if count != n:
         return False
-    kept = cm.fringe_rows[g]
     for r in range(n):
         if kept[r] != rows[r]:
             return False
