@@ -312,7 +312,7 @@ def fringe_events(monkeypatch):
 
     def spy_results(self, state, handover):
         if handover:
-            events["dropped"].append(self.module.mass_records(self.cm)[-1].copy())
+            events["dropped"].append(self.module.mass_records(self.cm)[10].copy())
         return results(self, state, handover)
 
     monkeypatch.setattr(compiled_loop.StepLoop, "_run", spy_run)
@@ -340,6 +340,25 @@ def test_fringe_correction_runs_in_the_loop_with_the_executors_factors(monkeypat
         assert dropped is (slack < 1000), events  # a stale factor dropped
         if slack == 1000:  # the first step, then new free rows
             assert stops.count(compiled_loop.STOP_FRINGE_FACTOR) >= 2, events
+
+
+def test_the_loop_logs_each_cg_run_as_the_executor_does(monkeypatch):
+    """StencilSystem.iteration_log (`bench --consistent` counts the CG
+    iterations so) does not send a run to the executor: the loop logs the
+    same runs with the same iterations."""
+    monkeypatch.setattr(StencilSystem, "FRINGE_FROM", 0)
+    monkeypatch.setattr(StencilSystem, "FRINGE_MIN_ROWS", 0)
+    logs, results = [], []
+    for enabled in (True, False):
+        with monkeypatch.context() as m, preconditioned_with("kronecker+fringe") as log:
+            m.setattr(compiled_loop, "ENABLED", enabled)
+            results.append(simulate(fringe_scene(), Method(scheme="usl", mass="consistent"),
+                                    save_every=5))
+        logs.append(log)
+    assert results[0].path == "fast (compiled loop)"
+    assert results[0].counts["compiled_loop_steps"] >= 10
+    assert logs[0] == logs[1] and len(logs[0]) >= 23, logs
+    assert_same(*results)
 
 
 def test_fringe_factors_cross_checkpoints_and_the_executor(monkeypatch, tmp_path):

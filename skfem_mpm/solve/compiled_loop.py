@@ -255,14 +255,13 @@ def _mass_unsupported(state):
     """Why the loop cannot solve this run's consistent (or hybrid) mass, or
     None: it runs StencilSystem's Kronecker-preconditioned CG, not the
     sparse LU or the Jacobi preconditioner (the fringe correction it runs
-    with the executor's factors)."""
+    with the executor's factors, and it logs each CG run's iterations as
+    StencilSystem.iteration_log asks)."""
     m, cls = state.method, StencilSystem
     if m.mass_solver == "direct":
         return "mass_solver 'direct' (sparse LU)"
     if cls.preconditioner != "kronecker":
         return f"the {cls.preconditioner!r} preconditioner"
-    if cls.iteration_log is not None:
-        return "a CG iteration log is recorded"
     return None
 
 
@@ -856,6 +855,7 @@ class StepLoop:
             fringe_fresh_good=np.full((G, len(FRESH_KINDS)), -1, dtype=np.int64),
             fringe_switch=zeros(G, dtype=np.bool_), fringe_dropped=zeros(G, dtype=np.bool_),
             fringe_slack=int(cls.FRINGE_SLACK),
+            cg_log=zeros(self.CG_LOG, dtype=np.int64), cg_logged=-1, cg_logged_good=-1,
             banded_on=zeros(G, dtype=np.bool_), band_max=band_max,
             band_from=int(cls.BAND_FROM), band_width=np.full(G, -1, dtype=np.int64),
             # (np.zeros: only the rows of a group whose factor is on are written)
@@ -922,6 +922,11 @@ class StepLoop:
         return taken
 
     WARM_KINDS = ("acceleration", "velocity")
+    # StencilSystem.iteration_log: the mass system logs up to CG_LOG CG runs
+    # a call, each step at most RUNS_PER_STEP per group (rk4: four stages of
+    # two solves)
+    CG_LOG = 4096
+    RUNS_PER_STEP = 8
     # the phases of run.phase_ns (compiled_loop_ops)
     PHASES = ("p2g", "solve", "g2p", "mass_matrix", "reconstruct", "constitutive", "effects")
 
@@ -949,7 +954,8 @@ class StepLoop:
         factors = [self._fringe_factor(state, g) if fringe_on[g] else None for g in range(G)]
         keep = np.array([f is not None and self._fringe_loaded.get(g) is f
                          for g, f in enumerate(factors)], dtype=np.bool_)
-        self.module.load_warm(cm, warm, has, banded, fringe_on, fresh, keep)
+        self.module.load_warm(cm, warm, has, banded, fringe_on, fresh, keep,
+                              StencilSystem.iteration_log is not None)
         for g, factor in enumerate(factors):
             if factor is None:
                 self._fringe_loaded.pop(g, None)
@@ -1002,8 +1008,10 @@ class StepLoop:
         switch, and the reactions of consistent mass (M a - f on the
         constrained rows)."""
         run = self.run_state
-        warm, has, fringe_on, stencil, fast, banded, kept, band_rows, band, fresh, dropped = \
-            self.module.mass_records(self.cm)
+        warm, has, fringe_on, stencil, fast, banded, kept, band_rows, band, fresh, dropped, \
+            log, logged = self.module.mass_records(self.cm)
+        if StencilSystem.iteration_log is not None:  # (the runs of the steps taken)
+            StencilSystem.iteration_log.extend(log[:logged].tolist())
         for i, kind in enumerate(self.WARM_KINDS):
             if has[i]:
                 state.warm[kind] = warm[i].copy()
@@ -1050,7 +1058,7 @@ class StepLoop:
             self.module.load_warm(self.cm, np.zeros((2, nd, dim)), np.zeros(2, dtype=np.bool_),
                                   np.zeros(G, dtype=np.bool_), np.zeros(G, dtype=np.bool_),
                                   np.full((G, len(FRESH_KINDS)), -1, dtype=np.int64),
-                                  np.zeros(G, dtype=np.bool_))
+                                  np.zeros(G, dtype=np.bool_), False)
             self.module.mass_records(self.cm)
         for table in self.tables:
             table.compile()
@@ -1137,6 +1145,8 @@ class StepLoop:
             return 0
         if self.parallel:
             n = min(n, self._steps_per_call)
+        if self.cm is not None and StencilSystem.iteration_log is not None:
+            n = min(n, self.CG_LOG // (self.RUNS_PER_STEP * self._groups))  # room in the log
         p = state.particles
         if p.n != self._arrays[0].shape[0]:  # particles were removed
             return 0

@@ -127,6 +127,9 @@ MASS_FIELDS = (
     "fringe_kept", "fringe_rows", "fringe_used", "fringe_sizes", "fringe_ints",
     "fringe_floats", "fringe_work", "fringe_fresh", "fringe_fresh_good", "fringe_switch",
     "fringe_dropped", "fringe_slack",
+    # StencilSystem.iteration_log: each CG run's iterations, how many were
+    # logged (-1: no log) and how many by the last step taken
+    "cg_log", "cg_logged", "cg_logged_good",
     # warm starts: [0] acceleration, [1] velocity; those of the last step
     # taken (a step that stops hands its own start to the executor)
     "warm", "has_warm", "warm_good", "has_good",
@@ -169,12 +172,12 @@ def new_mass_system(*fields):
 
 
 @njit(cache=True)
-def load_warm(cm, warm, has_warm, banded_on, fringe_on, fringe_fresh, fringe_keep):
+def load_warm(cm, warm, has_warm, banded_on, fringe_on, fringe_fresh, fringe_keep, log):
     """Set the warm starts, the band factor's and the fringe correction's
     switches and the fringe factors' first iterations (the executor's,
     when it took steps between calls); no band factor kept (see
     load_band), the loaded fringe factors kept where ``fringe_keep`` (see
-    load_fringe)."""
+    load_fringe); an empty CG log when ``log``, else none."""
     copy_into(cm.banded_on, banded_on)
     cm.band_kept[:, 0] = -1
     copy_into(cm.warm, warm)
@@ -189,6 +192,8 @@ def load_warm(cm, warm, has_warm, banded_on, fringe_on, fringe_fresh, fringe_kee
             cm.fringe_kept[g] = -1
     cm.fringe_switch[:] = False
     cm.fringe_dropped[:] = False
+    cm.cg_logged = 0 if log else -1
+    cm.cg_logged_good = cm.cg_logged
 
 
 @njit(cache=True)
@@ -295,6 +300,7 @@ def commit_mass(cm):
     copy_into(cm.warm_good, cm.warm)
     copy_into(cm.has_good, cm.has_warm)
     copy_into(cm.fringe_fresh_good, cm.fringe_fresh)
+    cm.cg_logged_good = cm.cg_logged
     switched = False
     for g in range(cm.fringe_switch.shape[0]):
         switched = switched or cm.fringe_switch[g]
@@ -307,11 +313,11 @@ def mass_records(cm):
     correction is on, the stencil and lumping fractions of the last
     step's reactions, the groups whose band factor is on, the kept band
     factors (their rows' count and band, rows and factors), the fringe
-    factors' first iterations and the groups that dropped theirs (at a
-    handover)."""
+    factors' first iterations, the groups that dropped theirs (at a
+    handover), the CG log and how many runs of the steps taken it holds."""
     return (cm.warm_good, cm.has_good, cm.fringe_on, cm.reaction_stencil, cm.reaction_fast,
             cm.banded_on, cm.band_kept, cm.band_rows, cm.band, cm.fringe_fresh_good,
-            cm.fringe_dropped)
+            cm.fringe_dropped, cm.cg_log, cm.cg_logged_good)
 
 
 @njit(cache=True)
@@ -666,6 +672,9 @@ def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x, kinds):
     if its < 0:
         return False
     cm.iterations += its
+    if 0 <= cm.cg_logged < cm.cg_log.shape[0]:  # (StepLoop.run leaves room)
+        cm.cg_log[cm.cg_logged] = its
+        cm.cg_logged += 1
     if cm.band_width[g] < 0 and not cm.merged[g] and not fringe and cm.band_max > 0 \
             and its >= cm.band_from and ELL_BAND_WIDTH(cols) <= cm.band_max:
         cm.banded_on[g] = True
