@@ -999,7 +999,13 @@ class StepLoop:
             arrays = (pattern.fringe, pattern.near, pattern.near_cols, *factor.L, *factor.U,
                       factor.inv_udiag, factor.perm_r, factor.perm_c)
         rows = np.frombuffer(pattern.key, dtype=np.int64)
-        self.module.load_fringe(self.cm, g, rows, *(np.ascontiguousarray(a) for a in arrays))
+        load = self.module.load_fringe
+        first = not load.signatures  # (compiled at a first need: compile time)
+        start, cpu_start = time.perf_counter(), time.process_time()
+        load(self.cm, g, rows, *(np.ascontiguousarray(a) for a in arrays))
+        if first:
+            self.compile_seconds += time.perf_counter() - start
+            self.compile_cpu_seconds += time.process_time() - cpu_start
         self._fringe_loaded[g] = factor
 
     def _mass_results(self, state, handover):
