@@ -850,6 +850,7 @@ class StepLoop:
             fringe_rows=zeros((G, nd if dim == 2 else 1), dtype=np.int64),
             fringe_used=zeros(G, dtype=np.bool_), fringe_sizes=zeros((G, 4), dtype=np.int64),
             fringe_ints=zeros((G, 1), dtype=np.int64), fringe_floats=zeros((G, 1)),
+            # (fringe_args: rf, zf, yf, tn with the fringe and near rows <= nd)
             fringe_work=zeros(4 * (nd + 1) * nc if dim == 2 else 1),
             fringe_fresh=np.full((G, len(FRESH_KINDS)), -1, dtype=np.int64),
             fringe_fresh_good=np.full((G, len(FRESH_KINDS)), -1, dtype=np.int64),
