@@ -280,6 +280,122 @@ def test_consistent_mass_in_2d_without_the_fringe_correction(monkeypatch, case):
     assert looped.counts["compiled_loop_steps"] >= 20
 
 
+# The fringe correction (2D, kernels.fringe) in the loop: the executor makes
+# its SuperLU factor (StencilSystem._fringe), the loop applies it while the
+# free rows stay. A block expanding on a 16 x 16 grid with the correction on
+# from the first solve (FRINGE_FROM 0, every group): the free rows change
+# now and then (a step stops, the executor takes it and factorises) and a
+# stale factor needs FRINGE_SLACK iterations more than a fresh one now and
+# then (the loop drops it and hands the next step over); every other step
+# runs in the loop with the executor's factor, to the executor's bits.
+def fringe_scene(steps=23):
+    grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (16, 16), 2)
+    particles = Particles.seed(grid, 2, 1.0, region=((0.25, 0.75), (0.25, 0.75)),
+                               velocity=lambda X: np.column_stack((0.4 * (X[:, 0] - 0.5),
+                                                                   0.4 * (X[:, 1] - 0.5) - 1.0)))
+    effects = [Fixed("bottom"), Gravity((0.0, -2.0))]  # (the loop variant of usl-consistent-2-2)
+    body = Body(particles, LinearElastic(10.0, 0.3))
+    dt = prepare(Scene(grid, body, 1.0, effects=effects), Method(mass="consistent")).dt
+    return Scene(grid, body, steps * dt, effects=effects)
+
+
+def fringe_events(monkeypatch):
+    """Spy on the loop: the stop codes of its calls, the groups each handover
+    dropped a fringe factor of."""
+    events = {"stops": [], "dropped": []}
+    run, results = compiled_loop.StepLoop._run, compiled_loop.StepLoop._mass_results
+
+    def spy_run(self, state, n):
+        taken = run(self, state, n)
+        events["stops"].append((self._stop, taken))
+        return taken
+
+    def spy_results(self, state, handover):
+        if handover:
+            events["dropped"].append(self.module.mass_records(self.cm)[10].copy())
+        return results(self, state, handover)
+
+    monkeypatch.setattr(compiled_loop.StepLoop, "_run", spy_run)
+    monkeypatch.setattr(compiled_loop.StepLoop, "_mass_results", spy_results)
+    return events
+
+
+@pytest.mark.parametrize("scheme", [
+    "usl", pytest.param("musl", marks=SLOW_LOOP), pytest.param("cd", marks=SLOW_LOOP)])
+def test_fringe_correction_runs_in_the_loop_with_the_executors_factors(monkeypatch, scheme):
+    """With FRINGE_SLACK as it is, stale factors are dropped; with a slack
+    no run exceeds, the factor is kept until the free rows change."""
+    monkeypatch.setattr(StencilSystem, "FRINGE_FROM", 0)
+    monkeypatch.setattr(StencilSystem, "FRINGE_MIN_ROWS", 0)
+    method = Method(scheme=scheme, mass="consistent")
+    for slack in (StencilSystem.FRINGE_SLACK, 1000):
+        with monkeypatch.context() as m:
+            m.setattr(StencilSystem, "FRINGE_SLACK", slack)
+            events = fringe_events(m)
+            looped, _ = looped_and_stepped(m, fringe_scene(), method)
+        steps = looped.counts["compiled_loop_steps"]
+        assert (10 if slack < 1000 else 15) <= steps < looped.counts["steps"], (slack, steps)
+        stops = [stop for stop, _ in events["stops"]]
+        dropped = any(d.any() for d in events["dropped"])
+        assert dropped is (slack < 1000), events  # a stale factor dropped
+        if slack == 1000:  # the first step, then new free rows
+            assert stops.count(compiled_loop.STOP_FRINGE_FACTOR) >= 2, events
+
+
+def test_the_loop_logs_each_cg_run_as_the_executor_does(monkeypatch):
+    """StencilSystem.iteration_log (`bench --consistent` counts the CG
+    iterations so) does not send a run to the executor: the loop logs the
+    same runs with the same iterations."""
+    monkeypatch.setattr(StencilSystem, "FRINGE_FROM", 0)
+    monkeypatch.setattr(StencilSystem, "FRINGE_MIN_ROWS", 0)
+    logs, results = [], []
+    for enabled in (True, False):
+        with monkeypatch.context() as m, preconditioned_with("kronecker+fringe") as log:
+            m.setattr(compiled_loop, "ENABLED", enabled)
+            results.append(simulate(fringe_scene(), Method(scheme="usl", mass="consistent"),
+                                    save_every=5))
+        logs.append(log)
+    assert results[0].path == "fast (compiled loop)"
+    assert results[0].counts["compiled_loop_steps"] >= 10
+    assert logs[0] == logs[1] and len(logs[0]) >= 23, logs
+    assert_same(*results)
+
+
+def test_fringe_factors_cross_checkpoints_and_the_executor(monkeypatch, tmp_path):
+    """The fringe block and its first iterations are warm data: a run whose
+    first 10 steps the executor took (a callback) and which was restarted
+    from their checkpoint on the loop (no factor on the kernels: the
+    executor makes it from the checkpoint's block) gives the loop's bits."""
+    monkeypatch.setattr(StencilSystem, "FRINGE_FROM", 0)
+    monkeypatch.setattr(StencilSystem, "FRINGE_MIN_ROWS", 0)
+    scene, method = fringe_scene(), Method(scheme="usl", mass="consistent")
+    whole = simulate(scene, method)
+    path = tmp_path / "run.npz"
+    simulate(scene, method, checkpoint=(path, 10), callback=lambda step, state: step < 10)
+    resumed = simulate(scene, method, restart=path)
+    assert whole.path == resumed.path == "fast (compiled loop)"
+    assert resumed.counts["compiled_loop_steps"] >= 5
+    for name in ("x", "v", "stress"):
+        assert np.array_equal(getattr(whole.particles, name), getattr(resumed.particles, name))
+
+
+def test_a_fringe_factor_serves_only_the_free_rows_it_was_made_for():
+    """The loop applies a loaded fringe factor to a step whose free rows
+    are the factor's, not merely as many (a block moved by a cell has as
+    many free rows as before, shifted)."""
+    state = prepare(fringe_scene(), Method(mass="consistent"))
+    loop = compiled_loop.StepLoop(state, CompiledExecutor(state))
+    rows = np.arange(10, 40, dtype=np.int64)
+    none, no_values = np.zeros(0, dtype=np.int64), np.zeros(0)
+    one = np.zeros(1, dtype=np.int64)
+    loop.module.load_fringe(loop.cm, 0, rows, none, none, np.zeros((0, 1), dtype=np.int64), one,
+                            none, no_values, one, none, no_values, no_values, none, none)
+    kept = loop.module._kept_fringe
+    assert kept(loop.cm, 0, rows.copy())
+    assert not kept(loop.cm, 0, rows + 1)
+    assert not kept(loop.cm, 0, rows[:-1])
+
+
 @pytest.mark.exhaustive  # each case compiles a loop of its own (tens of seconds)
 @pytest.mark.parametrize("case", ALL_MASS_CASES, ids=lambda c: "-".join(map(str, c.values())))
 def test_consistent_mass_gives_the_executors_bits_everywhere(monkeypatch, case):

@@ -81,6 +81,7 @@ from ..kernels.serial import for_threads
 from . import schemes
 from .compiled import side_traction
 from .compiled_loop_tables import ForceTable, PrescribedTable, TractionTable, reference_forces
+from ..kernels.fringe import FringePattern
 from .stencil_system import StencilSystem, stencil_residual
 from .timestep import (RECONSTRUCTION_EVERY, STABILITY_LIMIT, covered_parameters,
                        fast_dof_limit, stiffness_root)
@@ -178,6 +179,14 @@ MERGE_KERNELS = {
 STOP_MERGE_KERNELS = 6
 """run.stop when a step met tiny-mass dofs before the merge kernels were
 compiled: StepLoop.run compiles them and calls the loop again."""
+STOP_FRINGE_FACTOR = 7
+"""run.stop when a step with the fringe correction on found no factor
+loaded for its free rows: the executor takes that step (and makes the
+factor), the loop the ones after it."""
+FRESH_KINDS = ("acceleration", "velocity", "acceleration+acceleration",
+               "acceleration+velocity", "velocity+acceleration", "velocity+velocity")
+"""The kinds of right-hand sides of one CG run (StencilSystem._keep_fringe's
+names) in the order of the mass system's ``fringe_fresh``."""
 
 
 def loop_applies(state, executor):
@@ -246,19 +255,14 @@ def _side_tractions_only(executor):
 def _mass_unsupported(state):
     """Why the loop cannot solve this run's consistent (or hybrid) mass, or
     None: it runs StencilSystem's Kronecker-preconditioned CG, not the
-    sparse LU, the Jacobi preconditioner or the fringe correction."""
+    sparse LU or the Jacobi preconditioner (the fringe correction it runs
+    with the executor's factors, and it logs each CG run's iterations as
+    StencilSystem.iteration_log asks)."""
     m, cls = state.method, StencilSystem
     if m.mass_solver == "direct":
         return "mass_solver 'direct' (sparse LU)"
     if cls.preconditioner != "kronecker":
         return f"the {cls.preconditioner!r} preconditioner"
-    if cls.iteration_log is not None:
-        return "a CG iteration log is recorded"
-    if state.grid.dim == 2 and cls.FRINGE_LAYERS > 0:
-        if cls.FRINGE_FROM <= 0:
-            return "the fringe correction from the first step"
-        if any(key.startswith("fringe") and key.endswith("_on") for key in state.warm):
-            return "the fringe correction (on since an earlier step)"
     return None
 
 
@@ -372,8 +376,11 @@ def _prelude(dim, parallel, window, variant):
                "        k = KRONECKER_ARGS(cm, g, n, nc, nt)\n"
                "        APPLY_KRONECKER(k[0], k[1], k[2], k[3], k[4], k[5], b, x)\n"
                "        return 1\n    " + pcg)
-    if dim == 2:
-        pcg = ("if cm.n_boxes[g] > 1 and cm.band_width[g] < 0:\n"
+    if dim == 2:  # (the fringe correction is 2D's)
+        pcg = ("if cm.fringe_used[g]:\n"
+               "        return ELL_PCG(A, cols, inv_diag, KRONECKER_ARGS(cm, g, n, nc, nt), "
+               "fringe_args(cm, g, nc), b, x, problem, cm.rtol, limit, nt, work)\n    "
+               "if cm.n_boxes[g] > 1 and cm.band_width[g] < 0:\n"
                "        return ELL_PCG(A, cols, inv_diag, BOX_ARGS(cm, g, n, nc, nt), None, b, x, "
                "problem, cm.rtol, limit, nt, work)\n    " + pcg)
     body = f'''
@@ -565,6 +572,8 @@ class StepLoop:
             self._mass_system(state, k)
         self.run_state = self._record("new_run", "RunType", self.module.FIELDS, fields)
         self.retired = False  # the executor takes every further step
+        self._executor_next = False  # it takes the next step (a fringe factor to make)
+        self._fringe_loaded = {}  # group -> the FringeFactor (or pattern) loaded
         self._loop = self.module.LOOPS[self.scheme]
         if compile_loop:  # (False: precompile_mass's run, never stepped)
             self._point_at_transfers(dim, grid.degree, window)
@@ -864,6 +873,18 @@ class StepLoop:
             fringe_from=int(cls.FRINGE_FROM), fringe_min_rows=int(cls.FRINGE_MIN_ROWS),
             fringe_layers=int(cls.FRINGE_LAYERS) if dim == 2 else 0,
             fringe_on=zeros(G, dtype=np.bool_), iterations=0,
+            # (the factors' room grows as load_fringe needs it)
+            fringe_kept=np.full(G, -1, dtype=np.int64),
+            fringe_rows=zeros((G, nd if dim == 2 else 1), dtype=np.int64),
+            fringe_used=zeros(G, dtype=np.bool_), fringe_sizes=zeros((G, 4), dtype=np.int64),
+            fringe_ints=zeros((G, 1), dtype=np.int64), fringe_floats=zeros((G, 1)),
+            # (fringe_args: rf, zf, yf, tn with the fringe and near rows <= nd)
+            fringe_work=zeros(4 * (nd + 1) * nc if dim == 2 else 1),
+            fringe_fresh=np.full((G, len(FRESH_KINDS)), -1, dtype=np.int64),
+            fringe_fresh_good=np.full((G, len(FRESH_KINDS)), -1, dtype=np.int64),
+            fringe_switch=zeros(G, dtype=np.bool_), fringe_dropped=zeros(G, dtype=np.bool_),
+            fringe_slack=int(cls.FRINGE_SLACK),
+            cg_log=zeros(self.CG_LOG, dtype=np.int64), cg_logged=-1, cg_logged_good=-1,
             banded_on=zeros(G, dtype=np.bool_), band_max=band_max,
             band_from=int(cls.BAND_FROM), band_width=np.full(G, -1, dtype=np.int64),
             # (np.zeros: only the rows of a group whose factor is on are written)
@@ -930,11 +951,17 @@ class StepLoop:
         return taken
 
     WARM_KINDS = ("acceleration", "velocity")
+    # StencilSystem.iteration_log: the mass system logs up to CG_LOG CG runs
+    # a call, each step at most RUNS_PER_STEP per group (rk4: four stages of
+    # two solves)
+    CG_LOG = 4096
+    RUNS_PER_STEP = 8
     # the phases of run.phase_ns (compiled_loop_ops)
     PHASES = ("p2g", "solve", "g2p", "mass_matrix", "reconstruct", "constitutive", "effects")
 
     def _load_warm(self, state):
-        """The run starts its CG runs from the state's warm starts."""
+        """The run starts its CG runs from the state's warm starts, with its
+        band factors and fringe corrections."""
         cm = self.cm
         nd, dim = self.executor.kernels.ndofs, state.grid.dim
         warm = np.zeros((2, nd, dim))
@@ -943,15 +970,72 @@ class StepLoop:
             prev = state.warm.get(kind)
             if prev is not None and prev.shape == (nd, dim):
                 warm[i], has[i] = prev, True
-        banded = np.array([f"banded{g}_on" in state.warm for g in range(self._groups)],
-                          dtype=np.bool_)
-        self.module.load_warm(cm, warm, has, banded)
-        for g in range(self._groups):  # the kept band factors (StencilSystem._band)
+        G = self._groups
+        banded = np.array([f"banded{g}_on" in state.warm for g in range(G)], dtype=np.bool_)
+        fringe_on = np.array([StencilSystem.FRINGE_FROM <= 0 or f"fringe{g}_on" in state.warm
+                              for g in range(G)], dtype=np.bool_)
+        fresh = np.full((G, len(FRESH_KINDS)), -1, dtype=np.int64)
+        for g in range(G):
+            for i, kinds in enumerate(FRESH_KINDS):
+                first = state.warm.get(f"fringe{g}_fresh_{kinds}")
+                if first is not None:
+                    fresh[g, i] = int(first[0])
+        factors = [self._fringe_factor(state, g) if fringe_on[g] else None for g in range(G)]
+        keep = np.array([f is not None and self._fringe_loaded.get(g) is f
+                         for g, f in enumerate(factors)], dtype=np.bool_)
+        self.module.load_warm(cm, warm, has, banded, fringe_on, fresh, keep,
+                              StencilSystem.iteration_log is not None)
+        for g, factor in enumerate(factors):
+            if factor is None:
+                self._fringe_loaded.pop(g, None)
+            elif not keep[g]:
+                self._load_fringe(g, factor)
+        for g in range(G):  # the kept band factors (StencilSystem._band)
             rows, factor = state.warm.get(f"band{g}_rows"), state.warm.get(f"band{g}_factor")
             if rows is not None and factor is not None and factor.ndim == 2 \
                     and band_factor.factor_layout_ok(factor):
                 self.module.load_band(cm, g, np.ascontiguousarray(rows, dtype=np.int64),
                                       np.ascontiguousarray(factor, dtype=np.float64))
+
+    def _fringe_factor(self, state, g):
+        """The executor's fringe factor of group g that its next step would
+        use (StencilSystem._fringe: the pattern of the free rows, the factor
+        of the warm data's block, kept on the kernels), its pattern when
+        the free rows have no fringe, or None (the loop's first step with
+        the correction on then stops: the executor makes it)."""
+        pattern = self.executor.kernels.__dict__.get("fringe_patterns", {}).get(g)
+        if pattern is None or pattern.layers != StencilSystem.FRINGE_LAYERS:
+            return None
+        if not pattern.fringe.size:
+            return pattern
+        rows, block = state.warm.get(f"fringe{g}_rows"), state.warm.get(f"fringe{g}_block")
+        factor = pattern.factor
+        if rows is None or factor is None or factor.data is not block \
+                or pattern.key != np.ascontiguousarray(rows, dtype=np.int64).tobytes():
+            return None
+        return factor
+
+    def _load_fringe(self, g, factor):
+        """Load group g's fringe factor (a FringeFactor, or a pattern
+        without fringe rows) into the run."""
+        if isinstance(factor, FringePattern):
+            pattern, none = factor, np.zeros(0, dtype=np.int64)
+            arrays = (none, none, np.zeros((0, 1), dtype=np.int64), np.zeros(1, dtype=np.int64),
+                      none, np.zeros(0), np.zeros(1, dtype=np.int64), none, np.zeros(0),
+                      np.zeros(0), none, none)
+        else:
+            pattern = factor.pattern
+            arrays = (pattern.fringe, pattern.near, pattern.near_cols, *factor.L, *factor.U,
+                      factor.inv_udiag, factor.perm_r, factor.perm_c)
+        rows = np.frombuffer(pattern.key, dtype=np.int64)
+        load = self.module.load_fringe
+        first = not load.signatures  # (compiled at a first need: compile time)
+        start, cpu_start = time.perf_counter(), time.process_time()
+        load(self.cm, g, rows, *(np.ascontiguousarray(a) for a in arrays))
+        if first:
+            self.compile_seconds += time.perf_counter() - start
+            self.compile_cpu_seconds += time.process_time() - cpu_start
+        self._fringe_loaded[g] = factor
 
     def _mass_results(self, state, handover):
         """The warm starts of the last step taken into the state (new
@@ -959,8 +1043,10 @@ class StepLoop:
         switch, and the reactions of consistent mass (M a - f on the
         constrained rows)."""
         run = self.run_state
-        warm, has, fringe_on, stencil, fast, banded, kept, band_rows, band = \
-            self.module.mass_records(self.cm)
+        warm, has, fringe_on, stencil, fast, banded, kept, band_rows, band, fresh, dropped, \
+            log, logged = self.module.mass_records(self.cm)
+        if StencilSystem.iteration_log is not None:  # (the runs of the steps taken)
+            StencilSystem.iteration_log.extend(log[:logged].tolist())
         for i, kind in enumerate(self.WARM_KINDS):
             if has[i]:
                 state.warm[kind] = warm[i].copy()
@@ -975,10 +1061,18 @@ class StepLoop:
             else:
                 state.warm.pop(f"band{g}_rows", None)
                 state.warm.pop(f"band{g}_factor", None)
-        if handover:
+        for g in range(self._groups):  # the fringe factors' first iterations
+            for i, kinds in enumerate(FRESH_KINDS):
+                key = f"fringe{g}_fresh_{kinds}"
+                if fresh[g, i] >= 0 and (key not in state.warm or
+                                         state.warm[key][0] != fresh[g, i]):
+                    state.warm[key] = np.array([fresh[g, i]])
+        if handover:  # the fringe correction turned on, or a factor dropped
             for g in np.flatnonzero(fringe_on):
                 state.warm[f"fringe{g}_on"] = np.array([1])
-            self.retired = True
+            for g in np.flatnonzero(dropped):  # (StencilSystem._keep_fringe)
+                state.warm.pop(f"fringe{g}_rows", None)
+            self._executor_next = True
         c = state.constraints
         if c.any:
             mass, a, force = self.module.grid_arrays(run)
@@ -995,8 +1089,11 @@ class StepLoop:
         if self.cm is not None:
             nd, dim = self.executor.kernels.ndofs, self._arrays[0].shape[1]
             self.module.load_band(self.cm, 0, np.zeros(0, dtype=np.int64), np.zeros((0, 1)))
+            G = self._groups
             self.module.load_warm(self.cm, np.zeros((2, nd, dim)), np.zeros(2, dtype=np.bool_),
-                                  np.zeros(self._groups, dtype=np.bool_))
+                                  np.zeros(G, dtype=np.bool_), np.zeros(G, dtype=np.bool_),
+                                  np.full((G, len(FRESH_KINDS)), -1, dtype=np.int64),
+                                  np.zeros(G, dtype=np.bool_), False)
             self.module.mass_records(self.cm)
         for table in self.tables:
             table.compile()
@@ -1078,8 +1175,13 @@ class StepLoop:
         self._stop = 0
         if self.retired:
             return 0
+        if self._executor_next:  # it makes a fringe factor the loop then uses
+            self._executor_next = False
+            return 0
         if self.parallel:
             n = min(n, self._steps_per_call)
+        if self.cm is not None and StencilSystem.iteration_log is not None:
+            n = min(n, self.CG_LOG // (self.RUNS_PER_STEP * self._groups))  # room in the log
         p = state.particles
         if p.n != self._arrays[0].shape[0]:  # particles were removed
             return 0
@@ -1112,6 +1214,8 @@ class StepLoop:
         if taken == n and self.row_by_row:
             taken += self._row_by_row(state, wanted - taken)
         self._stop = int(mod.clock(run)[2])
+        if self._stop == STOP_FRINGE_FACTOR and taken:  # (not the partial step again first)
+            self._executor_next = True
         if taken:
             per_step = (time.perf_counter() - start) / taken
             self._steps_per_call = max(1, int(self.CALL_SECONDS / max(per_step, 1e-9)))

@@ -54,12 +54,21 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
                     a merged group restricts the right-hand sides and
                     prolongs the solution to its small dofs (x = T x_r)
 
-The fringe correction of the preconditioner (SuperLU factors of the
-free-dof set's edge) is not compiled: a group of at least
-``fringe_min_rows`` free dofs whose Kronecker-preconditioned CG needed
-``fringe_from`` iterations turns it on for the rest of the run (as
-StencilSystem does), and the run hands over to the executor after that
-step (``fringe_on``, ``handover``).
+The fringe correction of the preconditioner (kernels.fringe): a group of
+at least ``fringe_min_rows`` free dofs whose Kronecker-preconditioned CG
+needed ``fringe_from`` iterations turns it on for the rest of the run (as
+StencilSystem does). Its SuperLU factors are made by the executor
+(StencilSystem._fringe, SciPy) and loaded into the run (``load_fringe``:
+the factor of the warm data's block, made for the free rows
+``fringe_rows``); a step applies them in its CG (ell_pcg's fringe branch,
+the executor's kernel) while its free rows are those rows. A step whose
+free rows differ, or that finds no factor loaded, stops before it writes
+anything (stop 7: the executor takes it and factorises anew); a step that
+turns the correction on, or whose CG needed more than FRINGE_SLACK
+iterations beyond the first run with the factor on the same right-hand
+sides (``fringe_fresh``, StencilSystem._keep_fringe: the factor is
+dropped), ends the call after it is taken (``handover``): the executor
+takes the next step and makes the factor.
 """
 
 
@@ -113,6 +122,21 @@ MASS_FIELDS = (
     # conjugate gradients: right-hand sides, solutions, work space (flat)
     "b", "x", "work", "box", "rtol", "max_iterations", "fringe_from", "fringe_min_rows",
     "fringe_layers", "fringe_on", "iterations",
+    # the fringe correction per group (kernels.fringe, FringeFactor.args):
+    # the rows its factor was made for (count, -1: none loaded) and their
+    # list, this step uses it, the sizes (fringe, near rows, L's and U's
+    # entries) and the factor packed (ints: fringe, near, near_cols, Lp, Li,
+    # Up, Ui, perm_r, perm_c; floats: Lx, Ux, 1 / U_jj), its work space
+    # (flat); the iterations of the first CG run with the factor per kind
+    # of right-hand sides (FRESH_KINDS' order, -1: none yet) and those of
+    # the last step taken; the groups that switched this step (turned on
+    # or dropped the factor) and those that dropped it
+    "fringe_kept", "fringe_rows", "fringe_used", "fringe_sizes", "fringe_ints",
+    "fringe_floats", "fringe_work", "fringe_fresh", "fringe_fresh_good", "fringe_switch",
+    "fringe_dropped", "fringe_slack",
+    # StencilSystem.iteration_log: each CG run's iterations, how many were
+    # logged (-1: no log) and how many by the last step taken
+    "cg_log", "cg_logged", "cg_logged_good",
     # warm starts: [0] acceleration, [1] velocity; those of the last step
     # taken (a step that stops hands its own start to the executor)
     "warm", "has_warm", "warm_good", "has_good",
@@ -155,17 +179,28 @@ def new_mass_system(*fields):
 
 
 @njit(cache=True)
-def load_warm(cm, warm, has_warm, banded_on):
-    """Set the warm starts and the band factor's switches (the executor's,
+def load_warm(cm, warm, has_warm, banded_on, fringe_on, fringe_fresh, fringe_keep, log):
+    """Set the warm starts, the band factor's and the fringe correction's
+    switches and the fringe factors' first iterations (the executor's,
     when it took steps between calls); no band factor kept (see
-    load_band)."""
+    load_band), the loaded fringe factors kept where ``fringe_keep`` (see
+    load_fringe); an empty CG log when ``log``, else none."""
     copy_into(cm.banded_on, banded_on)
     cm.band_kept[:, 0] = -1
     copy_into(cm.warm, warm)
     copy_into(cm.has_warm, has_warm)
     copy_into(cm.warm_good, warm)
     copy_into(cm.has_good, has_warm)
-    cm.fringe_on[:] = False
+    copy_into(cm.fringe_on, fringe_on)
+    copy_into(cm.fringe_fresh, fringe_fresh)
+    copy_into(cm.fringe_fresh_good, fringe_fresh)
+    for g in range(fringe_keep.shape[0]):
+        if not fringe_keep[g]:
+            cm.fringe_kept[g] = -1
+    cm.fringe_switch[:] = False
+    cm.fringe_dropped[:] = False
+    cm.cg_logged = 0 if log else -1
+    cm.cg_logged_good = cm.cg_logged
 
 
 @njit(cache=True)
@@ -181,25 +216,115 @@ def load_band(cm, g, rows, factor):
 
 
 @njit(cache=True)
+def load_fringe(cm, g, rows, fringe, near, near_cols, Lp, Li, Lx, Up, Ui, Ux, inv_udiag,
+                perm_r, perm_c):
+    """Group g's fringe factor (the executor's FringeFactor: its pattern's
+    fringe, near rows and their columns in the fringe, SuperLU's L and U
+    (CSC), 1 / U_jj, the permutations) made for the free ``rows``; no
+    fringe (empty ``fringe``): the Kronecker step alone on those rows."""
+    n = rows.shape[0]
+    nf, nn, nl, nu = fringe.shape[0], near.shape[0], Li.shape[0], Ui.shape[0]
+    cm.fringe_kept[g] = n
+    copy_into(cm.fringe_rows[g, :n], rows)
+    cm.fringe_sizes[g, 0] = nf
+    cm.fringe_sizes[g, 1] = nn
+    cm.fringe_sizes[g, 2] = nl
+    cm.fringe_sizes[g, 3] = nu
+    ni = nf + nn + near_cols.size + nf + 1 + nl + nf + 1 + nu + nf + nf
+    nx = nl + nu + nf
+    G = cm.fringe_kept.shape[0]
+    if ni > cm.fringe_ints.shape[1]:  # room for this factor (the others' kept)
+        ints = np.zeros((G, ni), dtype=np.int64)
+        for h in range(G):
+            copy_into(ints[h, :cm.fringe_ints.shape[1]], cm.fringe_ints[h])
+        cm.fringe_ints = ints
+    if nx > cm.fringe_floats.shape[1]:
+        floats = np.zeros((G, nx))
+        for h in range(G):
+            copy_into(floats[h, :cm.fringe_floats.shape[1]], cm.fringe_floats[h])
+        cm.fringe_floats = floats
+    ints = cm.fringe_ints[g]
+    o = 0
+    for part in (fringe, near, near_cols.reshape(near_cols.size), Lp, Li, Up, Ui, perm_r,
+                 perm_c):
+        copy_into(ints[o:o + part.size], part)
+        o += part.size
+    floats = cm.fringe_floats[g]
+    o = 0
+    for part in (Lx, Ux, inv_udiag):
+        copy_into(floats[o:o + part.size], part)
+        o += part.size
+
+
+@njit(cache=True)
+def fringe_args(cm, g, nc):
+    """Group g's fringe factor for nc columns as ell_pcg takes it
+    (FringeFactor.args: the factor's arrays and the work space)."""
+    nf, nn, nl, nu = (cm.fringe_sizes[g, 0], cm.fringe_sizes[g, 1], cm.fringe_sizes[g, 2],
+                      cm.fringe_sizes[g, 3])
+    ns = cm.A.shape[2]
+    ints = cm.fringe_ints[g]
+    fringe = ints[:nf]
+    o = nf
+    near = ints[o:o + nn]
+    o += nn
+    near_cols = ints[o:o + nn * ns].reshape((nn, ns))
+    o += nn * ns
+    Lp = ints[o:o + nf + 1]
+    o += nf + 1
+    Li = ints[o:o + nl]
+    o += nl
+    Up = ints[o:o + nf + 1]
+    o += nf + 1
+    Ui = ints[o:o + nu]
+    o += nu
+    perm_r = ints[o:o + nf]
+    o += nf
+    perm_c = ints[o:o + nf]
+    floats = cm.fringe_floats[g]
+    Lx = floats[:nl]
+    Ux = floats[nl:nl + nu]
+    inv_udiag = floats[nl + nu:nl + nu + nf]
+    work = cm.fringe_work
+    h = (nc + 1) // 2
+    rf = work[:nf * nc].reshape((nf, nc))
+    o = nf * nc
+    zf = work[o:o + (nf + 1) * nc].reshape((nf + 1, nc))
+    o += (nf + 1) * nc
+    yf = work[o:o + 2 * nf * h].reshape((2, nf, h))
+    o += 2 * nf * h
+    tn = work[o:o + nn * nc].reshape((nn, nc))
+    return (fringe, near, near_cols, Lp, Li, Lx, Up, Ui, Ux, inv_udiag, perm_r, perm_c, rf, zf,
+            yf, tn)
+
+
+@njit(cache=True)
 def commit_mass(cm):
-    """The step is taken: its warm starts are the good ones; True when a
-    group turned the fringe correction on (the executor takes over)."""
+    """The step is taken: its warm starts and the fringe factors' first
+    iterations are the good ones; True when a group turned the fringe
+    correction on or dropped its factor (the executor takes the next
+    step)."""
     copy_into(cm.warm_good, cm.warm)
     copy_into(cm.has_good, cm.has_warm)
-    for g in range(cm.fringe_on.shape[0]):
-        if cm.fringe_on[g]:
-            return True
-    return False
+    copy_into(cm.fringe_fresh_good, cm.fringe_fresh)
+    cm.cg_logged_good = cm.cg_logged
+    switched = False
+    for g in range(cm.fringe_switch.shape[0]):
+        switched = switched or cm.fringe_switch[g]
+    return switched
 
 
 @njit(cache=True)
 def mass_records(cm):
-    """The warm starts of the last step taken, the groups that turned the
-    fringe correction on, the stencil and lumping fractions of the last
+    """The warm starts of the last step taken, the groups whose fringe
+    correction is on, the stencil and lumping fractions of the last
     step's reactions, the groups whose band factor is on, the kept band
-    factors (their rows' count and band, rows and factors)."""
+    factors (their rows' count and band, rows and factors), the fringe
+    factors' first iterations, the groups that dropped theirs (at a
+    handover), the CG log and how many runs of the steps taken it holds."""
     return (cm.warm_good, cm.has_good, cm.fringe_on, cm.reaction_stencil, cm.reaction_fast,
-            cm.banded_on, cm.band_kept, cm.band_rows, cm.band)
+            cm.banded_on, cm.band_kept, cm.band_rows, cm.band, cm.fringe_fresh_good,
+            cm.fringe_dropped, cm.cg_log, cm.cg_logged_good)
 
 
 @njit(cache=True)
@@ -314,7 +439,9 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
     (tiny-mass dofs) the merge of each group. Returns 0, or 4 when a merged
     row outgrew the kernels' lists (the executor's general grid system
     takes the step), 6 when the merge kernels are not compiled yet
-    (``cm.merge_at``: StepLoop.run compiles them and takes the step again)."""
+    (``cm.merge_at``: StepLoop.run compiles them and takes the step again),
+    7 when a group with the fringe correction on has no factor loaded for
+    its free rows (the executor takes the step and factorises)."""
     stencil = cm.stencil
     nd, ns = stencil.shape
     if cm.guard:  # the guard's stiffness (timestep.covered_stiffness), then theta
@@ -382,6 +509,7 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
             for r in range(n):
                 inv_diag[r] = 1.0 / mass[rows[r]]
         cm.band_width[g] = -1
+        cm.fringe_used[g] = False
         if n == 0:
             continue
         if DIM == 3:  # a box per coupled component, built each step (they follow A)
@@ -403,7 +531,13 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
                     cm.band_kept[g, 1] = w
                     copy_into(cm.band_rows[g, :n], rows)
                     continue
-            if DIM == 2 and cm.by_component:  # a box per coupled component (two or more)
+            # the fringe correction (StencilSystem._compact: on the one box)
+            fringe = cm.fringe_layers > 0 and cm.fringe_on[g] and not merged
+            if fringe:
+                if not _kept_fringe(cm, g, rows):
+                    return 7
+                cm.fringe_used[g] = cm.fringe_sizes[g, 0] > 0
+            if DIM == 2 and cm.by_component and not fringe:  # a box per coupled component
                 cm.n_boxes[g] = KRONECKER_BOXES(fit, rows, cm.kept_index[g] if merged else
                                                 cm.index[g], p, nbx, nby, nd,
                                                 cm.box_coords[g, :n], cm.box_index[g, :n],
@@ -423,10 +557,23 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
 def _kept_band(cm, g, rows):
     """Whether group g keeps a band factor made for the free ``rows``
     within the band limit (StencilSystem._band)."""
+    return cm.band_kept[g, 1] <= cm.band_max and _same_rows(cm.band_rows[g], cm.band_kept[g, 0],
+                                                            rows)
+
+
+@njit(cache=True)
+def _kept_fringe(cm, g, rows):
+    """Whether group g has a fringe factor loaded for the free ``rows``
+    (StencilSystem._fringe keeps the warm data's block while they stay)."""
+    return _same_rows(cm.fringe_rows[g], cm.fringe_kept[g], rows)
+
+
+@njit(cache=True, inline="always")
+def _same_rows(kept, count, rows):
+    """Whether the first ``count`` entries of ``kept`` are ``rows``."""
     n = rows.shape[0]
-    if cm.band_kept[g, 0] != n or cm.band_kept[g, 1] > cm.band_max:
+    if count != n:
         return False
-    kept = cm.band_rows[g]
     for r in range(n):
         if kept[r] != rows[r]:
             return False
@@ -506,7 +653,9 @@ def mass_solve(cm, nt, count, rhs0, kind0, values0, has0, out0, rhs1, kind1, val
                 COMPACT_PROBLEM(rows, rhs1, values1, has1,
                                 cm.warm[kind1] if cm.has_warm[kind1] else rhs1,
                                 cm.has_warm[kind1], comps, ncomp, F, fcols, b, x)
-        if n > 0 and not _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x):
+        kinds = kind0 if count == 1 else 2 + 2 * kind0 + kind1  # (FRESH_KINDS)
+        if n > 0 and not _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x,
+                                      kinds):
             return False
         if merged:
             MERGED_EXPAND(cm.merge_at[4], rows, cm.merge_small[g], cm.entries[g], cm.row_dof[g],
@@ -527,27 +676,42 @@ def mass_solve(cm, nt, count, rhs0, kind0, values0, has0, out0, rhs1, kind1, val
 
 
 @njit(cache=True)
-def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x):
+def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x, kinds):
     """Group g's CG run on its n rows A, cols (ell_pcg with the group's
-    Kronecker preconditioner; inv_diag the lumped one's): False when it
-    stopped above its tolerance; turns the fringe correction on as
-    StencilSystem does."""
+    Kronecker preconditioner, with the fringe correction where it is used;
+    inv_diag the lumped one's) on right-hand sides of ``kinds`` (the index
+    of their names in FRESH_KINDS): False when it stopped above its
+    tolerance; switches the band factor and the fringe correction as
+    StencilSystem.solve_many does."""
     problem = np.empty(nc, dtype=np.int64)
     for j in range(nc):
         problem[j] = j // ncomp
     limit = cm.max_iterations if cm.max_iterations > 0 else 10 * n + 100
     work = cm.work[:6 * n * nc].reshape((6, n, nc))
+    fringe = cm.fringe_used[g]
     its = KRONECKER_PCG(cm, g, n, nc, nt, A, cols, inv_diag, b, x, problem, limit, work)
     if its < 0:
         return False
     cm.iterations += its
-    if cm.band_width[g] < 0 and not cm.merged[g] and cm.band_max > 0 \
+    if 0 <= cm.cg_logged < cm.cg_log.shape[0]:  # (StepLoop.run leaves room)
+        cm.cg_log[cm.cg_logged] = its
+        cm.cg_logged += 1
+    if cm.band_width[g] < 0 and not cm.merged[g] and not fringe and cm.band_max > 0 \
             and its >= cm.band_from and ELL_BAND_WIDTH(cols) <= cm.band_max:
         cm.banded_on[g] = True
     elif cm.band_width[g] >= 0 and its > cm.band_keep:
         cm.band_kept[g, 0] = -1  # the next step factorises anew
-    elif cm.fringe_layers > 0 and its >= cm.fringe_from and n >= cm.fringe_min_rows:
+    elif cm.fringe_layers > 0 and not fringe and not cm.fringe_on[g] \
+            and its >= cm.fringe_from and n >= cm.fringe_min_rows:
         cm.fringe_on[g] = True
+        cm.fringe_switch[g] = True
+    if fringe:  # StencilSystem._keep_fringe
+        fresh = cm.fringe_fresh[g, kinds]
+        if fresh < 0:
+            cm.fringe_fresh[g, kinds] = its
+        elif its > fresh + cm.fringe_slack:
+            cm.fringe_dropped[g] = True
+            cm.fringe_switch[g] = True
     return True
 
 

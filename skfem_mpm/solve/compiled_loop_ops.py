@@ -71,9 +71,11 @@ step then takes that step and says what happened. A step with tiny-mass
 dofs before the merge kernels were compiled (6): the merge is called
 through addresses (``run.merged_solve_at``, ``run.cm.merge_at``), 0 until
 :class:`~skfem_mpm.solve.compiled_loop.StepLoop` compiles the kernels at
-that first need and calls the loop again from the same state. ``run.handover``: the
-step was taken, and the next ones need the executor (the fringe
-correction turned on).
+that first need and calls the loop again from the same state. A step with
+the fringe correction on and no factor loaded for its free rows (7): the
+executor takes it and makes the factor (compiled_loop_mass). ``run.handover``: the
+step was taken, and the next one needs the executor (the fringe
+correction turned on, or its factor dropped: the executor makes one).
 
 Phase times (nanoseconds of the monotonic clock) add up in ``run.phase_ns``:
 0 p2g, 1 solve, 2 g2p, 3 mass_matrix, 4 reconstruct, 5 constitutive, 6 effects.
@@ -512,7 +514,8 @@ def _prepare_grid(run):
         """Consistent mass: gravity as the force m g, then the step's system."""
         run.gravity_into_force()
         # 4: a merged row outgrew the lists (the general grid system takes
-        # the step); 6: the merge kernels are not compiled yet
+        # the step); 6: the merge kernels are not compiled yet; 7: no
+        # fringe factor loaded for the free rows (the executor makes it)
         run.stop = call(prepare_mass, run.cm, run.mass, run.mask, run.degree, run.nbx,
                         run.nby, run.x.shape[1], prescribed,
                         run.small_tol if run.small_count > 0 else 0.0)
@@ -789,7 +792,7 @@ def _commit(run, state, grid):
         def impl(run, state, grid):
             if run.stop:
                 return
-            if consistent and commit_mass(run.cm):  # the fringe correction is on
+            if consistent and commit_mass(run.cm):  # a fringe factor to make
                 run.handover = True
             run.work += grid
             _advance(run)
@@ -798,7 +801,7 @@ def _commit(run, state, grid):
     def impl(run, state, grid):
         if run.stop:
             return
-        if consistent and commit_mass(run.cm):  # the fringe correction is on
+        if consistent and commit_mass(run.cm):  # a fringe factor to make
             run.handover = True
         du = run.displacement
         if traction or body_force or (run.gravity_work and reconstructed):

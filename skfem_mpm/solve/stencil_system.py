@@ -252,8 +252,8 @@ class StencilSystem:
     # free dofs: on small grids the factorisation and its triangular solves
     # cost more than the iterations they save (the expanding block of
     # `bench --consistent`: 324 free dofs at 32 x 32 cells ran slower with
-    # it, 1,156 at 64 x 64 faster), and the compiled step loop
-    # (solve/compiled_loop.py) runs only without it.
+    # it, 1,156 at 64 x 64 faster). The compiled step loop
+    # (solve/compiled_loop.py) applies the factors this class makes.
     FRINGE_FROM = 12
     FRINGE_MIN_ROWS = 600
 
