@@ -484,9 +484,7 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
             rows = cm.kept_rows[g, :n]
             fit = cm.merged_fit[:n * ns].reshape((n, ns))
         else:
-            inv_diag = cm.inv_diag[g]
-            for r in range(n):
-                inv_diag[r] = 1.0 / mass[rows[r]]
+            _inverse_masses(cm.inv_diag[g], mass, rows)
         cm.band_width[g] = -1
         cm.fringe_used[g] = False
         if n == 0:
@@ -530,6 +528,15 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
         FIT_KRONECKER(fit, cm.box_coords[g, :n], cm.Lx[g, :nx], cm.Ly[g, :ny], cm.Lz[g, :nz],
                       cm.inv_scale[g, :n], cm.fit_bands, cm.fit_sums)
     return 0
+
+
+@njit(cache=True)
+def _inverse_masses(inv_diag, mass, rows):
+    """inv_diag[r] = 1 / mass[rows[r]], the lumped preconditioner's (a
+    function of its own: written in prepare_mass's loop over the groups,
+    numba counted references to two arrays at every row)."""
+    for r in range(rows.shape[0]):
+        inv_diag[r] = 1.0 / mass[rows[r]]
 
 
 @njit(cache=True)
