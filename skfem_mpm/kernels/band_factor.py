@@ -32,7 +32,7 @@ import numpy as np
 from numba import njit
 from numba.extending import register_jitable
 
-from .weights import FAST
+from .weights import FAST, IN_ORDER
 
 __all__ = ["ell_band_width", "factor_columns", "factor_band", "factor_layout_ok",
            "fit_band_factor", "apply_band_factor"]
@@ -113,30 +113,59 @@ def fit_band_factor(A, cols, C):
     return True
 
 
-@njit(cache=True, error_model="numpy", fastmath=FAST)
+# without reassociation: two rows' updates of one unknown stay in the order
+# of one row at a time (the same bits)
+@njit(cache=True, error_model="numpy", fastmath=IN_ORDER)
 def _band_solve(C, y):
     """y = (L L^T)^-1 y in place, one contiguous column: L y' = y forward by
     columns of L (y'_k, then y_(k+1..k+w) -= L_(k+1..k+w, k) y'_k), then
     L^T y = y' backward by rows of L (y_k, then y_(k-w..k-1) -= L_(k,
-    k-w..k-1) y_k)."""
+    k-w..k-1) y_k). Two columns (rows) at a time: y'_k, its update of
+    y_(k+1), y'_(k+1), then one pass y_j = (y_j - L_jk y'_k) - L_(j,k+1)
+    y'_(k+1) over the unknowns both update (each unknown's operations in
+    the order of one column at a time; half the passes over y, whose each
+    waits for the last)."""
     n = y.shape[0]
     w = factor_band(C.shape[1])
-    for k in range(n):
-        m = min(w, n - 1 - k)
-        v = y[k] * C[k, 0]
-        y[k] = v
-        column = C[k, 1:m + 1]
-        below = y[k + 1:k + m + 1]
-        for d in range(m):
-            below[d] -= column[d] * v
-    for k in range(n - 1, -1, -1):
-        v = y[k] * C[k, 0]
-        y[k] = v
+    if w == 0:
+        for k in range(n):
+            y[k] = y[k] * C[k, 0]
+        for k in range(n - 1, -1, -1):
+            y[k] = y[k] * C[k, 0]
+        return
+    for k in range(0, n, 2):  # forward, columns k and k + 1
+        v0 = y[k] * C[k, 0]
+        y[k] = v0
+        if k + 1 == n:
+            break
+        m0 = min(w, n - 1 - k)  # column k: L_(k+1..k+m0, k) = C[k, 1..m0]
+        y[k + 1] -= C[k, 1] * v0
+        v1 = y[k + 1] * C[k + 1, 0]
+        y[k + 1] = v1
+        m1 = min(w, n - 2 - k)  # column k + 1: L_(k+2..k+1+m1, k+1) = C[k+1, 1..m1]
+        first = C[k, 2:m0 + 1]
+        second = C[k + 1, 1:m0]
+        both = y[k + 2:k + m0 + 1]
+        for d in range(m0 - 1):
+            both[d] = (both[d] - first[d] * v0) - second[d] * v1
+        if m1 + 1 > m0:  # y_(k+1+w), below column k's band
+            y[k + 1 + m1] -= C[k + 1, m1] * v1
+    for k in range(n - 1, -1, -2):  # backward, rows k and k - 1: L_kj = C[k, 2w + 1 - k + j]
+        v0 = y[k] * C[k, 0]
+        y[k] = v0
+        if k == 0:
+            break
+        y[k - 1] -= C[k, 2 * w] * v0
+        v1 = y[k - 1] * C[k - 1, 0]
+        y[k - 1] = v1
         lo = max(0, k - w)
-        row = C[k, 2 * w + 1 - (k - lo):]
-        above = y[lo:k]
-        for e in range(k - lo):
-            above[e] -= row[e] * v
+        first = C[k, 2 * w + 1 - k + lo:2 * w]
+        second = C[k - 1, 2 * w + 2 - k + lo:2 * w + 1]
+        both = y[lo:k - 1]
+        for e in range(k - 1 - lo):
+            both[e] = (both[e] - first[e] * v0) - second[e] * v1
+        if k - 1 - w >= 0:  # y_(k-1-w), left of row k's band
+            y[k - 1 - w] -= C[k - 1, w + 1] * v1
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)

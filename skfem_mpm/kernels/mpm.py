@@ -29,7 +29,7 @@ from .serial import for_threads
 from .stencil import closed_axis_functions, extracted_axis_functions
 from .tiny_mass import merged_lumped_solve_axes
 from .transfer import Transfers
-from .weights import FAST, extracted_functions, locate_axis_point
+from .weights import FAST, IN_ORDER, extracted_functions, locate_axis_point
 
 __all__ = ["Kernels"]
 
@@ -1224,11 +1224,12 @@ def _ell_product_dot(A, cols, d, q, partial):
                 partial[t, c] += d[r, c] * q[r, c]
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=IN_ORDER)
 def _cg_update(x, r, z, d, q, inv_diag, jacobi, alpha, active, partial):
     """x += alpha d, r -= alpha q on the active components; partial[t] =
     (r.z, r.r) per component over thread t's rows, with z = D^-1 r computed
-    here when ``jacobi`` (else r.z is left to the caller)."""
+    here when ``jacobi`` (else r.z is left to the caller). One component:
+    the sums in registers (row by row as with several: the same bits)."""
     nr, nc = x.shape
     nt = partial.shape[0]
     for t in prange(nt):
@@ -1236,6 +1237,24 @@ def _cg_update(x, r, z, d, q, inv_diag, jacobi, alpha, active, partial):
         for c in range(nc):
             partial[t, 0, c] = 0.0
             partial[t, 1, c] = 0.0
+        if nc == 1:
+            if not active[0]:
+                continue
+            a = alpha[0]
+            rz = 0.0
+            rr = 0.0
+            for i in range(lo, hi):
+                x[i, 0] += a * d[i, 0]
+                ri = r[i, 0] - a * q[i, 0]
+                r[i, 0] = ri
+                if jacobi:
+                    zi = inv_diag[i] * ri
+                    z[i, 0] = zi
+                    rz += ri * zi
+                rr += ri * ri
+            partial[t, 0, 0] = rz
+            partial[t, 1, 0] = rr
+            continue
         for i in range(lo, hi):
             for c in range(nc):
                 if not active[c]:
@@ -1375,7 +1394,7 @@ def _all_converged(sums, limit, active):
     return True
 
 
-@njit(cache=True, error_model="numpy", fastmath=FAST)
+@njit(cache=True, error_model="numpy", fastmath=IN_ORDER)
 def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, work):
     """Preconditioned conjugate gradients for A x = b (all columns at once,
     each with its own scalars), started from x.
@@ -1407,12 +1426,23 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
     _ell_product_dot(A, cols, x, q, partial)
     bb = np.zeros(nc)
     rr = np.zeros(nc)
-    for i in range(nr):
-        for c in range(nc):
-            ri = b[i, c] - q[i, c]
-            r[i, c] = ri
-            bb[c] += b[i, c] * b[i, c]
-            rr[c] += ri * ri
+    if nc == 1:  # the sums in registers (in order: compiled without reassociation)
+        sb = 0.0
+        sr = 0.0
+        for i in range(nr):
+            ri = b[i, 0] - q[i, 0]
+            r[i, 0] = ri
+            sb += b[i, 0] * b[i, 0]
+            sr += ri * ri
+        bb[0] = sb
+        rr[0] = sr
+    else:
+        for i in range(nr):
+            for c in range(nc):
+                ri = b[i, c] - q[i, c]
+                r[i, c] = ri
+                bb[c] += b[i, c] * b[i, c]
+                rr[c] += ri * ri
     limit = np.zeros(nc)
     converged = np.zeros(nc, dtype=np.bool_)
     active = np.empty(nc, dtype=np.bool_)
@@ -1483,12 +1513,19 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
             first = False
             d = _narrow(work[2], width)
             _precondition(A, cols, r, z, spare, inv_diag, kron_now, fringe_now)
-            for j in range(width):
-                rz[j] = 0.0
-            for i in range(nr):
+            if width == 1:
+                s = 0.0
+                for i in range(nr):
+                    d[i, 0] = z[i, 0]
+                    s += r[i, 0] * z[i, 0]
+                rz[0] = s
+            else:
                 for j in range(width):
-                    d[i, j] = z[i, j]
-                    rz[j] += r[i, j] * z[i, j]
+                    rz[j] = 0.0
+                for i in range(nr):
+                    for j in range(width):
+                        d[i, j] = z[i, j]
+                        rz[j] += r[i, j] * z[i, j]
             for j in range(width):
                 if rz[j] <= 0.0:  # breakdown
                     active[j] = False

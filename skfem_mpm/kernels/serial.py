@@ -33,7 +33,7 @@ SERIAL_BELOW = 4096
 # transfer kernels are generated serial or parallel by their templates)
 _MODULES = ("mpm", "scatter", "kronecker", "band_factor", "tiny_mass", "constitutive", "staging",
             "fringe", "fast_dof", "tls", "mls", "cell_integrals")
-_SKIPPED_NAMES = ("np", "njit", "prange", "FAST", "overload", "len")
+_SKIPPED_NAMES = ("np", "njit", "prange", "FAST", "IN_ORDER", "overload", "len")
 # helpers the serial copies call as functions compiled without numba's
 # runtime (no reference counts; they allocate nothing): inlined into a
 # particle loop, the helper's array arguments become new references
@@ -152,7 +152,7 @@ def source(kernels):
              "from numba import njit, prange",
              "from numba.extending import overload",
              "",
-             "from skfem_mpm.kernels.weights import FAST",
+             "from skfem_mpm.kernels.weights import FAST, IN_ORDER",
              *sorted(f"from {module} import {name}" for name, (_, module) in imports.items()),
              *(f"{name} = njit(_nrt=False, error_model='numpy', fastmath=FAST)({name}.py_func)"
                for name in _NO_RUNTIME if name in imports)]

@@ -12,6 +12,9 @@ from numba import njit, prange
 
 # fast-math without the no-NaN and no-Inf assumptions: the guards test isfinite
 FAST = {"contract", "arcp", "nsz", "reassoc", "afn"}
+# ... and without reassociation, for loops whose sums must keep their order
+# (a sum in a register that FAST would split into vector lanes)
+IN_ORDER = FAST - {"reassoc"}
 
 
 @njit(cache=True, inline="always", error_model="numpy")
