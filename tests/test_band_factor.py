@@ -52,6 +52,28 @@ def test_band_factor_solves_its_system_to_round_off():
     assert not fit_band_factor(A, cols, C)
 
 
+def test_band_solve_two_rows_at_a_time_of_any_size_and_band():
+    """The solves take two rows of L at a time: an odd count of rows, a
+    band of 0, 1 or the whole matrix, and bands wider than the rows left
+    at either end all solve to round-off."""
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 4, 7, 10):
+        for w in sorted({w for w in (0, 1, 2, n - 2, n - 1) if 0 <= w < n}):
+            dense = np.zeros((n, n))
+            for d in range(1, w + 1):
+                off = rng.uniform(-1, 1, n - d)
+                dense += np.diag(off, d) + np.diag(off, -d)
+            dense += np.diag(np.abs(dense).sum(axis=1) + rng.uniform(1.0, 2.0, n))
+            A, cols = _ell(dense)
+            C = np.empty((n, factor_columns(w)))
+            assert fit_band_factor(A, cols, C)
+            r = rng.standard_normal((n, 2))
+            z = np.empty_like(r)
+            apply_band_factor(C, r, z)
+            exact = np.linalg.solve(dense, r)
+            assert np.abs(z - exact).max() <= 1e-13 * np.abs(exact).max(), (n, w)
+
+
 @pytest.fixture(scope="module")
 def plate():
     """D2 small at 16 x 16 cells, 2 x 2 particles per cell: the fast-row

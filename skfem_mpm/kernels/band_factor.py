@@ -172,8 +172,14 @@ def _band_solve(C, y):
 def apply_band_factor(C, r, z):
     """z = (L L^T)^-1 r, column by column of r, L by columns from
     :func:`fit_band_factor` (each column copied into a contiguous one, so
-    that the inner loops run at unit stride)."""
+    that the inner loops run at unit stride; one column: z itself, C-ordered)."""
     n, nc = r.shape
+    if nc == 1:  # in z's own column (z C-ordered: contiguous)
+        y = z.reshape(n)
+        for i in range(n):
+            y[i] = r[i, 0]
+        _band_solve(C, y)
+        return
     y = np.empty(n)
     for c in range(nc):
         for i in range(n):

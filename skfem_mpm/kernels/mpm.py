@@ -1191,37 +1191,47 @@ def _ell_product_dot(A, cols, d, q, partial):
         lo, hi = _chunk(t, nt, nr)
         for c in range(nc):
             partial[t, c] = 0.0
-        for r in range(lo, hi):
-            if nc == 4:  # two 2D problems at once (USL): four running sums
-                s0 = s1 = s2 = s3 = 0.0
+        if nc == 1:  # one column: a plain gather, d.q in a register (the same bits)
+            dq = 0.0
+            for r in range(lo, hi):
+                acc = 0.0
                 for s in range(ns):
-                    a = A[r, s]
-                    j = cols[r, s]
-                    s0 += a * d[j, 0]
-                    s1 += a * d[j, 1]
-                    s2 += a * d[j, 2]
-                    s3 += a * d[j, 3]
-                q[r, 0] = s0
-                q[r, 1] = s1
-                q[r, 2] = s2
-                q[r, 3] = s3
-            elif nc == 2:
-                s0 = s1 = 0.0
-                for s in range(ns):
-                    a = A[r, s]
-                    j = cols[r, s]
-                    s0 += a * d[j, 0]
-                    s1 += a * d[j, 1]
-                q[r, 0] = s0
-                q[r, 1] = s1
-            else:
-                for c in range(nc):
-                    acc = 0.0
+                    acc += A[r, s] * d[cols[r, s], 0]
+                q[r, 0] = acc
+                dq += d[r, 0] * acc
+            partial[t, 0] = dq
+        else:
+            for r in range(lo, hi):
+                if nc == 4:  # two 2D problems at once (USL): four running sums
+                    s0 = s1 = s2 = s3 = 0.0
                     for s in range(ns):
-                        acc += A[r, s] * d[cols[r, s], c]
-                    q[r, c] = acc
-            for c in range(nc):
-                partial[t, c] += d[r, c] * q[r, c]
+                        a = A[r, s]
+                        j = cols[r, s]
+                        s0 += a * d[j, 0]
+                        s1 += a * d[j, 1]
+                        s2 += a * d[j, 2]
+                        s3 += a * d[j, 3]
+                    q[r, 0] = s0
+                    q[r, 1] = s1
+                    q[r, 2] = s2
+                    q[r, 3] = s3
+                elif nc == 2:
+                    s0 = s1 = 0.0
+                    for s in range(ns):
+                        a = A[r, s]
+                        j = cols[r, s]
+                        s0 += a * d[j, 0]
+                        s1 += a * d[j, 1]
+                    q[r, 0] = s0
+                    q[r, 1] = s1
+                else:
+                    for c in range(nc):
+                        acc = 0.0
+                        for s in range(ns):
+                            acc += A[r, s] * d[cols[r, s], c]
+                        q[r, c] = acc
+                for c in range(nc):
+                    partial[t, c] += d[r, c] * q[r, c]
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=IN_ORDER)
@@ -1238,35 +1248,34 @@ def _cg_update(x, r, z, d, q, inv_diag, jacobi, alpha, active, partial):
             partial[t, 0, c] = 0.0
             partial[t, 1, c] = 0.0
         if nc == 1:
-            if not active[0]:
-                continue
-            a = alpha[0]
-            rz = 0.0
-            rr = 0.0
+            if active[0]:
+                a = alpha[0]
+                rz = 0.0
+                rr = 0.0
+                for i in range(lo, hi):
+                    x[i, 0] += a * d[i, 0]
+                    ri = r[i, 0] - a * q[i, 0]
+                    r[i, 0] = ri
+                    if jacobi:
+                        zi = inv_diag[i] * ri
+                        z[i, 0] = zi
+                        rz += ri * zi
+                    rr += ri * ri
+                partial[t, 0, 0] = rz
+                partial[t, 1, 0] = rr
+        else:
             for i in range(lo, hi):
-                x[i, 0] += a * d[i, 0]
-                ri = r[i, 0] - a * q[i, 0]
-                r[i, 0] = ri
-                if jacobi:
-                    zi = inv_diag[i] * ri
-                    z[i, 0] = zi
-                    rz += ri * zi
-                rr += ri * ri
-            partial[t, 0, 0] = rz
-            partial[t, 1, 0] = rr
-            continue
-        for i in range(lo, hi):
-            for c in range(nc):
-                if not active[c]:
-                    continue
-                x[i, c] += alpha[c] * d[i, c]
-                ri = r[i, c] - alpha[c] * q[i, c]
-                r[i, c] = ri
-                if jacobi:
-                    zi = inv_diag[i] * ri
-                    z[i, c] = zi
-                    partial[t, 0, c] += ri * zi
-                partial[t, 1, c] += ri * ri
+                for c in range(nc):
+                    if not active[c]:
+                        continue
+                    x[i, c] += alpha[c] * d[i, c]
+                    ri = r[i, c] - alpha[c] * q[i, c]
+                    r[i, c] = ri
+                    if jacobi:
+                        zi = inv_diag[i] * ri
+                        z[i, c] = zi
+                        partial[t, 0, c] += ri * zi
+                    partial[t, 1, c] += ri * ri
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
