@@ -1181,6 +1181,23 @@ def _chunk(t, nt, n):
     return t * n // nt, (t + 1) * n // nt
 
 
+@njit(cache=True, error_model="numpy", fastmath=FAST)
+def _one_column_product_dot(A, cols, d, q, rows_d):
+    """q = A d for the rows of A (one column; ``rows_d`` the rows of d that
+    A's rows are), returns sum_r rows_d[r] q[r]: the rows of one block
+    passed as arrays of their own, their loop starting at 0 (with a block's
+    bounds the same loop compiled ~30% slower)."""
+    nr, ns = A.shape
+    dq = 0.0
+    for r in range(nr):
+        acc = 0.0
+        for s in range(ns):
+            acc += A[r, s] * d[cols[r, s], 0]
+        q[r, 0] = acc
+        dq += rows_d[r, 0] * acc
+    return dq
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def _ell_product_dot(A, cols, d, q, partial):
     """q = A d and partial[t, c] = sum over thread t's rows of d_c q_c."""
@@ -1192,14 +1209,8 @@ def _ell_product_dot(A, cols, d, q, partial):
         for c in range(nc):
             partial[t, c] = 0.0
         if nc == 1:  # one column: a plain gather, d.q in a register (the same bits)
-            dq = 0.0
-            for r in range(lo, hi):
-                acc = 0.0
-                for s in range(ns):
-                    acc += A[r, s] * d[cols[r, s], 0]
-                q[r, 0] = acc
-                dq += d[r, 0] * acc
-            partial[t, 0] = dq
+            partial[t, 0] = _one_column_product_dot(A[lo:hi], cols[lo:hi], d, q[lo:hi],
+                                                    d[lo:hi])
         else:
             for r in range(lo, hi):
                 if nc == 4:  # two 2D problems at once (USL): four running sums
