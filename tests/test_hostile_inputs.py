@@ -214,7 +214,8 @@ each("Method scheme", "scheme", ["leapfrog", None, 1, "MUSL"], lambda v: Method(
 each("Method mass", "mass", ["diagonal", None, 0], lambda v: Method(mass=v))
 each("Method reconstruction", "reconstruction", ["fft", None, 3], lambda v: Method(reconstruction=v))
 each("Method dt", "dt", NUMBERS_POS[1:], lambda v: Method(dt=v))
-each("Method cfl", "cfl", NUMBERS_POS, lambda v: Method(cfl=v))
+each("Method cfl", "cfl", [v for v in NUMBERS_POS if v is not None],  # None: the scheme's default
+     lambda v: Method(cfl=v))
 each("Method allow_unstable", "allow_unstable", [1, "yes", None], lambda v: Method(allow_unstable=v))
 each("Method on_exit", "on_exit", ["ignore", None], lambda v: Method(on_exit=v))
 each("Method small_mass", "small_mass", [1.5, -0.1, "a", None, float("nan")],
