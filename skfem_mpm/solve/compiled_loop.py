@@ -1058,11 +1058,12 @@ class StepLoop:
             mass, a, force = self.module.grid_arrays(run)
             if state.method.mass == "hybrid":
                 state.defer_reactions(c, mass, a, force, None)  # gravity is in the force
-            else:
+            else:  # evaluated at the next save (copies: the next call writes the run's)
                 k = self.executor.kernels
-                state.reactions = c.reactions(stencil_residual(
+                stencil, fast, mass, a, force = (v.copy() for v in (stencil, fast, mass, a, force))
+                state.defer_reaction_rule(lambda: c.reactions(stencil_residual(
                     stencil, k.stencil_geometry, c.mask, mass <= 0, fast, a, force,
-                    parallel=k.parallel))
+                    parallel=k.parallel)))
 
     def compile(self):
         """Compile (or load from numba's cache) everything ``run`` calls."""

@@ -260,8 +260,7 @@ class State:
     def reactions(self):
         """{constraint effect: total reaction force (dim,)} of the last step."""
         if self._reaction_source is not None:
-            c, mass, a, force, gravity = self._reaction_source
-            self._reactions = c.reactions_at(mass, a, force, gravity)
+            self._reactions = self._reaction_source()
             self._reaction_source = None
         for e in self.scene.effects:  # walls: contact forces, not constraints
             self._reactions.update(e.reactions())
@@ -275,7 +274,13 @@ class State:
     def defer_reactions(self, constraints, mass, a, force, gravity):
         """Remember what the reactions are computed from (lumped mass); they
         are evaluated only when read (at saves), before the arrays change."""
-        self._reaction_source = (constraints, mass, a, force, gravity)
+        self.defer_reaction_rule(lambda: constraints.reactions_at(mass, a, force, gravity))
+
+    def defer_reaction_rule(self, rule):
+        """The reactions are ``rule()`` ({effect: force}), evaluated only
+        when read (at saves; the compiled loop's steps so leave them to
+        the save, as with lumped mass)."""
+        self._reaction_source = rule
 
     # --------------------------------------------------------------- output
     def reported_velocity(self):
