@@ -102,12 +102,14 @@ def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies, touched):
     for d = 0..p (column d), and sum m_p (dN_k/dx)^2 per dof (the fast-dof
     guard's stiffness weights), into per-thread copies over the node range
     each thread touches (``touched``, as the scatter kernels).
-    :func:`reduce_stencil` sums them and mirrors the rest. Quadratic
-    interior particles of a uniform axis keep their weights in registers
-    (:func:`~skfem_mpm.kernels.stencil.closed_axis_functions`; the same sums in the same order)."""
+    :func:`reduce_stencil` sums them and mirrors the rest. Quadratic and
+    cubic interior particles of a uniform axis keep their weights in
+    registers (:func:`~skfem_mpm.kernels.stencil.closed_axis_functions`,
+    the values the transfer kernels take there; the same sums in the same
+    order)."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
-    quadratic = p == 2 and ux
+    closed = (p == 2 or p == 3) and ux
     x0, ncx = bx[0], bx.shape[0] - 1
     for t in prange(nt):
         M = mass_copies[t]
@@ -122,10 +124,10 @@ def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies, touched):
         hi = (t + 1) * n // nt
         for i in range(lo, hi):
             mi = m[i]
-            if quadratic:
-                interior, e, w0, w1, w2, _, d0, d1, d2, _ = closed_axis_functions(
-                    x[i, 0], x0, ncx, ux, ihx, 2)
-                if interior:
+            if closed:
+                interior, e, w0, w1, w2, w3, d0, d1, d2, d3 = closed_axis_functions(
+                    x[i, 0], x0, ncx, ux, ihx, p)
+                if interior and p == 2:
                     first = min(first, e)
                     last = max(last, e + 3)
                     K[e] += mi * d0 * d0
@@ -139,6 +141,27 @@ def consistent_1d(x, m, bx, ux, ihx, Cx, p, mass_copies, stiff_copies, touched):
                     M[e + 1, 1] += m1 * w2
                     K[e + 2] += mi * d2 * d2
                     M[e + 2, 0] += mi * w2 * w2
+                    continue
+                if interior:  # cubic
+                    first = min(first, e)
+                    last = max(last, e + 4)
+                    K[e] += mi * d0 * d0
+                    m0 = mi * w0
+                    M[e, 0] += m0 * w0
+                    M[e, 1] += m0 * w1
+                    M[e, 2] += m0 * w2
+                    M[e, 3] += m0 * w3
+                    K[e + 1] += mi * d1 * d1
+                    m1 = mi * w1
+                    M[e + 1, 0] += m1 * w1
+                    M[e + 1, 1] += m1 * w2
+                    M[e + 1, 2] += m1 * w3
+                    K[e + 2] += mi * d2 * d2
+                    m2 = mi * w2
+                    M[e + 2, 0] += m2 * w2
+                    M[e + 2, 1] += m2 * w3
+                    K[e + 3] += mi * d3 * d3
+                    M[e + 3, 0] += mi * w3 * w3
                     continue
             e = _axis(x[i, 0], bx, ux, ihx, Cx, p, w, dw)
             first = min(first, e)
