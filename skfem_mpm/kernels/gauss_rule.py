@@ -56,18 +56,44 @@ def cube_root(typingctx, x):
 
 
 @njit(cache=True, error_model="numpy")
+def gauss_points_most(n, ncells, k):
+    """The most points of a rule of n particles on ncells cells, k Gauss
+    points a cell piece: each piece covers its cells, a cell at most once
+    per piece (pieces <= n)."""
+    return (ncells + n) * k
+
+
+@njit(cache=True, error_model="numpy")
 def gauss_rule_1d(x, V, gap, breaks, ref, wref):
     """(order, piece_particles, piece_points, xg, wg, cell): ``order`` the
     stable sort of x; piece j holds the sorted particles
     order[piece_particles[j]:piece_particles[j + 1]] and the points
     piece_points[j]:piece_points[j + 1] (ascending)."""
     n = x.shape[0]
+    most = gauss_points_most(n, breaks.shape[0] - 1, ref.shape[0])
+    starts = np.empty(n + 1, dtype=np.int64)
+    piece_points = np.empty(n + 1, dtype=np.int64)
+    xg = np.empty(most)
+    wg = np.empty(most)
+    cell = np.empty(most, dtype=np.int64)
+    order, npieces, ng = gauss_rule_1d_into(x, V, gap, breaks, ref, wref, starts, np.empty(n),
+                                            np.empty(n), np.empty(n, dtype=np.int64),
+                                            piece_points, xg, wg, cell)
+    return order, starts[:npieces + 1], piece_points[:npieces + 1], xg[:ng], wg[:ng], cell[:ng]
+
+
+@njit(cache=True, error_model="numpy")
+def gauss_rule_1d_into(x, V, gap, breaks, ref, wref, starts, lows, highs, first, piece_points,
+                       xg, wg, cell):
+    """:func:`gauss_rule_1d` into given arrays (a compiled run keeps them):
+    returns (order, npieces, ng); the rule is starts[:npieces + 1],
+    piece_points[:npieces + 1], xg, wg, cell[:ng]; lows, highs, first
+    (n each) are work space; starts and piece_points hold n + 1, xg, wg
+    and cell :func:`gauss_points_most`."""
+    n = x.shape[0]
     k = ref.shape[0]
     ncells = breaks.shape[0] - 1
     order = np.argsort(x, kind="mergesort")
-    starts = np.empty(n + 1, dtype=np.int64)
-    lows = np.empty(n)
-    highs = np.empty(n)
     npieces = 0
     run_hi = -np.inf
     for i in range(n):
@@ -87,8 +113,7 @@ def gauss_rule_1d(x, V, gap, breaks, ref, wref):
         highs[npieces - 1] = run_hi
     starts[npieces] = n
     # cells of each piece: count, then fill
-    first = np.empty(npieces, dtype=np.int64)
-    piece_points = np.zeros(npieces + 1, dtype=np.int64)
+    piece_points[0] = 0
     for j in range(npieces):
         lo = max(lows[j], breaks[0])
         hi = min(highs[j], breaks[ncells])
@@ -103,9 +128,6 @@ def gauss_rule_1d(x, V, gap, breaks, ref, wref):
                 count += 1
         piece_points[j + 1] = piece_points[j] + count * k
     ng = piece_points[npieces]
-    xg = np.empty(ng)
-    wg = np.empty(ng)
-    cell = np.empty(ng, dtype=np.int64)
     for j in range(npieces):
         lo, hi = lows[j], highs[j]
         g = piece_points[j]
@@ -121,7 +143,7 @@ def gauss_rule_1d(x, V, gap, breaks, ref, wref):
                     wg[g] = width * wref[a]
                     cell[g] = c
                     g += 1
-    return order, starts[:npieces + 1].copy(), piece_points, xg, wg, cell
+    return order, npieces, ng
 
 
 @njit(cache=True, error_model="numpy")

@@ -33,7 +33,7 @@ the agreement with the NumPy spline.
 import numpy as np
 from numba import njit
 
-__all__ = ["not_a_knot_spline"]
+__all__ = ["not_a_knot_spline", "not_a_knot_spline_into", "spline_work_size"]
 
 
 @njit(cache=True, error_model="numpy")
@@ -104,22 +104,48 @@ def _slopes(xm, ym, n, s, inv_h, work):
 
 
 @njit(cache=True, error_model="numpy")
+def spline_work_size(largest, k):
+    """The floats of the work space of :func:`not_a_knot_spline_into` for
+    pieces of up to ``largest`` particles and ``k`` value columns."""
+    return largest * (5 + 2 * k) + 3 * k
+
+
+@njit(cache=True, error_model="numpy")
+def _largest_piece(piece_particles):
+    largest = 0
+    for j in range(piece_particles.shape[0] - 1):
+        largest = max(largest, piece_particles[j + 1] - piece_particles[j])
+    return largest
+
+
+@njit(cache=True, error_model="numpy")
 def not_a_knot_spline(x, values, order, piece_particles, piece_points, xg, out):
     """out[g] = the spline of each piece's particle ``values`` (n, k) at the
     piece's points xg[g] (see the module docstring); ``order``,
     ``piece_particles`` and ``piece_points`` as returned by
     :func:`skfem_mpm.kernels.gauss_rule.gauss_rule_1d`."""
+    work = np.empty(spline_work_size(_largest_piece(piece_particles), values.shape[1]))
+    not_a_knot_spline_into(x, values, order, piece_particles, piece_points, xg, out, work)
+
+
+@njit(cache=True, error_model="numpy")
+def not_a_knot_spline_into(x, values, order, piece_particles, piece_points, xg, out, space):
+    """:func:`not_a_knot_spline` in the work space ``space`` (at least
+    :func:`spline_work_size` floats; a compiled run keeps one)."""
     k = values.shape[1]
     npieces = piece_particles.shape[0] - 1
-    largest = 0
-    for j in range(npieces):
-        largest = max(largest, piece_particles[j + 1] - piece_particles[j])
-    xm = np.empty(largest)
-    ym = np.empty((largest, k))
-    s = np.empty((largest, k))
-    inv_h = np.empty(largest)
-    work = np.empty((3, largest))
-    cubic = np.empty((3, k))  # the current piece's d_i, c_2, c_3 per column
+    largest = _largest_piece(piece_particles)
+    xm = space[:largest]
+    at = largest
+    ym = space[at:at + largest * k].reshape((largest, k))
+    at += largest * k
+    s = space[at:at + largest * k].reshape((largest, k))
+    at += largest * k
+    inv_h = space[at:at + largest]
+    at += largest
+    work = space[at:at + 3 * largest].reshape((3, largest))
+    at += 3 * largest
+    cubic = space[at:at + 3 * k].reshape((3, k))  # the current piece's d_i, c_2, c_3 per column
     for j in range(npieces):
         # merge coincident positions (sorted order): knots xm, mean values ym
         n = 0

@@ -119,7 +119,8 @@ _GRID_KERNELS = {
     "MAX_WAVE_SPEED": constitutive.max_wave_speed,
     # reconstruction (compiled_loop_reconstruct)
     "GAUSS_RULE_1D": gauss_rule.gauss_rule_1d,
-    "NOT_A_KNOT_SPLINE": spline_1d.not_a_knot_spline,
+    "GAUSS_RULE_1D_INTO": gauss_rule.gauss_rule_1d_into,
+    "NOT_A_KNOT_SPLINE_INTO": spline_1d.not_a_knot_spline_into,
     "LOCATE_CELLS": gauss_rule.locate_cells,
     "BODY_BOXES": gauss_rule.body_boxes,
     "GAUSS_RULE_CELLS": gauss_rule.gauss_rule_cells,
@@ -760,12 +761,24 @@ class StepLoop:
             values=empty((n, k)), rho=empty(n),
             order=empty(0, dtype=np.int64), piece_particles=empty(0, dtype=np.int64),
             piece_points=empty(0, dtype=np.int64), xg=empty(0), fit=empty((0, k)),
-            xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),
+            spline_work=empty(spline_1d.spline_work_size(n, k)),
+            **self._rule_arrays(n, len(recon.breaks) - 1, len(recon.ref)), xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),
             sq=empty((0, dim, dim)), fq=empty((0, dim)), momentum_values=empty((n, dim)),
             momentum_fit=empty((0, dim)), no_stress=empty((0, dim, dim)),
             point_velocities=empty((0, dim)))
         return self._record("new_reconstruction", "ReconstructionType",
                             self.module.RECONSTRUCTION_FIELDS, fields)
+
+    @staticmethod
+    def _rule_arrays(n, ncells, k):
+        """The 1D spline's rule arrays (compiled_loop_reconstruct's rule_*
+        fields) for n particles on ncells cells, k Gauss points a cell."""
+        most = gauss_rule.gauss_points_most(n, ncells, k)
+        ints, empty = np.int64, np.empty
+        return dict(rule_starts=empty(n + 1, dtype=ints), rule_lows=empty(n),
+                    rule_highs=empty(n), rule_first=empty(n, dtype=ints),
+                    rule_points=empty(n + 1, dtype=ints), rule_xg=empty(most),
+                    rule_wg=empty(most), rule_cell=empty(most, dtype=ints))
 
     def _point_at_transfers(self, dim, degree, window):
         """Compile (or load) the loop, which records the argument types of

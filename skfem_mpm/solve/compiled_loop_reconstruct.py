@@ -78,8 +78,14 @@ RECONSTRUCTION_FIELDS = (
     # per particle: the fitted fields [rho, rho v, sigma] (n, 1 + dim + dim^2)
     # and with a body force its density rho b = f_p / V_p (dim more columns), rho
     "values", "rho",
-    # the step's rule (sorted order, pieces, points) and the fit at its points
-    "order", "piece_particles", "piece_points", "xg", "fit",
+    # the step's rule (sorted order, pieces, points) and the fit at its
+    # points; the spline's work space (kernels.spline_1d.spline_work_size
+    # of every particle and the fitted fields' columns)
+    "order", "piece_particles", "piece_points", "xg", "fit", "spline_work",
+    # the rule's arrays (kernels.gauss_rule.gauss_rule_1d_into: starts,
+    # lows, highs, first, piece_points, xg, wg, cell), kept over the steps
+    "rule_starts", "rule_lows", "rule_highs", "rule_first", "rule_points", "rule_xg",
+    "rule_wg", "rule_cell",
     # the points as quadrature particles (x, v, m, V, stress) and, with a
     # body force, their forces w_g (rho b)_h (else not set)
     "xq", "vq", "mq", "Vq", "sq", "fq",
@@ -178,11 +184,18 @@ def reconstruct_points(rc, x, v, m, V, stress, forces):
     n, dim = x.shape
     values = _per_volume_fields(rc, v, m, V, stress, forces)
     positions = x.reshape(n)  # 1D: x is (n, 1)
-    order, pieces, points, xg, wg, _ = GAUSS_RULE_1D(positions, V, rc.gap, rc.breaks, rc.ref,
-                                                     rc.wref)
-    ng = xg.shape[0]
-    fit = np.empty((ng, values.shape[1]))
-    NOT_A_KNOT_SPLINE(positions, values, order, pieces, points, xg, fit)
+    order, npieces, ng = GAUSS_RULE_1D_INTO(positions, V, rc.gap, rc.breaks, rc.ref, rc.wref,
+                                            rc.rule_starts, rc.rule_lows, rc.rule_highs,
+                                            rc.rule_first, rc.rule_points, rc.rule_xg,
+                                            rc.rule_wg, rc.rule_cell)
+    pieces = rc.rule_starts[:npieces + 1]
+    points = rc.rule_points[:npieces + 1]
+    xg = rc.rule_xg[:ng]
+    wg = rc.rule_wg[:ng]
+    fit = rc.fit  # (the last step's while the count of points stays)
+    if fit.shape[0] != ng:
+        fit = np.empty((ng, values.shape[1]))
+    NOT_A_KNOT_SPLINE_INTO(positions, values, order, pieces, points, xg, fit, rc.spline_work)
     rc.order = order
     rc.piece_particles = pieces
     rc.piece_points = points
@@ -200,8 +213,8 @@ def project_points(rc, x, v_new):
     for i in range(n):
         for c in range(dim):
             rc.momentum_values[i, c] = rc.rho[i] * v_new[i, c]
-    NOT_A_KNOT_SPLINE(x.reshape(n), rc.momentum_values, rc.order, rc.piece_particles,
-                      rc.piece_points, rc.xg, rc.momentum_fit)
+    NOT_A_KNOT_SPLINE_INTO(x.reshape(n), rc.momentum_values, rc.order, rc.piece_particles,
+                           rc.piece_points, rc.xg, rc.momentum_fit, rc.spline_work)
 
 
 # ------------------------------------------- the rule's fits: tls, mls, 2D spline
