@@ -360,6 +360,59 @@ def touched_hull(touched):
     return lo, hi
 
 
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _reduce_one_copy(flat, t0, t1, w0, w1, nc, dim, mass, P, f, mass_range):
+    """:func:`reduce_fields` of one copy (held on t0..t1 - 1): the same sums
+    (0.0 plus the copy's entry; 0.0 on the nodes it does not hold)."""
+    smallest = np.inf
+    largest = 0.0
+    for k in range(w0, w1):
+        held = t0 <= k and k < t1
+        s = 0.0
+        if held:
+            s += flat[np.uint64(k * nc)]
+        mass[np.uint64(k)] = s
+        if s > 0.0:
+            smallest = min(smallest, s)
+            largest = max(largest, s)
+        for c in range(dim):
+            pc = 0.0
+            fc = 0.0
+            if held:
+                pc += flat[np.uint64(k * nc + 1 + c)]
+                fc += flat[np.uint64(k * nc + 1 + dim + c)]
+            P[np.uint64(k * dim + c)] = pc
+            f[np.uint64(k * dim + c)] = fc
+    mass_range[0, 0] = smallest
+    mass_range[0, 1] = largest
+
+
+@njit(cache=True, inline="always", parallel=True, error_model="numpy", fastmath=FAST)
+def _reduce_held(flat, touched, w0, span, nk, nc, dim, mass, P, f, mass_range):
+    """:func:`reduce_fields` of several copies: chunk r of the nodes
+    w0..w0 + span - 1 summed over the copies that hold each node."""
+    nr = mass_range.shape[0]
+    for r in prange(nr):
+        smallest = np.inf
+        largest = 0.0
+        cuts, threads, counts = holders(touched, w0 + r * span // nr, w0 + (r + 1) * span // nr)
+        for j in range(cuts.shape[0] - 1):
+            count = counts[j]
+            starts = _starts(threads[j], count, nk * nc)
+            for k in range(cuts[j], cuts[j + 1]):
+                s = _sum_copies(flat, starts, count, k * nc)
+                mass[np.uint64(k)] = s
+                if s > 0.0:
+                    smallest = min(smallest, s)
+                    largest = max(largest, s)
+                for c in range(dim):
+                    P[np.uint64(k * dim + c)] = _sum_copies(flat, starts, count, k * nc + 1 + c)
+                    f[np.uint64(k * dim + c)] = _sum_copies(flat, starts, count,
+                                                            k * nc + 1 + dim + c)
+        mass_range[r, 0] = smallest
+        mass_range[r, 1] = largest
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def reduce_fields(copies, touched, mass, momentum, force, mass_range, occupied):
     """Sum the per-thread copies of p2g's (m, P, f) into three arrays;
@@ -384,25 +437,11 @@ def reduce_fields(copies, touched, mass, momentum, force, mass_range, occupied):
     lo, hi = touched_hull(touched)
     w0, w1 = node_hull(occupied[0], occupied[1], lo, hi)
     span = w1 - w0
-    for r in prange(nr):
-        smallest = np.inf
-        largest = 0.0
-        cuts, threads, counts = holders(touched, w0 + r * span // nr, w0 + (r + 1) * span // nr)
-        for j in range(cuts.shape[0] - 1):
-            count = counts[j]
-            starts = _starts(threads[j], count, nk * nc)
-            for k in range(cuts[j], cuts[j + 1]):
-                s = _sum_copies(flat, starts, count, k * nc)
-                mass[np.uint64(k)] = s
-                if s > 0.0:
-                    smallest = min(smallest, s)
-                    largest = max(largest, s)
-                for c in range(dim):
-                    P[np.uint64(k * dim + c)] = _sum_copies(flat, starts, count, k * nc + 1 + c)
-                    f[np.uint64(k * dim + c)] = _sum_copies(flat, starts, count,
-                                                            k * nc + 1 + dim + c)
-        mass_range[r, 0] = smallest
-        mass_range[r, 1] = largest
+    if copies.shape[0] == 1 and nr == 1:  # one copy (serial kernels): no holders' lists
+        _reduce_one_copy(flat, touched[0, 0], touched[0, 1], w0, w1, nc, dim, mass, P, f,
+                         mass_range)
+    else:
+        _reduce_held(flat, touched, w0, span, nk, nc, dim, mass, P, f, mass_range)
     occupied[0] = lo
     occupied[1] = hi
     occupied[2], occupied[3] = node_hull(occupied[2], occupied[3], lo, hi)
