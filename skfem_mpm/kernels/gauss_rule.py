@@ -76,24 +76,25 @@ def gauss_rule_1d(x, V, gap, breaks, ref, wref):
     xg = np.empty(most)
     wg = np.empty(most)
     cell = np.empty(most, dtype=np.int64)
-    order, npieces, ng = gauss_rule_1d_into(x, V, gap, breaks, ref, wref, starts, np.empty(n),
-                                            np.empty(n), np.empty(n, dtype=np.int64),
-                                            piece_points, xg, wg, cell)
+    order = np.empty(n, dtype=np.int64)
+    npieces, ng = gauss_rule_1d_into(x, V, gap, breaks, ref, wref, order, starts, np.empty(n),
+                                     np.empty(n), np.empty(n, dtype=np.int64), piece_points, xg,
+                                     wg, cell)
     return order, starts[:npieces + 1], piece_points[:npieces + 1], xg[:ng], wg[:ng], cell[:ng]
 
 
 @njit(cache=True, error_model="numpy")
-def gauss_rule_1d_into(x, V, gap, breaks, ref, wref, starts, lows, highs, first, piece_points,
-                       xg, wg, cell):
+def gauss_rule_1d_into(x, V, gap, breaks, ref, wref, order, starts, lows, highs, first,
+                       piece_points, xg, wg, cell):
     """:func:`gauss_rule_1d` into given arrays (a compiled run keeps them):
-    returns (order, npieces, ng); the rule is starts[:npieces + 1],
+    returns (npieces, ng); the rule is order (n), starts[:npieces + 1],
     piece_points[:npieces + 1], xg, wg, cell[:ng]; lows, highs, first
     (n each) are work space; starts and piece_points hold n + 1, xg, wg
     and cell :func:`gauss_points_most`."""
     n = x.shape[0]
     k = ref.shape[0]
     ncells = breaks.shape[0] - 1
-    order = np.argsort(x, kind="mergesort")
+    stable_order(x, order)
     npieces = 0
     run_hi = -np.inf
     for i in range(n):
@@ -143,7 +144,32 @@ def gauss_rule_1d_into(x, V, gap, breaks, ref, wref, starts, lows, highs, first,
                     wg[g] = width * wref[a]
                     cell[g] = c
                     g += 1
-    return order, npieces, ng
+    return npieces, ng
+
+
+@njit(cache=True, error_model="numpy")
+def stable_order(x, order):
+    """order = the stable sort of x (np.argsort(x, kind="mergesort")): by
+    insertion from 0..n-1, linear in n on particles that keep their order
+    (a 1D body's usually do); past 8 n moves, or at a NaN, by np.argsort."""
+    n = x.shape[0]
+    for i in range(n):
+        order[i] = i
+        if x[i] != x[i]:
+            order[:] = np.argsort(x, kind="mergesort")
+            return
+    moves = 0
+    for i in range(1, n):
+        v = x[i]
+        if moves > 8 * n:
+            order[:] = np.argsort(x, kind="mergesort")
+            return
+        j = i - 1
+        while j >= 0 and x[order[j]] > v:
+            order[j + 1] = order[j]
+            j -= 1
+            moves += 1
+        order[j + 1] = i
 
 
 @njit(cache=True, error_model="numpy")

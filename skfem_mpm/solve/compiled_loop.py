@@ -759,7 +759,7 @@ class StepLoop:
         fields = dict(
             ref=recon.ref, wref=recon.wref, gap=float(recon.gap), breaks=recon.breaks,
             values=empty((n, k)), rho=empty(n),
-            order=empty(0, dtype=np.int64), piece_particles=empty(0, dtype=np.int64),
+            order=empty(n, dtype=np.int64), piece_particles=empty(0, dtype=np.int64),
             piece_points=empty(0, dtype=np.int64), xg=empty(0), fit=empty((0, k)),
             spline_work=empty(spline_1d.spline_work_size(n, k)),
             **self._rule_arrays(n, len(recon.breaks) - 1, len(recon.ref)), xq=empty((0, dim)), vq=empty((0, dim)), mq=empty(0), Vq=empty(0),

@@ -184,10 +184,10 @@ def reconstruct_points(rc, x, v, m, V, stress, forces):
     n, dim = x.shape
     values = _per_volume_fields(rc, v, m, V, stress, forces)
     positions = x.reshape(n)  # 1D: x is (n, 1)
-    order, npieces, ng = GAUSS_RULE_1D_INTO(positions, V, rc.gap, rc.breaks, rc.ref, rc.wref,
-                                            rc.rule_starts, rc.rule_lows, rc.rule_highs,
-                                            rc.rule_first, rc.rule_points, rc.rule_xg,
-                                            rc.rule_wg, rc.rule_cell)
+    order = rc.order  # (of n particles: kept over the steps)
+    npieces, ng = GAUSS_RULE_1D_INTO(positions, V, rc.gap, rc.breaks, rc.ref, rc.wref, order,
+                                     rc.rule_starts, rc.rule_lows, rc.rule_highs, rc.rule_first,
+                                     rc.rule_points, rc.rule_xg, rc.rule_wg, rc.rule_cell)
     pieces = rc.rule_starts[:npieces + 1]
     points = rc.rule_points[:npieces + 1]
     xg = rc.rule_xg[:ng]
@@ -196,7 +196,6 @@ def reconstruct_points(rc, x, v, m, V, stress, forces):
     if fit.shape[0] != ng:
         fit = np.empty((ng, values.shape[1]))
     NOT_A_KNOT_SPLINE_INTO(positions, values, order, pieces, points, xg, fit, rc.spline_work)
-    rc.order = order
     rc.piece_particles = pieces
     rc.piece_points = points
     rc.xg = xg
