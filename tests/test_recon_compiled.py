@@ -14,7 +14,7 @@ from skfem_mpm import Method, Particles, SplineGrid
 from skfem_mpm import reconstruct
 from skfem_mpm.kernels import tls as tls_kernel
 from skfem_mpm.kernels.gauss_rule import (body_boxes, gauss_rule_1d, gauss_rule_cells,
-                                         locate_cells)
+                                         locate_cells, stable_order)
 from skfem_mpm.kernels import mls as mls_kernel
 from skfem_mpm.kernels.spline_2d import WIDTH
 from skfem_mpm.kernels.spline_1d import not_a_knot_spline
@@ -572,3 +572,26 @@ def test_the_2d_tls_fit_takes_the_fallback_levels_of_the_reference(skew):
         integral = (wg[cell == e, None] * out[cell == e]).sum(axis=0)
         assert np.abs(integral - (p.V[pcell == e, None] * values[pcell == e]).sum(axis=0)).max() \
             <= 1e-13 * np.abs(values).max()
+
+
+@pytest.mark.parametrize("kind", ["sorted", "swapped", "random", "ties", "reversed", "nan"])
+def test_the_rule_order_is_the_stable_argsort(kind):
+    """gauss_rule_1d's order (kernels.gauss_rule.stable_order: by insertion,
+    np.argsort past 8 n moves or at a NaN) is np.argsort(x, kind="mergesort")'s,
+    ties in index order, on inputs of every kind and size."""
+    rng = np.random.default_rng(7)
+    for n in (0, 1, 2, 7, 40, 3000):
+        x = np.sort(rng.random(n))
+        if kind == "swapped" and n > 2:
+            x[[1, 2]] = x[[2, 1]]
+        elif kind == "random":
+            x = rng.random(n)
+        elif kind == "ties":
+            x = np.round(rng.random(n) * 4) / 4
+        elif kind == "reversed":
+            x = x[::-1].copy()
+        elif kind == "nan" and n:
+            x[n // 2] = np.nan
+        order = np.empty(n, dtype=np.int64)
+        stable_order(x, order)
+        assert np.array_equal(order, np.argsort(x, kind="mergesort")), (kind, n)
