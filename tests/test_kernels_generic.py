@@ -391,6 +391,26 @@ def test_stage_combination_is_the_weighted_sum_of_the_rates():
 
 
 # ------------------------------------------------- consistent mass, any dimension
+@pytest.mark.parametrize("p", [2, 3])
+def test_the_1d_consistent_stencil_is_n_transpose_m_n(p):
+    """The 1D stencil of Kernels (consistent_1d: the closed-form weights on
+    the interior cells of a uniform axis, extraction elsewhere; then
+    reduce_stencil) as a matrix is N^T diag(m) N of the transfer-matrix
+    reference, and its stiffness weights sum m (dN_k/dx)^2, on a uniform
+    and a graded axis with particles in every cell."""
+    rng = np.random.default_rng(p)
+    for breaks in (np.linspace(0.0, 2.0, 11), np.array([0.0, 0.3, 0.5, 1.1, 1.2, 1.6, 2.0])):
+        x = np.sort(rng.uniform(0.0, 2.0, 200))[:, None]
+        particles = SimpleNamespace(x=x, m=0.5 + rng.random(200))
+        kernels = mpm.Kernels(SplineGrid(breaks, p), False)
+        stencil, K = kernels.consistent_stencil(particles)
+        N, G = reference_matrices(tensor_grid((breaks,), p), x)
+        M = (N.T @ sp.diags(particles.m) @ N).toarray()
+        assert np.abs(kernels.stencil_csr(stencil).toarray() - M).max() <= TOL * np.abs(M).max()
+        stiff = G[0].multiply(G[0]).T @ particles.m
+        assert np.abs(K - stiff).max() <= TOL * np.abs(stiff).max()
+
+
 # the serial copies (what runs below SERIAL_BELOW call; the same blocks, the
 # same bits): the parallel consistent_axes compiles for about 15 s of CPU and
 # only the slow tier's case compiles it
