@@ -1023,8 +1023,28 @@ def _offset_dof(a, b, c, offsets, s, nbx, nby, nbz):
     return (cc * nby + bb) * nbx + aa
 
 
+@njit(cache=True, error_model="numpy")
+def lumped_reach(fast, p, nbx, nby, dim, ns, near):
+    """near_k = whether row k of the stencil (``ns`` slots) has a nonzero
+    lumping fraction theta_kj = max(fast_k, fast_j) (:func:`compact_system`):
+    fast_k != 0 or fast_j != 0 at a dof j of its stencil. Marked from the
+    fast rows (a few per step): each marks its stencil (the stencil is
+    symmetric: j is in k's iff k is in j's)."""
+    nd = fast.shape[0]
+    nbz = nd // (nbx * nby)
+    offsets = _slot_offsets(p, dim, ns)
+    near[:] = False
+    for k in range(nd):
+        if fast[k] != 0.0:  # (a NaN fraction too)
+            a, b, c = _row_indices(k, nbx, nby, dim)
+            for s in range(ns):
+                j = _offset_dof(a, b, c, offsets, s, nbx, nby, nbz)
+                if j >= 0:
+                    near[j] = True
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, write_cols,
+def compact_system(M, p, nbx, nby, dim, rows, index, fast, near, A, cols, F, fcols, write_cols,
                    write_fixed):
     """The free-dof rows of the consistent mass, ELL form.
 
@@ -1035,7 +1055,10 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
     (F[r, s] = (1 - theta) M_kj, fcols[r, s] = j), which
     :func:`compact_problem` moves to the right-hand side. cols depends on
     the free-dof set only and F, fcols are read only for nonzero fixed
-    values: they are written when ``write_cols``, ``write_fixed``."""
+    values: they are written when ``write_cols``, ``write_fixed``. A row
+    p or more from the grid's edges whose every theta is 0 (not ``near``,
+    :func:`lumped_reach`) takes its entries of M as they are (each term
+    theta M_kj its diagonal would add is 0)."""
     nr = rows.shape[0]
     ns = M.shape[1]
     centre = (ns - 1) // 2
@@ -1048,9 +1071,16 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
     pc = p if dim == 3 else 0
     for r in prange(nr):
         k = rows[r]
-        diag = M[k, centre]
         a, b, c = _row_indices(k, nbx, nby, dim)
         inside = p <= a < nbx - p and pb <= b < nby - pb and pc <= c < nbz - pc
+        if inside and not near[k] and not write_fixed:
+            for s in range(ns):  # (the centre: index[k] = r, its entry M_kk)
+                col = index[k + step[s]]
+                A[r, s] = M[k, s] if col >= 0 else 0.0
+                if write_cols:
+                    cols[r, s] = col if col >= 0 else r
+            continue
+        diag = M[k, centre]
         fast_k = fast[k]
         for s in range(ns):
             A[r, s] = 0.0
