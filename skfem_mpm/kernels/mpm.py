@@ -180,29 +180,6 @@ def _mass_pairs(M, K, k, a, b, wx, dx, wy, dy, mi, p, width, nbx):
 _PAIR = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _flush_mass_window(M, K, S, Kw, ex, ey, nbx):
-    """Add a quadratic run window (cell (ex, ey); none if ex < 0) into the
-    upper half of the stencil M (width 5, slots as :func:`_mass_pairs`) and
-    into K, and clear it."""
-    if ex < 0:
-        return
-    for b in range(3):
-        for a in range(3):
-            k = (ey + b) * nbx + ex + a
-            K[k] += Kw[3 * b + a]
-            yb = 6 * _PAIR[b, b]
-            for a2 in range(a, 3):
-                M[k, a2 - a] += S[yb + _PAIR[a, a2]]
-            for b2 in range(b + 1, 3):
-                yb2 = 6 * _PAIR[b, b2]
-                base = (b2 - b) * 5 - a
-                for a2 in range(3):
-                    M[k, base + a2] += S[yb2 + _PAIR[a, a2]]
-    S[:] = 0.0
-    Kw[:] = 0.0
-
-
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, stiff_copies,
                   touched):
@@ -211,9 +188,12 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
     (db + p)(2p + 1) + da + p - centre) and the per-dof sum m_p |grad N_k|^2.
     Per-thread copies over touched node ranges, as :func:`consistent_1d`;
     :func:`reduce_stencil` mirrors the lower half (M is symmetric).
-    Quadratic particles are summed per run of a cell first (see
-    :func:`_flush_mass_window`; interior cells of uniform axes with the
-    closed form of their weights)."""
+    Quadratic particles are summed per run of a cell first (the window
+    above, added into M and K when the run ends: at a particle of another
+    cell, and after the last particle; interior cells of uniform axes with
+    the closed form of their weights). The window's flush is written in the
+    particle loop itself (a function of the arrays, inlined or called, cost
+    the serial copy reference counts or a call per run)."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
     width = 2 * p + 1
@@ -237,9 +217,23 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
         run_y = -1
         lo = t * n // nt
         hi = (t + 1) * n // nt
-        for i in range(lo, hi):
-            mi = m[i]
-            if quadratic:
+        wx0 = wx1 = wx2 = dx0 = dx1 = dx2 = wy0 = wy1 = wy2 = dy0 = dy1 = dy2 = mi = 0.0
+        for i in range(lo, hi + 1):  # (i = hi: the end, flush the last window)
+            end = i == hi
+            ex = -1
+            ey = -1
+            if not end:
+                mi = m[i]
+                if not quadratic:
+                    ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
+                    ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
+                    first = min(first, ey * nbx + ex)
+                    last = max(last, (ey + p) * nbx + ex + p + 1)
+                    for b in range(p + 1):
+                        for a in range(p + 1):
+                            _mass_pairs(M, K, (ey + b) * nbx + ex + a, a, b, wx, dx, wy, dy, mi,
+                                        p, width, nbx)
+                    continue
                 in_x, ex, wx0, wx1, wx2, _, dx0, dx1, dx2, _ = closed_axis_functions(
                     x[i, 0], x0, ncx, ux, ihx, 2)
                 in_y, ey, wy0, wy1, wy2, _, dy0, dy1, dy2, _ = closed_axis_functions(
@@ -250,42 +244,50 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
                 if not in_y:
                     ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
                     wy0, wy1, wy2, dy0, dy1, dy2 = wy[0], wy[1], wy[2], dy[0], dy[1], dy[2]
-                if ex != run_x or ey != run_y:
-                    _flush_mass_window(M, K, S, Kw, run_x, run_y, nbx)
-                    run_x = ex
-                    run_y = ey
-                    first = min(first, ey * nbx + ex)
-                    last = max(last, (ey + 2) * nbx + ex + 3)
-                X[0] = wx0 * wx0
-                X[1] = wx0 * wx1
-                X[2] = wx0 * wx2
-                X[3] = wx1 * wx1
-                X[4] = wx1 * wx2
-                X[5] = wx2 * wx2
-                ys = (mi * wy0 * wy0, mi * wy0 * wy1, mi * wy0 * wy2, mi * wy1 * wy1,
-                      mi * wy1 * wy2, mi * wy2 * wy2)
-                for j in range(6):
-                    yj = ys[j]
-                    for q in range(6):
-                        S[6 * j + q] += yj * X[q]
-                # m |grad N_(a,b)|^2 = m (dx_a^2 wy_b^2 + wx_a^2 dy_b^2)
-                gx = (mi * dx0 * dx0, mi * dx1 * dx1, mi * dx2 * dx2)
-                sx = (mi * X[0], mi * X[3], mi * X[5])
-                vy = (wy0 * wy0, wy1 * wy1, wy2 * wy2)
-                hy = (dy0 * dy0, dy1 * dy1, dy2 * dy2)
-                for b in range(3):
-                    for a in range(3):
-                        Kw[3 * b + a] += gx[a] * vy[b] + sx[a] * hy[b]
-                continue
-            ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
-            ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
-            first = min(first, ey * nbx + ex)
-            last = max(last, (ey + p) * nbx + ex + p + 1)
-            for b in range(p + 1):
-                for a in range(p + 1):
-                    _mass_pairs(M, K, (ey + b) * nbx + ex + a, a, b, wx, dx, wy, dy, mi, p,
-                                width, nbx)
-        _flush_mass_window(M, K, S, Kw, run_x, run_y, nbx)
+            if ex != run_x or ey != run_y:
+                if run_x >= 0:  # the flush: the window into M (width 5, slots as
+                    for b in range(3):  # _mass_pairs) and K, then cleared
+                        for a in range(3):
+                            k = (run_y + b) * nbx + run_x + a
+                            K[k] += Kw[3 * b + a]
+                            yb = 6 * _PAIR[b, b]
+                            for a2 in range(a, 3):
+                                M[k, a2 - a] += S[yb + _PAIR[a, a2]]
+                            for b2 in range(b + 1, 3):
+                                yb2 = 6 * _PAIR[b, b2]
+                                base = (b2 - b) * 5 - a
+                                for a2 in range(3):
+                                    M[k, base + a2] += S[yb2 + _PAIR[a, a2]]
+                    S[:] = 0.0
+                    Kw[:] = 0.0
+                if end:
+                    break
+                run_x = ex
+                run_y = ey
+                first = min(first, ey * nbx + ex)
+                last = max(last, (ey + 2) * nbx + ex + 3)
+            elif end:  # (no quadratic particle)
+                break
+            X[0] = wx0 * wx0
+            X[1] = wx0 * wx1
+            X[2] = wx0 * wx2
+            X[3] = wx1 * wx1
+            X[4] = wx1 * wx2
+            X[5] = wx2 * wx2
+            ys = (mi * wy0 * wy0, mi * wy0 * wy1, mi * wy0 * wy2, mi * wy1 * wy1,
+                  mi * wy1 * wy2, mi * wy2 * wy2)
+            for j in range(6):
+                yj = ys[j]
+                for q in range(6):
+                    S[6 * j + q] += yj * X[q]
+            # m |grad N_(a,b)|^2 = m (dx_a^2 wy_b^2 + wx_a^2 dy_b^2)
+            gx = (mi * dx0 * dx0, mi * dx1 * dx1, mi * dx2 * dx2)
+            sx = (mi * X[0], mi * X[3], mi * X[5])
+            vy = (wy0 * wy0, wy1 * wy1, wy2 * wy2)
+            hy = (dy0 * dy0, dy1 * dy1, dy2 * dy2)
+            for b in range(3):
+                for a in range(3):
+                    Kw[3 * b + a] += gx[a] * vy[b] + sx[a] * hy[b]
         touched[t, 0] = first
         touched[t, 1] = last
 
