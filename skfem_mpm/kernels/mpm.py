@@ -238,12 +238,12 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
                     x[i, 0], x0, ncx, ux, ihx, 2)
                 in_y, ey, wy0, wy1, wy2, _, dy0, dy1, dy2, _ = closed_axis_functions(
                     x[i, 1], y0, ncy, uy, ihy, 2)
-                if not in_x:
-                    ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
-                    wx0, wx1, wx2, dx0, dx1, dx2 = wx[0], wx[1], wx[2], dx[0], dx[1], dx[2]
+                if not in_x:  # (scalars from a call: see skfem_mpm.kernels.stencil)
+                    ex, wx0, wx1, wx2, _, dx0, dx1, dx2, _ = extracted_axis_functions(
+                        x[i, 0], bx, ux, ihx, Cx, 2)
                 if not in_y:
-                    ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
-                    wy0, wy1, wy2, dy0, dy1, dy2 = wy[0], wy[1], wy[2], dy[0], dy[1], dy[2]
+                    ey, wy0, wy1, wy2, _, dy0, dy1, dy2, _ = extracted_axis_functions(
+                        x[i, 1], by, uy, ihy, Cy, 2)
             if ex != run_x or ey != run_y:
                 if run_x >= 0:  # the flush: the window into M (width 5, slots as
                     for b in range(3):  # _mass_pairs) and K, then cleared
