@@ -543,6 +543,19 @@ def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim,
         for j in range(cuts.shape[0] - 1):
             threads = members[j]
             count = counts[j]
+            if count == 1:  # one copy holds these rows: copied (0 + x is x)
+                t0 = threads[0]
+                for k in range(cuts[j], cuts[j + 1]):
+                    K[k] = stiff_copies[t0, k]
+                    diagonal = mass_copies[t0, k, 0]
+                    M[k, centre] = diagonal
+                    if diagonal == 0.0:  # a zero row (see above)
+                        for s in range(1, nh):
+                            M[k, centre + s] = 0.0
+                        continue
+                    for s in range(1, nh):
+                        M[k, centre + s] = mass_copies[t0, k, s]
+                continue
             for k in range(cuts[j], cuts[j + 1]):
                 sk = 0.0
                 for i in range(count):
@@ -558,12 +571,21 @@ def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim,
                     M[k, centre + s] = _take(mass_copies, threads, count, k, s)
     nbz = M.shape[0] // (nbx * nby)
     offsets = _slot_offsets(p, dim, ns)
+    step = np.empty(ns, dtype=np.int64)  # each slot's dof offset (rows p or more from the edges)
+    for s in range(ns):
+        step[s] = (offsets[s, 2] * nby + offsets[s, 1]) * nbx + offsets[s, 0]
+    pb = p if dim >= 2 else 0
+    pc = p if dim == 3 else 0
     for k in prange(lo, hi):
         if M[k, centre] == 0.0:  # a zero row: no entry to mirror
             for s in range(centre):
                 M[k, s] = 0.0
             continue
         a, b, c = _row_indices(k, nbx, nby, dim)
+        if p <= a < nbx - p and pb <= b < nby - pb and pc <= c < nbz - pc:
+            for s in range(centre):  # every slot inside the grid
+                M[k, s] = M[k + step[s], ns - 1 - s]
+            continue
         for s in range(centre):
             j = _offset_dof(a, b, c, offsets, s, nbx, nby, nbz)
             M[k, s] = M[j, ns - 1 - s] if j >= 0 else 0.0
