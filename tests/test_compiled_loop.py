@@ -280,6 +280,29 @@ def test_consistent_mass_in_2d_without_the_fringe_correction(monkeypatch, case):
     assert looped.counts["compiled_loop_steps"] >= 20
 
 
+def test_consistent_mass_as_the_free_rows_change_with_their_count_kept(monkeypatch):
+    """A block spinning about its centre: as its corners sweep across the
+    cells the rows with mass change shape while their count stays (a
+    translation would not do: it keeps every row's columns), so the loop's
+    ELL columns (rewritten only when the free rows change) must follow the
+    rows, not their count; the loop gives the executor's bits."""
+    grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (16, 16), 2)
+    particles = Particles.seed(grid, 2, 1.0, region=((0.25, 0.75), (0.25, 0.75)),
+                               velocity=lambda X: 6.0 * np.column_stack((0.5 - X[:, 1],
+                                                                         X[:, 0] - 0.5)))
+    effects = [Fixed("bottom"), Gravity((0.0, -2.0))]  # (the loop variant of usl-consistent-2-2)
+    body = Body(particles, LinearElastic(10.0, 0.3))
+    method = Method(scheme="usl", mass="consistent")
+    dt = prepare(Scene(grid, body, 1.0, effects=effects), method).dt
+    scene = Scene(grid, body, 60 * dt, effects=effects)
+    with monkeypatch.context() as m:
+        m.setattr(StencilSystem, "FRINGE_LAYERS", 0)
+        looped, _ = looped_and_stepped(monkeypatch, scene, method)
+    assert looped.counts["compiled_loop_steps"] >= 50
+    travel = np.linalg.norm(looped.history["x"][-1] - looped.history["x"][0], axis=1)
+    assert travel.max() > 1.0 / 16  # (the corners crossed faces)
+
+
 # The fringe correction (2D, kernels.fringe) in the loop: the executor makes
 # its SuperLU factor (StencilSystem._fringe), the loop applies it while the
 # free rows stay. A block expanding on a 16 x 16 grid with the correction on

@@ -632,6 +632,49 @@ def test_fast_row_fractions_kernel_matches_lumping_fraction():
     assert count == np.count_nonzero(expected) and 0 < count < n
 
 
+def test_compact_system_rows_beyond_the_lumping_take_the_stencil_as_it_is():
+    """The rows that lumped_reach leaves unmarked (no theta_kj = max(fast_k,
+    fast_j) != 0 in their stencil) take compact_system's short path; its
+    rows, with and without the fixed-column part, are those of the full
+    path (every row marked) bit for bit, and the marks are the rows whose
+    stencil holds a fast dof."""
+    from skfem_mpm.kernels.mpm import compact_system, lumped_reach
+    from skfem_mpm.kernels.serial import serial
+
+    p, nbx, nby, dim, ns = 2, 14, 12, 2, 25
+    nd = nbx * nby
+    rng = np.random.default_rng(5)
+    a, b = np.arange(nd) % nbx, np.arange(nd) // nbx
+    da, db = np.arange(ns) % 5 - p, np.arange(ns) // 5 - p
+    inside = ((0 <= a[:, None] + da) & (a[:, None] + da < nbx)
+              & (0 <= b[:, None] + db) & (b[:, None] + db < nby))
+    M = np.where(inside, rng.uniform(-0.1, 1.0, (nd, ns)), 0.0)
+    fast = np.zeros(nd)
+    fast[[0, 5, 61, 62, 167]] = [0.3, 1.0, 0.5, 0.2, 0.7]
+    near = np.empty(nd, dtype=np.bool_)
+    lumped_reach(fast, p, nbx, nby, dim, ns, near)
+    j = np.where(inside, np.arange(nd)[:, None] + db * nbx + da, 0)
+    assert np.array_equal(near, (inside & ((fast[:, None] != 0) | (fast[j] != 0))).any(axis=1))
+    assert 0 < near.sum() < nd // 2
+    short = ~near & (p <= a) & (a < nbx - p) & (p <= b) & (b < nby - p)
+    assert short.sum() >= 5
+    free = np.flatnonzero(rng.uniform(size=nd) < 0.85)
+    index = np.full(nd, -1, dtype=np.int64)
+    index[free] = np.arange(free.size)
+    kernel = serial(compact_system)
+    for write_fixed in (False, True):
+        out = []
+        for marks in (near, np.ones(nd, dtype=np.bool_)):
+            A, F = np.zeros((free.size, ns)), np.zeros((free.size, ns))
+            cols = np.zeros((free.size, ns), dtype=np.int32)
+            fcols = np.zeros((free.size, ns), dtype=np.int32)
+            kernel(M, p, nbx, nby, dim, free, index, fast, marks, A, cols, F, fcols, True,
+                   write_fixed)
+            out.append((A, cols, F, fcols))
+        for short, full in zip(*out):
+            assert np.array_equal(short, full)
+
+
 def test_stencil_systems_reuse_what_depends_on_the_free_dofs_only():
     """Systems built in turn on the same kernels for different free-dof
     sets (the kept columns, groups and Kronecker factors are rebuilt when

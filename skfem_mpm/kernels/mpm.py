@@ -203,29 +203,6 @@ def _mass_pairs(M, K, k, a, b, wx, dx, wy, dy, mi, p, width, nbx):
 _PAIR = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _flush_mass_window(M, K, S, Kw, ex, ey, nbx):
-    """Add a quadratic run window (cell (ex, ey); none if ex < 0) into the
-    upper half of the stencil M (width 5, slots as :func:`_mass_pairs`) and
-    into K, and clear it."""
-    if ex < 0:
-        return
-    for b in range(3):
-        for a in range(3):
-            k = (ey + b) * nbx + ex + a
-            K[k] += Kw[3 * b + a]
-            yb = 6 * _PAIR[b, b]
-            for a2 in range(a, 3):
-                M[k, a2 - a] += S[yb + _PAIR[a, a2]]
-            for b2 in range(b + 1, 3):
-                yb2 = 6 * _PAIR[b, b2]
-                base = (b2 - b) * 5 - a
-                for a2 in range(3):
-                    M[k, base + a2] += S[yb2 + _PAIR[a, a2]]
-    S[:] = 0.0
-    Kw[:] = 0.0
-
-
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, stiff_copies,
                   touched):
@@ -234,9 +211,12 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
     (db + p)(2p + 1) + da + p - centre) and the per-dof sum m_p |grad N_k|^2.
     Per-thread copies over touched node ranges, as :func:`consistent_1d`;
     :func:`reduce_stencil` mirrors the lower half (M is symmetric).
-    Quadratic particles are summed per run of a cell first (see
-    :func:`_flush_mass_window`; interior cells of uniform axes with the
-    closed form of their weights)."""
+    Quadratic particles are summed per run of a cell first (the window
+    above, added into M and K when the run ends: at a particle of another
+    cell, and after the last particle; interior cells of uniform axes with
+    the closed form of their weights). The window's flush is written in the
+    particle loop itself (a function of the arrays, inlined or called, cost
+    the serial copy reference counts or a call per run)."""
     n = x.shape[0]
     nt = mass_copies.shape[0]
     width = 2 * p + 1
@@ -260,55 +240,77 @@ def consistent_2d(x, m, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nbx, mass_copies, s
         run_y = -1
         lo = t * n // nt
         hi = (t + 1) * n // nt
-        for i in range(lo, hi):
-            mi = m[i]
-            if quadratic:
+        wx0 = wx1 = wx2 = dx0 = dx1 = dx2 = wy0 = wy1 = wy2 = dy0 = dy1 = dy2 = mi = 0.0
+        for i in range(lo, hi + 1):  # (i = hi: the end, flush the last window)
+            end = i == hi
+            ex = -1
+            ey = -1
+            if not end:
+                mi = m[i]
+                if not quadratic:
+                    ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
+                    ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
+                    first = min(first, ey * nbx + ex)
+                    last = max(last, (ey + p) * nbx + ex + p + 1)
+                    for b in range(p + 1):
+                        for a in range(p + 1):
+                            _mass_pairs(M, K, (ey + b) * nbx + ex + a, a, b, wx, dx, wy, dy, mi,
+                                        p, width, nbx)
+                    continue
                 in_x, ex, wx0, wx1, wx2, _, dx0, dx1, dx2, _ = closed_axis_functions(
                     x[i, 0], x0, ncx, ux, ihx, 2)
                 in_y, ey, wy0, wy1, wy2, _, dy0, dy1, dy2, _ = closed_axis_functions(
                     x[i, 1], y0, ncy, uy, ihy, 2)
-                if not in_x:
-                    ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
-                    wx0, wx1, wx2, dx0, dx1, dx2 = wx[0], wx[1], wx[2], dx[0], dx[1], dx[2]
+                if not in_x:  # (scalars from a call: see skfem_mpm.kernels.stencil)
+                    ex, wx0, wx1, wx2, _, dx0, dx1, dx2, _ = extracted_axis_functions(
+                        x[i, 0], bx, ux, ihx, Cx, 2)
                 if not in_y:
-                    ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
-                    wy0, wy1, wy2, dy0, dy1, dy2 = wy[0], wy[1], wy[2], dy[0], dy[1], dy[2]
-                if ex != run_x or ey != run_y:
-                    _flush_mass_window(M, K, S, Kw, run_x, run_y, nbx)
-                    run_x = ex
-                    run_y = ey
-                    first = min(first, ey * nbx + ex)
-                    last = max(last, (ey + 2) * nbx + ex + 3)
-                X[0] = wx0 * wx0
-                X[1] = wx0 * wx1
-                X[2] = wx0 * wx2
-                X[3] = wx1 * wx1
-                X[4] = wx1 * wx2
-                X[5] = wx2 * wx2
-                ys = (mi * wy0 * wy0, mi * wy0 * wy1, mi * wy0 * wy2, mi * wy1 * wy1,
-                      mi * wy1 * wy2, mi * wy2 * wy2)
-                for j in range(6):
-                    yj = ys[j]
-                    for q in range(6):
-                        S[6 * j + q] += yj * X[q]
-                # m |grad N_(a,b)|^2 = m (dx_a^2 wy_b^2 + wx_a^2 dy_b^2)
-                gx = (mi * dx0 * dx0, mi * dx1 * dx1, mi * dx2 * dx2)
-                sx = (mi * X[0], mi * X[3], mi * X[5])
-                vy = (wy0 * wy0, wy1 * wy1, wy2 * wy2)
-                hy = (dy0 * dy0, dy1 * dy1, dy2 * dy2)
-                for b in range(3):
-                    for a in range(3):
-                        Kw[3 * b + a] += gx[a] * vy[b] + sx[a] * hy[b]
-                continue
-            ex = _axis(x[i, 0], bx, ux, ihx, Cx, p, wx, dx)
-            ey = _axis(x[i, 1], by, uy, ihy, Cy, p, wy, dy)
-            first = min(first, ey * nbx + ex)
-            last = max(last, (ey + p) * nbx + ex + p + 1)
-            for b in range(p + 1):
-                for a in range(p + 1):
-                    _mass_pairs(M, K, (ey + b) * nbx + ex + a, a, b, wx, dx, wy, dy, mi, p,
-                                width, nbx)
-        _flush_mass_window(M, K, S, Kw, run_x, run_y, nbx)
+                    ey, wy0, wy1, wy2, _, dy0, dy1, dy2, _ = extracted_axis_functions(
+                        x[i, 1], by, uy, ihy, Cy, 2)
+            if ex != run_x or ey != run_y:
+                if run_x >= 0:  # the flush: the window into M (width 5, slots as
+                    for b in range(3):  # _mass_pairs) and K, then cleared
+                        for a in range(3):
+                            k = (run_y + b) * nbx + run_x + a
+                            K[k] += Kw[3 * b + a]
+                            yb = 6 * _PAIR[b, b]
+                            for a2 in range(a, 3):
+                                M[k, a2 - a] += S[yb + _PAIR[a, a2]]
+                            for b2 in range(b + 1, 3):
+                                yb2 = 6 * _PAIR[b, b2]
+                                base = (b2 - b) * 5 - a
+                                for a2 in range(3):
+                                    M[k, base + a2] += S[yb2 + _PAIR[a, a2]]
+                    S[:] = 0.0
+                    Kw[:] = 0.0
+                if end:
+                    break
+                run_x = ex
+                run_y = ey
+                first = min(first, ey * nbx + ex)
+                last = max(last, (ey + 2) * nbx + ex + 3)
+            elif end:  # (no quadratic particle)
+                break
+            X[0] = wx0 * wx0
+            X[1] = wx0 * wx1
+            X[2] = wx0 * wx2
+            X[3] = wx1 * wx1
+            X[4] = wx1 * wx2
+            X[5] = wx2 * wx2
+            ys = (mi * wy0 * wy0, mi * wy0 * wy1, mi * wy0 * wy2, mi * wy1 * wy1,
+                  mi * wy1 * wy2, mi * wy2 * wy2)
+            for j in range(6):
+                yj = ys[j]
+                for q in range(6):
+                    S[6 * j + q] += yj * X[q]
+            # m |grad N_(a,b)|^2 = m (dx_a^2 wy_b^2 + wx_a^2 dy_b^2)
+            gx = (mi * dx0 * dx0, mi * dx1 * dx1, mi * dx2 * dx2)
+            sx = (mi * X[0], mi * X[3], mi * X[5])
+            vy = (wy0 * wy0, wy1 * wy1, wy2 * wy2)
+            hy = (dy0 * dy0, dy1 * dy1, dy2 * dy2)
+            for b in range(3):
+                for a in range(3):
+                    Kw[3 * b + a] += gx[a] * vy[b] + sx[a] * hy[b]
         touched[t, 0] = first
         touched[t, 1] = last
 
@@ -564,6 +566,19 @@ def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim,
         for j in range(cuts.shape[0] - 1):
             threads = members[j]
             count = counts[j]
+            if count == 1:  # one copy holds these rows: copied (0 + x is x)
+                t0 = threads[0]
+                for k in range(cuts[j], cuts[j + 1]):
+                    K[k] = stiff_copies[t0, k]
+                    diagonal = mass_copies[t0, k, 0]
+                    M[k, centre] = diagonal
+                    if diagonal == 0.0:  # a zero row (see above)
+                        for s in range(1, nh):
+                            M[k, centre + s] = 0.0
+                        continue
+                    for s in range(1, nh):
+                        M[k, centre + s] = mass_copies[t0, k, s]
+                continue
             for k in range(cuts[j], cuts[j + 1]):
                 sk = 0.0
                 for i in range(count):
@@ -579,12 +594,21 @@ def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim,
                     M[k, centre + s] = _take(mass_copies, threads, count, k, s)
     nbz = M.shape[0] // (nbx * nby)
     offsets = _slot_offsets(p, dim, ns)
+    step = np.empty(ns, dtype=np.int64)  # each slot's dof offset (rows p or more from the edges)
+    for s in range(ns):
+        step[s] = (offsets[s, 2] * nby + offsets[s, 1]) * nbx + offsets[s, 0]
+    pb = p if dim >= 2 else 0
+    pc = p if dim == 3 else 0
     for k in prange(lo, hi):
         if M[k, centre] == 0.0:  # a zero row: no entry to mirror
             for s in range(centre):
                 M[k, s] = 0.0
             continue
         a, b, c = _row_indices(k, nbx, nby, dim)
+        if p <= a < nbx - p and pb <= b < nby - pb and pc <= c < nbz - pc:
+            for s in range(centre):  # every slot inside the grid
+                M[k, s] = M[k + step[s], ns - 1 - s]
+            continue
         for s in range(centre):
             j = _offset_dof(a, b, c, offsets, s, nbx, nby, nbz)
             M[k, s] = M[j, ns - 1 - s] if j >= 0 else 0.0
@@ -1046,8 +1070,28 @@ def _offset_dof(a, b, c, offsets, s, nbx, nby, nbz):
     return (cc * nby + bb) * nbx + aa
 
 
+@njit(cache=True, error_model="numpy")
+def lumped_reach(fast, p, nbx, nby, dim, ns, near):
+    """near_k = whether row k of the stencil (``ns`` slots) has a nonzero
+    lumping fraction theta_kj = max(fast_k, fast_j) (:func:`compact_system`):
+    fast_k != 0 or fast_j != 0 at a dof j of its stencil. Marked from the
+    fast rows (a few per step): each marks its stencil (the stencil is
+    symmetric: j is in k's iff k is in j's)."""
+    nd = fast.shape[0]
+    nbz = nd // (nbx * nby)
+    offsets = _slot_offsets(p, dim, ns)
+    near[:] = False
+    for k in range(nd):
+        if fast[k] != 0.0:  # (a NaN fraction too)
+            a, b, c = _row_indices(k, nbx, nby, dim)
+            for s in range(ns):
+                j = _offset_dof(a, b, c, offsets, s, nbx, nby, nbz)
+                if j >= 0:
+                    near[j] = True
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, write_cols,
+def compact_system(M, p, nbx, nby, dim, rows, index, fast, near, A, cols, F, fcols, write_cols,
                    write_fixed):
     """The free-dof rows of the consistent mass, ELL form.
 
@@ -1058,7 +1102,10 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
     (F[r, s] = (1 - theta) M_kj, fcols[r, s] = j), which
     :func:`compact_problem` moves to the right-hand side. cols depends on
     the free-dof set only and F, fcols are read only for nonzero fixed
-    values: they are written when ``write_cols``, ``write_fixed``."""
+    values: they are written when ``write_cols``, ``write_fixed``. A row
+    p or more from the grid's edges whose every theta is 0 (not ``near``,
+    :func:`lumped_reach`) takes its entries of M as they are (each term
+    theta M_kj its diagonal would add is 0)."""
     nr = rows.shape[0]
     ns = M.shape[1]
     centre = (ns - 1) // 2
@@ -1071,9 +1118,16 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, A, cols, F, fcols, wr
     pc = p if dim == 3 else 0
     for r in prange(nr):
         k = rows[r]
-        diag = M[k, centre]
         a, b, c = _row_indices(k, nbx, nby, dim)
         inside = p <= a < nbx - p and pb <= b < nby - pb and pc <= c < nbz - pc
+        if inside and not near[k] and not write_fixed:
+            for s in range(ns):  # (the centre: index[k] = r, its entry M_kk)
+                col = index[k + step[s]]
+                A[r, s] = M[k, s] if col >= 0 else 0.0
+                if write_cols:
+                    cols[r, s] = col if col >= 0 else r
+            continue
+        diag = M[k, centre]
         fast_k = fast[k]
         for s in range(ns):
             A[r, s] = 0.0

@@ -39,10 +39,9 @@ _SKIPPED_NAMES = ("np", "njit", "prange", "FAST", "IN_ORDER", "overload", "len")
 # particle loop, the helper's array arguments become new references
 # counted at every call (atomic increments, the larger part of the serial
 # consistent_2d's time on a 16 x 16 grid, where a quarter of the particles
-# per axis sit in boundary cells; the same for its window flush, once per
-# run of particles in one cell). The parallel kernels keep the inlined
+# per axis sit in boundary cells). The parallel kernels keep the inlined
 # helpers: there they cost nothing and the call would cost.
-_NO_RUNTIME = ("_axis", "_flush_mass_window")
+_NO_RUNTIME = ("_axis",)
 
 
 def _is_kernel(value):

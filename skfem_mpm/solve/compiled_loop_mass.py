@@ -85,9 +85,10 @@ MASS_FIELDS = (
     "stencil", "stiffness", "copies", "stiff_copies", "touched", "row_range", "axes",
     # fast-dof guard: on?, its limit, covered_weights' w, mu, the moving
     # dofs (1.0 / 0.0), timestep.covered_parameters (lo, hi, tail, floor), the scaled K, the lumping fractions,
+    # the rows the lumping changes (kernels.mpm.lumped_reach),
     # q / Lambda (timestep.effective_mass_ratio)
     "guard", "limit", "weights", "mass_ratios", "moving", "covered", "guarded", "fast",
-    "effective_ratio",
+    "near", "effective_ratio",
     # groups: their components, the free rows and dof -> row, the ELL rows
     "group_comps", "group_size", "rows", "n_rows", "index", "A", "cols", "F", "fcols",
     "inv_diag",
@@ -439,6 +440,7 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
         FAST_ROW_FRACTIONS(cm.guarded, stencil, mass, cm.limit, cm.fast)
     else:
         cm.fast[:] = 0.0
+    LUMPED_REACH(cm.fast, p, nbx, nby, dim, ns, cm.near)
     nbz = nd // (nbx * nby)
     at = cm.merge_at
     if small_tol > 0.0:
@@ -459,17 +461,22 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
         n = 0
         group_rows = cm.rows[g]  # (each field read of a structref costs a reference count)
         group_index = cm.index[g]
+        same = True  # the free rows of the last step: cols holds their columns
         for k in range(nd):
             if not mask[k, c0] and mass[k] > 0.0:
+                if group_rows[n] != k:
+                    same = False
                 group_rows[n] = k
                 group_index[k] = n
                 n += 1
             else:
                 group_index[k] = -1
+        same = same and cm.n_rows[g] == n
         cm.n_rows[g] = n
         rows = cm.rows[g, :n]
-        COMPACT_SYSTEM(stencil, p, nbx, nby, dim, rows, cm.index[g], cm.fast, cm.A[g, :n],
-                       cm.cols[g, :n], cm.F[g, :n], cm.fcols[g, :n], True,
+        COMPACT_SYSTEM(stencil, p, nbx, nby, dim, rows, cm.index[g], cm.fast, cm.near,
+                       cm.A[g, :n], cm.cols[g, :n], cm.F[g, :n], cm.fcols[g, :n],
+                       not same,
                        fixed_columns or merged)
         fit = cm.A[g, :n]
         if merged:  # T^T M' T on the kept free dofs

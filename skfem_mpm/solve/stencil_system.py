@@ -17,7 +17,7 @@ from ..kernels.fringe import FringeFactor, FringePattern
 from ..kernels.kronecker import KroneckerData, apply_kronecker
 from ..kernels.merged_mass import EXTRA, merged_expand, merged_problem, merged_system
 from ..kernels.mpm import (compact_problem, compact_system, ell_pcg, expand_problem,
-                           stencil_rows_product)
+                           lumped_reach, stencil_rows_product)
 from ..kernels.serial import for_threads
 from ..kernels.tiny_mass import MAX_ENTRIES, merging_rows, neighbour_maxima
 from ..validation import check_choice
@@ -95,6 +95,9 @@ class StencilSystem:
         self.lumped = lumped
         self.inactive = lumped <= 0
         self.fast = np.ascontiguousarray(fast, dtype=np.float64)
+        # the rows the fast-row lumping changes, for every group
+        self.near = np.empty(lumped.size, dtype=np.bool_)
+        lumped_reach(self.fast, *self.geometry, stencil.shape[1], self.near)
         mask = constraints.mask
         # what depends only on the free-dof sets is kept on the kernels
         # between steps (it changes only when particles enter or leave a
@@ -155,8 +158,8 @@ class StencilSystem:
         A, F = k.scratch(f"A{g}", (rows.size, ns)), k.scratch(f"F{g}", (rows.size, ns))
         cols = k.scratch(f"cols{g}", (rows.size, ns), np.int32)
         fcols = k.scratch(f"fcols{g}", (rows.size, ns), np.int32)
-        k.kernel(compact_system)(self.stencil, *self.geometry, rows, index, self.fast, A, cols, F,
-                                 fcols, True, True)
+        k.kernel(compact_system)(self.stencil, *self.geometry, rows, index, self.fast,
+                                 self.near, A, cols, F, fcols, True, True)
         self.memo[f"cols{g}"] = rows.tobytes()
         size = int(self.MERGE_BUFFER * nd * ns)
         Ar, Fr = k.scratch(f"merged_A{g}", size), k.scratch(f"merged_F{g}", size)
@@ -207,8 +210,9 @@ class StencilSystem:
         fcols = self.k.scratch(f"fcols{g}", (rows.size, ns), np.int32)
         key = rows.tobytes()
         write_cols = self.memo.get(f"cols{g}") != key  # cols{g} holds this set's columns
-        self.k.kernel(compact_system)(self.stencil, *self.geometry, rows, index, self.fast, A,
-                                      cols, F, fcols, write_cols, need_fixed)
+        self.k.kernel(compact_system)(self.stencil, *self.geometry, rows, index, self.fast,
+                                      self.near, A, cols, F, fcols,
+                                      write_cols, need_fixed)
         self.memo[f"cols{g}"] = key
         if built is not None:  # F added to this step's system (A rewritten, equal)
             built = group[3] = built[:7] + (True,)
