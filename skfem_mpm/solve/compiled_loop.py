@@ -841,7 +841,7 @@ class StepLoop:
             mass_ratios=np.ascontiguousarray(ratios, dtype=np.float64),
             moving=np.asarray(moving, dtype=np.float64), covered=np.array(covered_parameters(grid), dtype=float),
             guarded=zeros(nd), fast=zeros(nd),
-            near=zeros(nd, dtype=np.bool_),
+            reach=zeros(nd, dtype=np.bool_),
             effective_ratio=effective_mass_ratio(p),
             group_comps=group_comps,
             group_size=np.array([len(c) for c in groups.values()], dtype=np.int64),

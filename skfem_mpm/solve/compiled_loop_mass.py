@@ -85,10 +85,10 @@ MASS_FIELDS = (
     "stencil", "stiffness", "copies", "stiff_copies", "touched", "row_range", "axes",
     # fast-dof guard: on?, its limit, covered_weights' w, mu, the moving
     # dofs (1.0 / 0.0), timestep.covered_parameters (lo, hi, tail, floor), the scaled K, the lumping fractions,
-    # the rows the lumping changes (kernels.mpm.lumped_reach),
+    # the rows the lumping changes (reach: kernels.mpm.lumped_reach),
     # q / Lambda (timestep.effective_mass_ratio)
     "guard", "limit", "weights", "mass_ratios", "moving", "covered", "guarded", "fast",
-    "near", "effective_ratio",
+    "reach", "effective_ratio",
     # groups: their components, the free rows and dof -> row, the ELL rows
     "group_comps", "group_size", "rows", "n_rows", "index", "A", "cols", "F", "fcols",
     "inv_diag",
@@ -440,7 +440,7 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
         FAST_ROW_FRACTIONS(cm.guarded, stencil, mass, cm.limit, cm.fast)
     else:
         cm.fast[:] = 0.0
-    LUMPED_REACH(cm.fast, p, nbx, nby, dim, ns, cm.near)
+    LUMPED_REACH(cm.fast, p, nbx, nby, dim, ns, cm.reach)
     nbz = nd // (nbx * nby)
     at = cm.merge_at
     if small_tol > 0.0:
@@ -474,7 +474,7 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
         same = same and cm.n_rows[g] == n
         cm.n_rows[g] = n
         rows = cm.rows[g, :n]
-        COMPACT_SYSTEM(stencil, p, nbx, nby, dim, rows, cm.index[g], cm.fast, cm.near,
+        COMPACT_SYSTEM(stencil, p, nbx, nby, dim, rows, cm.index[g], cm.fast, cm.reach,
                        cm.A[g, :n], cm.cols[g, :n], cm.F[g, :n], cm.fcols[g, :n],
                        not same,
                        fixed_columns or merged)
