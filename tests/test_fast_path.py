@@ -412,27 +412,35 @@ def test_fringe_rows_are_the_layers_next_to_non_free_dofs():
             fringe_rows(line, (2, 25, 1, 1), bad)
 
 
-def test_fringe_correction_matches_its_formula():
-    """The compiled fringe solve is M_FF^-1 (dense NumPy reference) and the
-    corrected preconditioner is z1 = R^T M_FF^-1 R r, z2 = z1 + P^-1 (r -
-    M z1), z = z2 + R^T M_FF^-1 R (r - M z2), symmetric positive definite,
-    with a far smaller condition number of B M than of P^-1 M (the fringe
-    holds the outliers of P^-1 M)."""
-    from skfem_mpm.kernels.fringe import (FringeFactor, FringePattern, apply_corrected,
-                                          fringe_solve)
-    from skfem_mpm.kernels.kronecker import apply_kronecker
+def _fringe_block(cells=12, layers=2):
+    """The 12 x 12 block's free-dof system with edge lumping: its ELL rows
+    A, cols, Kronecker preconditioner, dense M and the fringe factor."""
+    from skfem_mpm.kernels.fringe import FringeFactor, FringePattern
     from skfem_mpm.solve.stencil_system import StencilSystem
 
-    k, stencil, mass, constraints = _block_system(cells=12)
+    k, stencil, mass, constraints = _block_system(cells=cells)
     system = StencilSystem(k, stencil, mass, constraints, _edge_lumping(mass), {})
     group = next(iter(system.groups.values()))
     A, cols, _, _, _, kron, _, _ = system._compact(group)
     n = A.shape[0]
     M = np.zeros((n, n))
     np.add.at(M, (np.repeat(np.arange(n), A.shape[1]), cols.ravel()), A.ravel())
-    pattern = FringePattern(group[1], cols, k.stencil_geometry, 2)
-    factor = FringeFactor(pattern.block_values(A), pattern)
-    F = pattern.fringe
+    pattern = FringePattern(group[1], cols, k.stencil_geometry, layers)
+    return A, cols, kron, M, FringeFactor(pattern.block_values(A), pattern)
+
+
+def test_fringe_correction_matches_its_formula():
+    """The compiled fringe solve is M_FF^-1 (dense NumPy reference) and the
+    corrected preconditioner is z1 = R^T M_FF^-1 R r, z2 = z1 + P^-1 (r -
+    M z1), z = z2 + R^T M_FF^-1 R (r - M z2), symmetric positive definite,
+    with a far smaller condition number of B M than of P^-1 M (the fringe
+    holds the outliers of P^-1 M)."""
+    from skfem_mpm.kernels.fringe import apply_corrected, fringe_solve
+    from skfem_mpm.kernels.kronecker import apply_kronecker
+
+    A, cols, kron, M, factor = _fringe_block()
+    n = A.shape[0]
+    F = factor.pattern.fringe
     assert 0 < F.size < n
     rng = np.random.default_rng(3)
     nc = 4
@@ -480,19 +488,10 @@ def test_fringe_solve_gives_each_column_the_same_bits_in_any_company():
     """fringe_solve (rows of L and U, sums in registers) solves M_FF x = b,
     and a column's bits do not depend on the columns solved with it (one to
     four, four or two lanes) nor on one or two thread blocks."""
-    from skfem_mpm.kernels.fringe import FringeFactor, FringePattern, fringe_solve
-    from skfem_mpm.solve.stencil_system import StencilSystem
+    from skfem_mpm.kernels.fringe import fringe_solve
 
-    k, stencil, mass, constraints = _block_system(cells=12)
-    system = StencilSystem(k, stencil, mass, constraints, _edge_lumping(mass), {})
-    group = next(iter(system.groups.values()))
-    A, cols = system._compact(group)[:2]
-    n = A.shape[0]
-    M = np.zeros((n, n))
-    np.add.at(M, (np.repeat(np.arange(n), A.shape[1]), cols.ravel()), A.ravel())
-    pattern = FringePattern(group[1], cols, k.stencil_geometry, 2)
-    factor = FringeFactor(pattern.block_values(A), pattern)
-    F = pattern.fringe
+    _, _, _, M, factor = _fringe_block()
+    F = factor.pattern.fringe
     MFF = M[np.ix_(F, F)]
     b = np.random.default_rng(4).standard_normal((F.size, 4))
     alone = []
