@@ -67,7 +67,7 @@ import numpy as np
 from numba.core.typing.typeof import Purpose
 
 from ..kernels import (band_factor, bbar, by_symbol, cell_integrals, cholesky, constitutive,
-                       fast_dof,
+                       fast_dof, fringe,
                        gauss_rule, grid_modifiers, kronecker, merged_mass, mls, mpm, scatter,
                        spline_1d, spline_2d, staging, step_size, tiny_mass, tls, traction,
                        weights)
@@ -442,9 +442,9 @@ def loop_module(dim, parallel, window):
     # the operations' callees are not tracked by numba's cache: their
     # sources go into the file's name (kernels.generated.load hashes it)
     depends = "".join(inspect.getsource(m) for m in (
-        schemes, mpm, scatter, kronecker, band_factor, tiny_mass, merged_mass, fast_dof, staging, gauss_rule,
-        spline_1d, spline_2d, tls, mls, cholesky, weights, traction, constitutive,
-        grid_modifiers, bbar, by_symbol, step_size))
+        schemes, mpm, scatter, kronecker, fringe, band_factor, tiny_mass, merged_mass, fast_dof,
+        staging, gauss_rule, spline_1d, spline_2d, tls, mls, cholesky, weights, traction,
+        constitutive, grid_modifiers, bbar, by_symbol, step_size))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
