@@ -6,7 +6,7 @@ observed order between consecutive grids, log2(e_h / e_(h/2)) (the grids
 double). Errors are each benchmark's primary error relative to the exact
 displacement amplitude (S1 small: RMS at t_end; S3 small and D2 small: as
 the study measures them). Mass is consistent throughout; cfl each
-scheme's default fraction of its own stable limit (0.7 for rk4, whose limit
+scheme's default fraction of its own stable limit (0.6 for rk4, whose limit
 is sqrt(2) times the central-difference one, 0.5 for the others; see
 skfem_mpm.solve.method.DEFAULT_CFL).
 

@@ -65,7 +65,8 @@ def test_a_dof_its_particles_see_only_at_the_tail_gets_the_first_functions_weigh
         N = transfer_matrices(grid, p.x)[0].tocsr()
         lumped, diagonal = N.T @ p.m, N.multiply(N).T @ p.m
         ones = np.ones(grid.ndofs)  # 1D: F = 0, no covered axis to put back
-        scale = covered_stiffness(ones, diagonal, lumped, w, mu, ones, tail_weight(3), 0.0)
+        scale = covered_stiffness(ones, diagonal, lumped, w, mu, ones, tail_weight(3), 0.0,
+                                  np.inf, 3, grid.basis_per_axis)  # (no dof near a lumped one)
         expected = w[-2] if relaxed else tail_weight(3)  # 0.93: tau = 0.16 at dof -2
         assert scale[-2] == pytest.approx(expected, rel=1e-6), (region, scale[-2], w[-2])
         assert scale[1] == pytest.approx(w[1], rel=1e-6)  # the left end stays covered
@@ -114,6 +115,7 @@ def test_the_guard_kernel_is_its_numpy_twin():
     kernel = for_threads(mpm.covered_stiffness, False)  # the copy small runs call
 
     rng = np.random.default_rng(5)
+    shape = (20, 20)  # 400 dofs on a quadratic 2D grid's layout
     n = 400
     lumped = rng.uniform(0.1, 1.0, n)
     mu = rng.uniform(0.3, 0.6, n)
@@ -122,9 +124,16 @@ def test_the_guard_kernel_is_its_numpy_twin():
     moving = np.where(rng.uniform(size=n) < 0.2, 0.0, 1.0)
     K, w = rng.uniform(0.0, 5.0, n), rng.uniform(0.1, 1.0, n)
     out = np.empty(n)
-    kernel(K, diagonal, lumped, w, mu, moving, *COVERED, tail_weight(3), 2.5, out)
-    expected = covered_stiffness(K, diagonal, lumped, w, mu, moving, tail_weight(3), 2.5)
+    limit = 4.0  # r = k / (limit D) spans the withdrawal's ramp 1/2..2/3 and beyond
+    kernel(K, diagonal, lumped, w, mu, moving, *COVERED, tail_weight(3), 2.5, limit, 2, *shape,
+           np.empty((2, n)), out)
+    expected = covered_stiffness(K, diagonal, lumped, w, mu, moving, tail_weight(3), 2.5, limit,
+                                 2, shape)
     assert np.array_equal(out, expected)
+    plain = covered_stiffness(K, diagonal, lumped, w, mu, moving, 1.0, 0.0, limit, 2, shape)
+    tailed = covered_stiffness(K, diagonal, lumped, w, mu, moving, tail_weight(3), 2.5, np.inf,
+                               2, shape)
+    assert np.any(out != tailed) and np.any(out == tailed) and np.any(out == plain)
     assert np.isinf(out[(diagonal == 0) & (moving > 0)]).all()
     assert np.all(out[moving == 0] == 0.0)
 

@@ -254,7 +254,7 @@ def test_restart_reproduces_every_recorded_quantity(tmp_path, backend, scheme, m
     kept acceleration must come back), and a save made before that
     checkpoint is not recorded twice."""
     scene = loaded_plate()
-    # cfl 0.5 for every scheme (rk4's default 0.7 takes 16 steps with lumped mass)
+    # cfl 0.5 for every scheme (rk4's default 0.6 takes fewer than 20 steps with lumped mass)
     method = Method(scheme=scheme, mass=mass, backend=backend, cfl=0.5)
     full = simulate(scene, method, save_every=3)
     assert full.counts["steps"] > 20 and full.energies["external_work"][-1] != 0.0

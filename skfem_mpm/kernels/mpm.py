@@ -1237,15 +1237,24 @@ def reduce_coverage(copies, touched, out):
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def covered_stiffness(stiffness, diagonal, mass, weights, mass_ratios, moving, lo, hi, tail,
-                      floor, out):
-    """out_k = K_k (c_k moving_k) + a_k moving_k: the fast-dof guard's
-    stiffness of :func:`skfem_mpm.solve.timestep.covered_stiffness`,
-    c_k = tail + (w_k - tail) s_k, a_k = (1 - s_k) (1 - tail) floor D_k,
-    s_k = smoothstep over (lo, hi) of tau_k = D_k / (m_k mu_k) (K, D = M_kk
-    and m the particles' coverage sums, :func:`particle_coverage`); inf on
-    a moving dof no particle sees (D_k = 0), zero on the dofs that never
-    move (the same operations as the NumPy function, so the same bits)."""
-    for k in prange(mass.shape[0]):
+                      floor, limit, p, nbx, nby, work, out):
+    """out_k: the fast-dof guard's stiffness of
+    :func:`skfem_mpm.solve.timestep.covered_stiffness` (the same operations,
+    so the same bits). With the tail weight, T_k = K_k (c_k moving_k) +
+    a_k moving_k, c_k = tail + (w_k - tail) s_k, a_k = (1 - s_k) (1 - tail)
+    floor D_k, s_k = smoothstep over (lo, hi) of tau_k = D_k / (m_k mu_k)
+    (K, D = M_kk and m the particles' coverage sums,
+    :func:`particle_coverage`); without it (the plain limit)
+    P_k = K_k (c'_k moving_k), c'_k = 1 + (w_k - 1) s_k; the tail weight
+    withdrawn near a cut cell: out_k = T_k + b_k (P_k - T_k), b_k the
+    largest x_j = smoothstep(6 T_j / (limit D_j) - 3) over the dofs j within
+    p indices of k per axis (x_j = 0 where D_j = 0). inf on a moving dof no
+    particle sees (D_k = 0), zero on the dofs that never move. ``work``
+    (2, dofs): the x_j and their running maxima (nbx, nby the dofs per
+    axis; nbx = dofs in 1D, nby = 1 in 1D)."""
+    nd = mass.shape[0]
+    x = work[0]
+    for k in prange(nd):
         d = diagonal[k]
         tau = d / (max(mass[k], 1e-300) * mass_ratios[k])
         s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
@@ -1253,9 +1262,45 @@ def covered_stiffness(stiffness, diagonal, mass, weights, mass_ratios, moving, l
         w = tail + (weights[k] - tail) * smooth
         a = (1.0 - smooth) * (1.0 - tail) * floor * d
         if d > 0.0:
-            out[k] = stiffness[k] * (w * moving[k]) + a * moving[k]
+            seen = stiffness[k] * (w * moving[k]) + a * moving[k]
+            out[k] = seen
+            r = min(max(6.0 * (seen / (limit * d)) - 3.0, 0.0), 1.0)
+            x[k] = r * r * (3.0 - 2.0 * r)
         else:
             out[k] = np.inf if moving[k] > 0.0 else 0.0
+            x[k] = 0.0
+    _box_max(work, p, nbx, nby)
+    b = work[0]
+    for k in prange(nd):
+        d = diagonal[k]
+        if d > 0.0 and b[k] > 0.0:
+            tau = d / (max(mass[k], 1e-300) * mass_ratios[k])
+            s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
+            smooth = s * s * (3.0 - 2.0 * s)
+            plain = stiffness[k] * ((1.0 + (weights[k] - 1.0) * smooth) * moving[k])
+            out[k] = out[k] + b[k] * (plain - out[k])
+
+
+@njit(cache=True, error_model="numpy")
+def _box_max(work, p, nbx, nby):
+    """work[0]_k <- the largest work[0]_j over the dofs j within p indices
+    of k per axis (x fastest; nbz = dofs / (nbx nby)), one axis at a time
+    through work[1]."""
+    nd = work.shape[1]
+    nbz = nd // (nbx * nby)
+    src, dst = work[0], work[1]
+    for axis in range(3):
+        n, stride = (nbx, 1) if axis == 0 else ((nby, nbx) if axis == 1 else (nbz, nbx * nby))
+        if n == 1:
+            continue
+        for k in range(nd):
+            i = (k // stride) % n
+            v = src[k]
+            for o in range(max(i - p, 0) - i, min(i + p, n - 1) - i + 1):
+                v = max(v, src[k + o * stride])
+            dst[k] = v
+        for k in range(nd):
+            src[k] = dst[k]
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)

@@ -364,8 +364,11 @@ class CompiledExecutor(CompiledRungeKutta):
                 diagonal[:] = stencil[:, (stencil.shape[1] - 1) // 2]
                 coverage = (K, diagonal, mass)
             K, diagonal = guarded, coverage[1]
+            p, nbx, nby, _ = self.kernels.stencil_geometry
             self.kernels.kernel(covered_stiffness)(coverage[0], diagonal, coverage[2],
-                                                   *self._guard_arrays, guarded)
+                                                   *self._guard_arrays, limit, p, nbx, nby,
+                                                   self.kernels.scratch("guard_near",
+                                                                        (2, K.size)), guarded)
         fast_rows = None if limit is None else (
             lambda _: lumping_fraction(K / (limit * np.maximum(diagonal, 1e-300))))
         if self._use_cg(state):

@@ -843,7 +843,7 @@ class StepLoop:
             weights=np.ascontiguousarray(weights, dtype=np.float64),
             mass_ratios=np.ascontiguousarray(ratios, dtype=np.float64),
             moving=np.asarray(moving, dtype=np.float64), covered=np.array(covered_parameters(grid), dtype=float),
-            guarded=zeros(nd), fast=zeros(nd), diagonal=zeros(nd),
+            guarded=zeros(nd), fast=zeros(nd), near=zeros((2, nd)), diagonal=zeros(nd),
             by_particles=reconstructed and guard > 0,
             coverage_copies=zeros((nt if reconstructed and guard > 0 else 1, 3, nd)),
             coverage_touched=zeros((nt, 2), dtype=np.int64), coverage=zeros((3, nd)),

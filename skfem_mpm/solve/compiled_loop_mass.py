@@ -92,8 +92,8 @@ MASS_FIELDS = (
     # the guard's stiffness, the lumping fractions, the stencil's diagonal
     # (its M_kk without a reconstruction); with a reconstruction (by_particles)
     # the particles' sums (K, M_kk, m: Kernels.particle_coverage), their
-    # per-thread copies and touched ranges
-    "guard", "limit", "weights", "mass_ratios", "moving", "covered", "guarded", "fast",
+    # per-thread copies and touched ranges; covered_stiffness' work (2, dofs)
+    "guard", "limit", "weights", "mass_ratios", "moving", "covered", "guarded", "fast", "near",
     "diagonal", "by_particles", "coverage", "coverage_copies", "coverage_touched",
     # groups: their components, the free rows and dof -> row, the ELL rows
     "group_comps", "group_size", "rows", "n_rows", "index", "A", "cols", "F", "fcols",
@@ -448,7 +448,8 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
         if cm.by_particles:  # the particles' sums (cover_particles)
             COVERED_STIFFNESS(cm.coverage[0], cm.coverage[1], cm.coverage[2], cm.weights,
                               cm.mass_ratios, cm.moving, cm.covered[0], cm.covered[1],
-                              cm.covered[2], cm.covered[3], cm.guarded)
+                              cm.covered[2], cm.covered[3], cm.limit, p, nbx, nby, cm.near,
+                              cm.guarded)
             FAST_ROW_FRACTIONS(cm.guarded, cm.coverage[1], mass, cm.limit, cm.fast)
         else:  # K, the stencil's diagonal and the lumped mass are the particles' own
             centre = (ns - 1) // 2
@@ -456,7 +457,7 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
                 cm.diagonal[k] = stencil[k, centre]
             COVERED_STIFFNESS(cm.stiffness, cm.diagonal, mass, cm.weights, cm.mass_ratios,
                               cm.moving, cm.covered[0], cm.covered[1], cm.covered[2],
-                              cm.covered[3], cm.guarded)
+                              cm.covered[3], cm.limit, p, nbx, nby, cm.near, cm.guarded)
             FAST_ROW_FRACTIONS(cm.guarded, cm.diagonal, mass, cm.limit, cm.fast)
     else:
         cm.fast[:] = 0.0

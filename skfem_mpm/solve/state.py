@@ -122,17 +122,17 @@ class State:
         return self._adjacency
 
     # ------------------------------------------------------------ time step
-    def guard_stiffness(self, stiffness, diagonal, lumped):
+    def guard_stiffness(self, stiffness, diagonal, lumped, limit):
         """The fast-dof guard's stiffness k_i from the particles' coverage
         sums (K_i, M_ii, m_i: :func:`skfem_mpm.solve.steps.particle_coverage`)
-        on a spline grid (:func:`skfem_mpm.solve.timestep.covered_stiffness`);
-        K_i itself off spline grids."""
+        on a spline grid (:func:`skfem_mpm.solve.timestep.covered_stiffness`,
+        ``limit`` the guard's); K_i itself off spline grids."""
         if not isinstance(self.grid, SplineGrid):
             return stiffness
         w, mu, moving = self.fast_dof_guard_arrays()
         _, _, tail, floor = covered_parameters(self.grid)
         return covered_stiffness(stiffness, diagonal, lumped, w, mu, moving.astype(np.float64),
-                                 tail, floor)
+                                 tail, floor, limit, self.grid.degree, self.grid.basis_per_axis)
 
     def fast_dof_guard_arrays(self):
         """(w, mu, moving) of :meth:`guard_stiffness` on a spline grid: the

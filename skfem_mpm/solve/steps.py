@@ -286,7 +286,7 @@ def step_system(state, data, kind="acceleration"):
             def fast_rows(_):
                 # the particles' coverage sums, with a reconstruction too
                 stiffness, diagonal, lumped = data.coverage()
-                k = state.guard_stiffness(stiffness, diagonal, lumped)
+                k = state.guard_stiffness(stiffness, diagonal, lumped, limit)
                 return lumping_fraction(k / (limit * np.maximum(diagonal, 1e-300)))
 
         data.system = GridSystem(data.lumped, state.constraints, consistent,
