@@ -124,7 +124,7 @@ def test_the_guard_kernel_is_its_numpy_twin():
     moving = np.where(rng.uniform(size=n) < 0.2, 0.0, 1.0)
     K, w = rng.uniform(0.0, 5.0, n), rng.uniform(0.1, 1.0, n)
     out = np.empty(n)
-    limit = 4.0  # r = k / (limit D) spans the withdrawal's ramp 1/2..2/3 and beyond
+    limit = 4.0  # r = k / (limit D) spans the lumping's ramp 1/2..1 and beyond
     kernel(K, diagonal, lumped, w, mu, moving, *COVERED, tail_weight(3), 2.5, limit, 2, *shape,
            np.empty((2, n)), out)
     expected = covered_stiffness(K, diagonal, lumped, w, mu, moving, tail_weight(3), 2.5, limit,

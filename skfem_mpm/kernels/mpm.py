@@ -1247,10 +1247,10 @@ def covered_stiffness(stiffness, diagonal, mass, weights, mass_ratios, moving, l
     :func:`particle_coverage`); without it (the plain limit)
     P_k = K_k (c'_k moving_k), c'_k = 1 + (w_k - 1) s_k; the tail weight
     withdrawn near a cut cell: out_k = T_k + b_k (P_k - T_k), b_k the
-    largest x_j = smoothstep(6 T_j / (limit D_j) - 3) over the dofs j within
-    p indices of k per axis (x_j = 0 where D_j = 0). inf on a moving dof no
+    largest theta_j = smoothstep(2 T_j / (limit D_j) - 1) over the dofs j
+    within p indices of k per axis (theta_j = 0 where D_j = 0). inf on a moving dof no
     particle sees (D_k = 0), zero on the dofs that never move. ``work``
-    (2, dofs): the x_j and their running maxima (nbx, nby the dofs per
+    (2, dofs): the theta_j and their running maxima (nbx, nby the dofs per
     axis; nbx = dofs in 1D, nby = 1 in 1D)."""
     nd = mass.shape[0]
     x = work[0]
@@ -1264,7 +1264,7 @@ def covered_stiffness(stiffness, diagonal, mass, weights, mass_ratios, moving, l
         if d > 0.0:
             seen = stiffness[k] * (w * moving[k]) + a * moving[k]
             out[k] = seen
-            r = min(max(6.0 * (seen / (limit * d)) - 3.0, 0.0), 1.0)
+            r = min(max(2.0 * (seen / (limit * d)) - 1.0, 0.0), 1.0)
             x[k] = r * r * (3.0 - 2.0 * r)
         else:
             out[k] = np.inf if moving[k] > 0.0 else 0.0

@@ -57,7 +57,8 @@ q(p) / Q_1 where they see only its tail (from M_ii / (m_i mu_i)): a body
 ending at a knot (S3) leaves such a tail, no faster than the step allows,
 and a body ending a fraction l into a cell gives r ~ cfl^2 / l^2, lumped
 where the cut cell would break the step, and the dofs within p indices
-of a dof so lumped (the cut cell's other functions) go back to weight 1;
+of a dof so lumped (the cut cell's other functions) go back to weight 1
+by the fraction it is lumped;
 and w_i = 0 on dofs constrained
 in every component (they never move; lumping their rows only moved mass
 onto their free neighbours). K_ii, M_ii and m_i are the particles' own

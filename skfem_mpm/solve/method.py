@@ -52,7 +52,7 @@ per cell: 1.11 and 1.06, from 0.67 and 0.69). A lumped tail also
 withdraws the tail weight from its neighbours (a cut cell: see
 :func:`skfem_mpm.solve.timestep.covered_stiffness`), so past that cfl the
 error jumps (S3 at 8 cells: 1.23e-5 with and without the guard at 0.5 and
-0.6; 5.0e-3 at 0.65, 5.2e-3 at 0.7 against 1.24e-5 and 1.25e-5 without
+0.6; 2.7e-3 at 0.65, 5.2e-3 at 0.7 against 1.24e-5 and 1.25e-5 without
 it). So 0.6, the largest tenth below 0.62. RK4's amplification on the
 imaginary axis, |R(i y)| = sqrt(1 - y^6 / 72 + y^8 / 576), is 0.89 at
 its top frequency there (y = 0.6 * 2 sqrt(2)): it damps the top modes
