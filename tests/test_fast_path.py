@@ -412,27 +412,35 @@ def test_fringe_rows_are_the_layers_next_to_non_free_dofs():
             fringe_rows(line, (2, 25, 1, 1), bad)
 
 
-def test_fringe_correction_matches_its_formula():
-    """The compiled fringe solve is M_FF^-1 (dense NumPy reference) and the
-    corrected preconditioner is z1 = R^T M_FF^-1 R r, z2 = z1 + P^-1 (r -
-    M z1), z = z2 + R^T M_FF^-1 R (r - M z2), symmetric positive definite,
-    with a far smaller condition number of B M than of P^-1 M (the fringe
-    holds the outliers of P^-1 M)."""
-    from skfem_mpm.kernels.fringe import (FringeFactor, FringePattern, apply_corrected,
-                                          fringe_solve)
-    from skfem_mpm.kernels.kronecker import apply_kronecker
+def _fringe_block(cells=12, layers=2):
+    """The 12 x 12 block's free-dof system with edge lumping: its ELL rows
+    A, cols, Kronecker preconditioner, dense M and the fringe factor."""
+    from skfem_mpm.kernels.fringe import FringeFactor, FringePattern
     from skfem_mpm.solve.stencil_system import StencilSystem
 
-    k, stencil, mass, constraints = _block_system(cells=12)
+    k, stencil, mass, constraints = _block_system(cells=cells)
     system = StencilSystem(k, stencil, mass, constraints, _edge_lumping(mass), {})
     group = next(iter(system.groups.values()))
     A, cols, _, _, _, kron, _, _ = system._compact(group)
     n = A.shape[0]
     M = np.zeros((n, n))
     np.add.at(M, (np.repeat(np.arange(n), A.shape[1]), cols.ravel()), A.ravel())
-    pattern = FringePattern(group[1], cols, k.stencil_geometry, 2)
-    factor = FringeFactor(pattern.block_values(A), pattern)
-    F = pattern.fringe
+    pattern = FringePattern(group[1], cols, k.stencil_geometry, layers)
+    return A, cols, kron, M, FringeFactor(pattern.block_values(A), pattern)
+
+
+def test_fringe_correction_matches_its_formula():
+    """The compiled fringe solve is M_FF^-1 (dense NumPy reference) and the
+    corrected preconditioner is z1 = R^T M_FF^-1 R r, z2 = z1 + P^-1 (r -
+    M z1), z = z2 + R^T M_FF^-1 R (r - M z2), symmetric positive definite,
+    with a far smaller condition number of B M than of P^-1 M (the fringe
+    holds the outliers of P^-1 M)."""
+    from skfem_mpm.kernels.fringe import apply_corrected, fringe_solve
+    from skfem_mpm.kernels.kronecker import apply_kronecker
+
+    A, cols, kron, M, factor = _fringe_block()
+    n = A.shape[0]
+    F = factor.pattern.fringe
     assert 0 < F.size < n
     rng = np.random.default_rng(3)
     nc = 4
@@ -474,6 +482,61 @@ def test_fringe_correction_matches_its_formula():
           % (plain.min(), plain.max(), corrected.min(), corrected.max()))
     assert corrected.min() > 0
     assert corrected.max() / corrected.min() < 0.5 * plain.max() / plain.min()
+
+
+def test_fringe_solve_gives_each_column_the_same_bits_in_any_company():
+    """fringe_solve (rows of L and U, sums in registers) solves M_FF x = b,
+    and a column's bits do not depend on the columns solved with it (one to
+    four, four or two lanes) nor on one or two thread blocks."""
+    from skfem_mpm.kernels.fringe import fringe_solve
+
+    _, _, _, M, factor = _fringe_block()
+    F = factor.pattern.fringe
+    MFF = M[np.ix_(F, F)]
+    b = np.random.default_rng(4).standard_normal((F.size, 4))
+    alone = []
+    for c in range(4):
+        fr = factor.args(1)
+        x = np.empty((F.size, 1))
+        fringe_solve(*fr[3:12], fr[14], np.ascontiguousarray(b[:, c:c + 1]), x)
+        alone.append(x[:, 0])
+    assert np.abs(MFF @ np.array(alone).T - b).max() < 1e-12 * np.abs(b).max()
+    for nc in (2, 3, 4):
+        for threads in (1, 2):
+            fr = factor.args(nc)
+            x = np.empty((F.size, nc))
+            fringe_solve(*fr[3:12], fr[14], np.ascontiguousarray(b[:, :nc]), x, threads)
+            for c in range(nc):
+                assert np.array_equal(x[:, c], alone[c]), (nc, threads, c)
+
+
+@pytest.mark.parametrize("band", (1, 2, 3, 4))
+def test_kronecker_banded_solves_of_any_band(band):
+    """apply_kronecker with the box's rows in order and unit scaling is
+    (M_y (x) M_x)^-1, M = L L^T of the banded factors (1 / L_ii in column
+    0, L_i,i-d in column d), for bands 1-3 (written out) and 4 (the
+    one-term-at-a-time loop), one to four columns."""
+    from skfem_mpm.kernels.kronecker import apply_kronecker
+
+    rng = np.random.default_rng(band)
+    ny, nx = 6, 9
+
+    def factor(n):
+        L = np.concatenate([rng.uniform(0.5, 2.0, (n, 1)), rng.uniform(-0.3, 0.3, (n, band))],
+                           axis=1)
+        dense = np.diag(1.0 / L[:, 0])
+        for d in range(1, band + 1):
+            dense += np.diag(L[d:, d], -d)
+        return L, dense @ dense.T
+
+    (Lx, Mx), (Ly, My) = factor(nx), factor(ny)
+    local = np.arange(ny * nx, dtype=np.int64)
+    for nc in (1, 2, 3, 4):
+        r = rng.standard_normal((ny * nx, nc))
+        z = np.empty_like(r)
+        apply_kronecker(Lx, Ly, local, np.ones(ny * nx), np.empty((ny, nx, nc)), 2, r, z)
+        expected = np.linalg.solve(np.kron(My, Mx), r)
+        assert np.abs(z - expected).max() < 1e-10 * np.abs(expected).max(), nc
 
 
 def test_stale_fringe_factors_are_replaced_when_cg_fails():

@@ -35,7 +35,7 @@ import numpy as np
 from numba import njit, prange
 
 from .kronecker import apply_kronecker_replaced
-from .weights import FAST
+from .weights import FAST, IN_ORDER
 
 __all__ = ["fringe_rows", "FringePattern", "FringeFactor", "fringe_solve", "apply_corrected"]
 
@@ -122,17 +122,29 @@ class FringeFactor:
         if not (np.array_equal(L.indices[L.indptr[:-1]], diagonal) and
                 np.array_equal(U.indices[U.indptr[1:] - 1], diagonal)):
             raise RuntimeError("SuperLU factors without the stored diagonal fringe_solve reads")
-        self.L = (L.indptr.astype(np.int64), L.indices.astype(np.int64), L.data)
-        self.U = (U.indptr.astype(np.int64), U.indices.astype(np.int64), U.data)
         self.inv_udiag = 1.0 / U.data[U.indptr[1:] - 1]  # the diagonal ends each column
+        # by rows, without the diagonals (fringe_solve): L's strictly lower
+        # and U's strictly upper entries, each row's columns ascending
+        self.L = self._rows(L.tocsr(), lambda i, j: j < i)
+        self.U = self._rows(U.tocsr(), lambda i, j: j > i)
         self.perm_r = lu.perm_r.astype(np.int64)
         self.perm_c = lu.perm_c.astype(np.int64)
+
+    @staticmethod
+    def _rows(T, keep):
+        """(indptr, indices, data) of the CSR matrix T's entries (i, j) that
+        ``keep``, each row's columns ascending."""
+        T.sort_indices()
+        i = np.repeat(np.arange(T.shape[0]), np.diff(T.indptr))
+        kept = keep(i, T.indices)
+        indptr = np.concatenate(([0], np.cumsum(np.bincount(i[kept], minlength=T.shape[0]))))
+        return indptr.astype(np.int64), T.indices[kept].astype(np.int64), T.data[kept]
 
     def args(self, nc):
         """The arguments of :func:`apply_corrected` after the Kronecker ones:
         fringe and near rows, the near rows' columns in the fringe, L and U
-        (CSC), 1 / U_jj, the permutations and work space for ``nc``
-        right-hand sides."""
+        by rows without their diagonals (CSR), 1 / U_jj, the permutations
+        and work space for ``nc`` right-hand sides."""
         nf = self.pattern.fringe.size
         return (self.pattern.fringe, self.pattern.near, self.pattern.near_cols, *self.L,
                 *self.U, self.inv_udiag, self.perm_r, self.perm_c, np.empty((nf, nc)),
@@ -140,55 +152,96 @@ class FringeFactor:
                 np.empty((self.pattern.near.size, nc)))
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _column_update(y, j, lo, hi, rows, values):
-    """y[rows[q], :] -= values[q] y[j, :] for q in lo..hi-1 (y's columns: one
-    thread's right-hand sides; two in the common case of two 2D problems)."""
-    nc = y.shape[1]
-    if nc == 2:
-        y0 = y[j, 0]
-        y1 = y[j, 1]
-        for q in range(lo, hi):
-            v = values[q]
-            i = rows[q]
-            y[i, 0] -= v * y0
-            y[i, 1] -= v * y1
-    else:
-        for q in range(lo, hi):
-            v = values[q]
-            i = rows[q]
-            for c in range(nc):
-                y[i, c] -= v * y[j, c]
+@njit(cache=True, inline="always", error_model="numpy", fastmath=IN_ORDER)
+def _solve_4(Lp, Li, Lx, Up, Ui, Ux, inv_udiag, y):
+    """y = U^-1 L^-1 y for the four columns of y (see fringe_solve), row by
+    row, each row's sums in registers."""
+    n = y.shape[0]
+    for i in range(n):
+        s0, s1, s2, s3 = y[i, 0], y[i, 1], y[i, 2], y[i, 3]
+        for q in range(Lp[i], Lp[i + 1]):
+            v = Lx[q]
+            j = Li[q]
+            s0 -= v * y[j, 0]
+            s1 -= v * y[j, 1]
+            s2 -= v * y[j, 2]
+            s3 -= v * y[j, 3]
+        y[i, 0], y[i, 1], y[i, 2], y[i, 3] = s0, s1, s2, s3
+    for i in range(n - 1, -1, -1):
+        s0, s1, s2, s3 = y[i, 0], y[i, 1], y[i, 2], y[i, 3]
+        for q in range(Up[i + 1] - 1, Up[i] - 1, -1):
+            v = Ux[q]
+            j = Ui[q]
+            s0 -= v * y[j, 0]
+            s1 -= v * y[j, 1]
+            s2 -= v * y[j, 2]
+            s3 -= v * y[j, 3]
+        d = inv_udiag[i]
+        y[i, 0], y[i, 1], y[i, 2], y[i, 3] = s0 * d, s1 * d, s2 * d, s3 * d
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def fringe_solve(Lp, Li, Lx, Up, Ui, Ux, inv_udiag, perm_r, perm_c, y, b, x):
-    """x = M_FF^-1 b from SuperLU's factors Pr M_FF Pc = L U (CSC, L with a
-    unit diagonal stored first in each column, U's diagonal last, its
-    inverse in ``inv_udiag``): y = Pr b, y = L^-1 y, y = U^-1 y, x = Pc y.
-    Column-oriented (each column of L (U) updates the rows below (above)
-    it). Two threads split the right-hand sides, each in its own work
-    array y[t] (n, ceil(nc / 2)) (sharing one would put both threads'
-    values in the same cache lines)."""
+@njit(cache=True, inline="always", error_model="numpy", fastmath=IN_ORDER)
+def _solve_2(Lp, Li, Lx, Up, Ui, Ux, inv_udiag, y):
+    """:func:`_solve_4` for the two columns of y."""
+    n = y.shape[0]
+    for i in range(n):
+        s0, s1 = y[i, 0], y[i, 1]
+        for q in range(Lp[i], Lp[i + 1]):
+            v = Lx[q]
+            j = Li[q]
+            s0 -= v * y[j, 0]
+            s1 -= v * y[j, 1]
+        y[i, 0], y[i, 1] = s0, s1
+    for i in range(n - 1, -1, -1):
+        s0, s1 = y[i, 0], y[i, 1]
+        for q in range(Up[i + 1] - 1, Up[i] - 1, -1):
+            v = Ux[q]
+            j = Ui[q]
+            s0 -= v * y[j, 0]
+            s1 -= v * y[j, 1]
+        d = inv_udiag[i]
+        y[i, 0], y[i, 1] = s0 * d, s1 * d
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=IN_ORDER)
+def fringe_solve(Lp, Li, Lx, Up, Ui, Ux, inv_udiag, perm_r, perm_c, y, b, x, threads=1):
+    """x = M_FF^-1 b from SuperLU's factors Pr M_FF Pc = L U, L with a unit
+    diagonal: w = Pr b, w = L^-1 w, w = U^-1 w, x = Pc w. L and U by rows
+    without their diagonals (CSR, each row's columns ascending), 1 / U_ii
+    in ``inv_udiag``: row i of the forward solve subtracts L_ij w_j in
+    ascending j, row i of the backward one U_ij w_j in descending j, then
+    scales by 1 / U_ii, each row's sums in registers (compiled without
+    reassociation: every entry of w takes the operations of the column-
+    oriented solve in the same order, so either gives the same bits).
+    All right-hand sides in one pass over the factors (their rows' sums
+    are chains of dependent operations: four columns cost less than two
+    passes of two), in two halves of the columns, one a thread, when
+    there are three or more and ``threads`` (the run's thread blocks) is
+    2 or more. ``y`` is C-ordered work space of 2 n
+    ceil(nc / 2) entries or more (FringeFactor.args' (2, n, ceil(nc / 2)));
+    a block's unused fourth (second) column is zero and not read."""
     n, nc = b.shape
-    nt = min(2, nc)
-    for t in prange(nt):
-        c0 = t * nc // nt
-        c1 = (t + 1) * nc // nt
-        yt = y[t, :, :c1 - c0]
+    flat = y.reshape(y.size)
+    blocks = 2 if nc >= 3 and threads >= 2 else 1
+    lanes = 4 if nc >= 3 and blocks == 1 else 2
+    for t in prange(blocks):
+        c0 = t * nc // blocks
+        c1 = (t + 1) * nc // blocks
+        w = flat[t * n * lanes:(t + 1) * n * lanes].reshape((n, lanes))
         for i in range(n):
+            k = perm_r[i]
             for c in range(c0, c1):
-                yt[perm_r[i], c - c0] = b[i, c]
-        for j in range(n):
-            _column_update(yt, j, Lp[j] + 1, Lp[j + 1], Li, Lx)
-        for j in range(n - 1, -1, -1):
-            d = inv_udiag[j]
-            for c in range(c1 - c0):
-                yt[j, c] *= d
-            _column_update(yt, j, Up[j], Up[j + 1] - 1, Ui, Ux)
+                w[k, c - c0] = b[i, c]
+            for c in range(c1 - c0, lanes):
+                w[k, c] = 0.0
+        if lanes == 4:
+            _solve_4(Lp, Li, Lx, Up, Ui, Ux, inv_udiag, w)
+        else:
+            _solve_2(Lp, Li, Lx, Up, Ui, Ux, inv_udiag, w)
         for i in range(n):
+            k = perm_c[i]
             for c in range(c0, c1):
-                x[i, c] = yt[perm_c[i], c - c0]
+                x[i, c] = w[k, c - c0]
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
@@ -239,7 +292,7 @@ def apply_corrected(A, cols, Lx, Ly, local, inv_scale, box, nblocks, fringe, nea
     for k in range(nf):
         for c in range(nc):
             rf[k, c] = r[fringe[k], c]
-    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf[:nf])
+    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf[:nf], nblocks)
     for c in range(nc):
         zf[nf, c] = 0.0
     # z2 = z1 + P^-1 (r - M z1); M z1 is nonzero only on the rows near F
@@ -250,7 +303,7 @@ def apply_corrected(A, cols, Lx, Ly, local, inv_scale, box, nblocks, fringe, nea
             z[fringe[k], c] += zf[k, c]
     # z = z2 + R^T M_FF^-1 R (r - M z2)
     _residual_rows(A, cols, fringe, False, r, z, rf)
-    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf[:nf])
+    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf[:nf], nblocks)
     for k in range(nf):
         for c in range(nc):
             z[fringe[k], c] += zf[k, c]

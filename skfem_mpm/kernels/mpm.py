@@ -1715,7 +1715,7 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
     ``apply_kronecker`` before r, z, then a band factor and whether it
     replaces the Kronecker step, see ``apply_kron``), with the fringe correction of
     :mod:`skfem_mpm.kernels.fringe` unless ``fringe`` is None (else
-    ``FringeFactor.args``). Each combination compiles separately, and only
+    ``FringeFactor.args``: L and U by rows). Each combination compiles separately, and only
     when used (see ``_precondition``).
     ``work`` holds six arrays shaped like b. Returns the iterations, negated
     when a column ended above its tolerance (the iteration limit, or a

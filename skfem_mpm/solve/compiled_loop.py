@@ -67,9 +67,9 @@ import numpy as np
 from numba.core.typing.typeof import Purpose
 
 from ..kernels import (band_factor, bbar, by_symbol, cell_integrals, cholesky, constitutive,
-                       gauss_rule, grid_modifiers, kronecker, merged_mass, mls, mpm, scatter,
-                       spline_1d, spline_2d, staging, step_size, tiny_mass, tls, traction,
-                       weights)
+                       fringe, gauss_rule, grid_modifiers, kronecker, merged_mass, mls, mpm,
+                       scatter, spline_1d, spline_2d, staging, step_size, tiny_mass, tls,
+                       traction, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
@@ -458,8 +458,8 @@ def loop_module(dim, parallel, window):
     # the operations' callees are not tracked by numba's cache: their
     # sources go into the file's name (kernels.generated.load hashes it)
     depends = "".join(inspect.getsource(m) for m in (
-        schemes, mpm, scatter, kronecker, band_factor, tiny_mass, merged_mass, staging, gauss_rule,
-        spline_1d, spline_2d, tls, mls, cholesky, weights, traction, constitutive,
+        schemes, mpm, scatter, kronecker, fringe, band_factor, tiny_mass, merged_mass, staging,
+        gauss_rule, spline_1d, spline_2d, tls, mls, cholesky, weights, traction, constitutive,
         grid_modifiers, bbar, by_symbol, step_size))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
