@@ -6,13 +6,15 @@ observed order between consecutive grids, log2(e_h / e_(h/2)) (the grids
 double). Errors are each benchmark's primary error relative to the exact
 displacement amplitude (S1 small: RMS at t_end; S3 small and D2 small: as
 the study measures them). Mass is consistent throughout; cfl each
-scheme's default fraction of its own stable limit (0.7 for rk4, whose limit
+scheme's default fraction of its own stable limit (0.6 for rk4, whose limit
 is sqrt(2) times the central-difference one, 0.5 for the others; see
 skfem_mpm.solve.method.DEFAULT_CFL).
 
     python benchmarks/orders.py                      # every table
     python benchmarks/orders.py --tables cubic       # one table: cubic, quadratic, d2
     python benchmarks/orders.py --json runs.jsonl    # also the runs as JSON lines
+    python benchmarks/orders.py --ppc 3              # another particle count per cell
+    python benchmarks/orders.py --cases s3 --recons tls --schemes rk4   # a part of a table
     python benchmarks/orders.py --option frequency_guard=0   # a Method keyword for every run
 
 Tables:
@@ -125,6 +127,12 @@ def main():
                     help=f"comma-separated, of {', '.join(TABLES)}")
     ap.add_argument("--cells", default=None,
                     help="override the grids, e.g. 8,16 (comma-separated, each twice the last)")
+    ap.add_argument("--ppc", type=int, default=None,
+                    help="override the particles per cell (per axis in 2D)")
+    for key in ("cases", "recons", "schemes"):
+        ap.add_argument(f"--{key}", default=None,
+                        help=f"override the table's {key} (comma-separated, e.g. "
+                             f"{','.join(TABLES['cubic'][key])})")
     ap.add_argument("--json", default=None, help="also write every run as a JSON line here")
     ap.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                     help="a further Method keyword of every run, e.g. frequency_guard=0 "
@@ -146,6 +154,11 @@ def main():
             spec = dict(TABLES[n])
             if a.cells:
                 spec["cells"] = tuple(int(c) for c in a.cells.split(","))
+            if a.ppc:
+                spec["ppc"] = a.ppc
+            for key in ("cases", "recons", "schemes"):
+                if getattr(a, key):
+                    spec[key] = tuple(getattr(a, key).split(","))
             print(table(n, spec, out, options) + "\n", flush=True)
     finally:
         if out is not None:

@@ -6,7 +6,7 @@ e = 1e-5, target 5) every method runs at every grid of its class: linear MPM
 (degree 1: lumped / consistent mass x musl / usl / cd, and hybrid musl) up
 to 1,024 cells, high order (degree 2 and 3, consistent mass, reconstruction
 none / spline / tls x cd / rk4, and lumped mass x cd / rk4) up to 128 cells
-(D2: 256 and 64 per axis); each scheme's default cfl (0.7 of rk4's own
+(D2: 256 and 64 per axis); each scheme's default cfl (0.6 of rk4's own
 limit, 0.5 of the others': skfem_mpm.solve.method.DEFAULT_CFL).
 S2 large (grid crossing, ``--cases s2``): the consistent high-order methods
 at 20-160 cells, errors against the same-model reference, no target.

@@ -7,7 +7,7 @@ from skfem import asm
 
 from skfem_mpm import Method, SplineGrid, simulate
 from skfem_mpm.benchmarks import get_benchmark
-from skfem_mpm.solve.timestep import (_mass, _stiffness, covered_weights, fast_dof_weights,
+from skfem_mpm.solve.timestep import (_mass, _stiffness, covered_stiffness, fast_dof_weights,
                                       full_grid_mass_ratios, full_grid_quotients,
                                       interior_rayleigh_quotient, tail_weight)
 
@@ -64,8 +64,96 @@ def test_a_dof_its_particles_see_only_at_the_tail_gets_the_first_functions_weigh
         p = Particles.seed(grid, 2, 1.0, region=(region,))
         N = transfer_matrices(grid, p.x)[0].tocsr()
         lumped, diagonal = N.T @ p.m, N.multiply(N).T @ p.m
-        scale, addend = covered_weights(w, mu, lumped, diagonal, tail_weight(3))
-        assert np.all(addend == 0.0)  # 1D: no covered axis to put back
+        ones = np.ones(grid.ndofs)  # 1D: F = 0, no covered axis to put back
+        scale = covered_stiffness(ones, diagonal, lumped, w, mu, ones, tail_weight(3), 0.0,
+                                  np.inf, 3, grid.basis_per_axis)  # (no dof near a lumped one)
         expected = w[-2] if relaxed else tail_weight(3)  # 0.93: tau = 0.16 at dof -2
         assert scale[-2] == pytest.approx(expected, rel=1e-6), (region, scale[-2], w[-2])
         assert scale[1] == pytest.approx(w[1], rel=1e-6)  # the left end stays covered
+
+
+@pytest.mark.parametrize("dim, p", [(1, 3), (2, 2), (3, 1)])
+def test_the_particle_coverage_kernel_is_its_numpy_twin(dim, p):
+    """Kernels.particle_coverage (kernels.mpm.particle_coverage and
+    reduce_coverage: K = sum m |grad N|^2, D = sum m N^2, m = sum m N per
+    dof) against steps.particle_coverage on the transfer matrices, to
+    1e-12, on uniform (interior cells: the closed form) and graded axes
+    (Bezier extraction) with particles in part of the grid (the serial
+    copies other default tests compile: one type for every dim and p)."""
+    from types import SimpleNamespace
+
+    from skfem_mpm.kernels.mpm import Kernels
+    from skfem_mpm.solve.steps import particle_coverage
+
+
+    rng = np.random.default_rng(7)
+    axes = [np.linspace(0.0, 1.0, 13), np.array([0.0, 0.2, 0.45, 0.7, 1.0]),
+            np.linspace(0.0, 1.0, 4)][:dim]
+    grid = SplineGrid(tuple(axes), p)
+    x = rng.uniform(0.05, 0.8, (300, dim))
+    m = rng.uniform(0.5, 2.0, 300)
+    out = Kernels(grid, parallel=False).particle_coverage(SimpleNamespace(x=x, m=m))
+    from skfem_mpm.quadrature import transfer_matrices
+
+    N, G = transfer_matrices(grid, x)
+    twin = particle_coverage(SimpleNamespace(N=N.tocsr(), grad_N=[g.tocsr() for g in G],
+                                             to_grid=lambda a: N.T @ a), m)
+    for row, expected in zip(out, twin):
+        assert np.abs(row - expected).max() <= 1e-12 * np.abs(expected).max()
+    assert np.all(out[2] == 0.0) == np.all(twin[2] == 0.0) and np.any(out[2] == 0.0)
+
+
+def test_the_guard_kernel_is_its_numpy_twin():
+    """kernels.mpm.covered_stiffness (its serial copy, which other default
+    tests compile) against timestep.covered_stiffness, bit for bit, on
+    covered, tail and unseen dofs (D = 0: inf where the dof moves, 0 where
+    it never does)."""
+    from skfem_mpm.kernels import mpm
+    from skfem_mpm.kernels.serial import for_threads
+    from skfem_mpm.solve.timestep import COVERED
+
+    kernel = for_threads(mpm.covered_stiffness, False)  # the copy small runs call
+
+    rng = np.random.default_rng(5)
+    shape = (20, 20)  # 400 dofs on a quadratic 2D grid's layout
+    n = 400
+    lumped = rng.uniform(0.1, 1.0, n)
+    mu = rng.uniform(0.3, 0.6, n)
+    diagonal = lumped * mu * rng.uniform(0.0, 1.2, n)  # tau from 0 to 1.2
+    diagonal[::17] = 0.0
+    moving = np.where(rng.uniform(size=n) < 0.2, 0.0, 1.0)
+    K, w = rng.uniform(0.0, 5.0, n), rng.uniform(0.1, 1.0, n)
+    out = np.empty(n)
+    tailed = covered_stiffness(K, diagonal, lumped, w, mu, moving, tail_weight(3), 2.5, np.inf,
+                               2, shape)  # (no dof lumped: nothing withdrawn)
+    seen = (diagonal > 0) & (moving > 0)
+    # a limit that lumps ~3% of the dofs (r = k / (limit D) > 1/2), some partly:
+    # the withdrawal reaches p = 2 indices from each, a box of 5 x 5
+    limit = 2.0 * np.quantile(tailed[seen] / diagonal[seen], 0.97)
+    kernel(K, diagonal, lumped, w, mu, moving, *COVERED, tail_weight(3), 2.5, limit, 2, *shape,
+           np.empty((2, n)), out)
+    expected = covered_stiffness(K, diagonal, lumped, w, mu, moving, tail_weight(3), 2.5, limit,
+                                 2, shape)
+    assert np.array_equal(out, expected)
+    plain = covered_stiffness(K, diagonal, lumped, w, mu, moving, 1.0, 0.0, limit, 2, shape)
+    assert np.any(out != tailed) and np.any(out == tailed) and np.any(out == plain)
+    assert np.any((out != tailed) & (out != plain))  # partly withdrawn
+    assert np.isinf(out[(diagonal == 0) & (moving > 0)]).all()
+    assert np.all(out[moving == 0] == 0.0)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_a_bar_ending_at_a_knot_trips_no_guard_with_a_reconstruction(backend):
+    """S3 small (cubic, 2 particles per cell, spline, consistent mass, rk4,
+    the default cfl; the variant test_compiled_loop compiles): the last
+    function, which the bar covers over one cell of its support, is a
+    tail weighed as the open knot vector's first function (r = 0.25 from
+    the particles' own sums), so the guard lumps nothing and the run equals
+    the one without the guard. With weight 1 on tails (the plain limit) it
+    lumped that dof (r = 2.25) and the error grew 400-fold."""
+    b = get_benchmark("traction-bar", "small")
+    scene = b.scene(8, 3, 2, t_end=0.04)
+    runs = [simulate(scene, Method(scheme="rk4", mass="consistent", reconstruction="spline",
+                                   backend=backend, frequency_guard=g)) for g in (1.0, 0.0)]
+    assert runs[0].counts["steps"] >= 10
+    assert np.array_equal(runs[0].particles.u, runs[1].particles.u)

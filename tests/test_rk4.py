@@ -77,9 +77,9 @@ def test_rk4_with_spline_reconstruction_reaches_fourth_order_in_space():
     """S1 small, cubic + spline reconstruction, consistent mass, 2 particles
     per cell: the error falls >= 2^3.5 from 8 to 16 cells (measured 2.45e-5
     -> 6.76e-7, order 5.2; CD on the same runs: 2.9e-4 -> 7.2e-5, 2.0), at
-    rk4's default cfl 0.7 (the same errors as at 0.5 in 28 steps instead of
-    39; above 1 / sqrt(2) the fast-dof guard lumps every interior row a
-    little, and at 0.75 the error is 1.3e-4 at 16 cells: see
+    rk4's default cfl 0.6 (the same errors as at 0.5 in fewer steps; above
+    1 / sqrt(2) the fast-dof guard lumps every interior row a little, and
+    at 0.75 the error is 1.3e-4 at 16 cells: see
     skfem_mpm.solve.method.DEFAULT_CFL)."""
     b = get_benchmark("vibrating-string", "small")
     errors = [b.errors(simulate(b.scene(cells, 3, 2), Method(
@@ -90,21 +90,18 @@ def test_rk4_with_spline_reconstruction_reaches_fourth_order_in_space():
 
 @pytest.mark.slow(reason="a convergence study (its loop run types compile for it alone)")
 @pytest.mark.parametrize("backend", ["numpy", "numba"])
-def test_rk4_with_spline_reconstruction_reaches_fourth_order_on_the_traction_bar(backend,
-                                                                                monkeypatch):
+def test_rk4_with_spline_reconstruction_reaches_fourth_order_on_the_traction_bar(backend):
     """S3 small (free end at a knot, dynamic end traction), cubic + spline,
-    consistent mass, 2 particles per cell, default cfl (0.7), the guard's tail
-    rule: order >= 3.5 from 8 to 16 cells (measured 1.249e-5 -> 5.26e-7,
-    order 4.57; at cfl 0.5 1.229e-5 -> 5.055e-7, order 4.60, the same as
-    with the guard off). With the plain limit on the end
-    dof, which the bar covers over one cell of its support only (weight 1,
-    r = 2.25 against the threshold 1/2), the guard lumped it and the error
-    stayed at 5.2e-3 at 8 cells; that tail is now weighed as the open knot
-    vector's first function (skfem_mpm.solve.timestep.tail_weight, with
-    TAIL_RULE, off by default: see covered_parameters), r = 0.25. ~15 s."""
-    from skfem_mpm.solve import prepare, timestep
-
-    monkeypatch.setattr(timestep, "TAIL_RULE", True)
+    consistent mass, 2 particles per cell, default cfl (0.6): order >= 3.5
+    from 8 to 16 cells (measured 1.230e-5 -> 5.136e-7, order 4.58; at cfl
+    0.5 1.229e-5 -> 5.055e-7; the same as with the guard off; at 0.65 the
+    guard lumps the end row: 2.7e-4). With the plain limit on the end dof, which
+    the bar covers over one cell of its support only (weight 1, r = 2.25
+    against the threshold 1/2), the guard lumped it and the error stayed at
+    5.2e-3 at 8 cells; that tail is now weighed as the open knot vector's
+    first function (skfem_mpm.solve.timestep.tail_weight), r = 0.25,
+    measured with the particles' own sums (covered_stiffness). ~15 s."""
+    from skfem_mpm.solve import prepare
 
     b = get_benchmark("traction-bar", "small")
     errors = []
@@ -118,15 +115,15 @@ def test_rk4_with_spline_reconstruction_reaches_fourth_order_on_the_traction_bar
 
 
 def test_each_scheme_takes_its_default_cfl_unless_one_is_given():
-    """rk4 0.7 of its own limit, the second-order schemes 0.5 (DEFAULT_CFL);
-    an explicit cfl wins; 0.7 is below 1 / sqrt(2), where the fast-dof
+    """rk4 0.6 of its own limit, the second-order schemes 0.5 (DEFAULT_CFL);
+    an explicit cfl wins; 0.6 is below 1 / sqrt(2), where the fast-dof
     guard starts lumping covered interior rows."""
     from skfem_mpm.solve.method import DEFAULT_CFL, SCHEMES
 
-    assert Method(scheme="rk4").cfl == DEFAULT_CFL["rk4"] == 0.7
+    assert Method(scheme="rk4").cfl == DEFAULT_CFL["rk4"] == 0.6
     assert [Method(scheme=s).cfl for s in SCHEMES if s != "rk4"] == [0.5] * (len(SCHEMES) - 1)
     assert Method(scheme="rk4", cfl=0.5).cfl == 0.5
-    assert Method(scheme="rk4").as_dict()["cfl"] == 0.7
+    assert Method(scheme="rk4").as_dict()["cfl"] == 0.6
     # a covered interior dof's guard ratio is cfl^2: the default leaves it unlumped
     from skfem_mpm.solve.timestep import lumping_fraction
 
@@ -278,7 +275,7 @@ def test_a_stage_that_inverts_a_particle_raises_with_the_last_good_state(backend
 def test_quadratic_grid_knot_spline_with_rk4_is_third_order_on_s1():
     """Issue 18's order target for degree 2: S1 small, quadratic,
     ``reconstruction="spline"`` with ``knots="grid"``, consistent mass,
-    8 particles per cell, rk4 at its default cfl 0.7: order >= 2.7 over
+    8 particles per cell, rk4 at its default cfl 0.6: order >= 2.7 over
     16-32-64 cells (measured 3.12e-5, 3.87e-6, 4.90e-7: orders 3.01, 2.98,
     as at cfl 0.5;
     the particle-knot spline 2.92, 2.69, tls 2.86, 2.56, CD with any of

@@ -454,6 +454,55 @@ def consistent_cells_2d(x, m, ncells, k, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, nb
         touched[t, 1] = last
 
 
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _tensor_point(x, i, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, nbx, nby, w, dw):
+    """The first of point i's (p + 1)^dim nodes, its axes' B-spline values
+    and derivatives in w[d], dw[d] (:func:`_axis`; dim = x.shape[1])."""
+    base = 0
+    stride = 1
+    for d in range(x.shape[1]):
+        if d == 0:
+            e = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
+        elif d == 1:
+            e = _axis(x[i, 1], b1, u1, ih1, C1, p, w[1], dw[1])
+        else:
+            e = _axis(x[i, 2], b2, u2, ih2, C2, p, w[2], dw[2])
+        base += e * stride
+        stride *= nbx if d == 0 else nby
+    return base
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _tensor_node(q, w, dw, p, nbx, nby, dim):
+    """(N_q, |grad N_q|^2, node offset, stencil slot offset) of node q of a
+    point's (p + 1)^dim nodes (see :func:`consistent_axes`)."""
+    width = 2 * p + 1
+    rest = q
+    value = 1.0
+    node = 0
+    offset = 0
+    stride = 1
+    power = 1
+    for d in range(dim):
+        a = rest % (p + 1)
+        rest //= p + 1
+        value *= w[d, a]
+        node += a * stride
+        offset += a * power
+        stride *= nbx if d == 0 else nby
+        power *= width
+    grad2 = 0.0
+    for c in range(dim):
+        rest = q
+        g = 1.0
+        for d in range(dim):
+            a = rest % (p + 1)
+            rest //= p + 1
+            g *= dw[d, a] if d == c else w[d, a]
+        grad2 += g * g
+    return value, grad2, node, offset
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def consistent_axes(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, nbx, nby,
                     mass_copies, stiff_copies, touched):
@@ -475,7 +524,6 @@ def consistent_axes(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, 
     n = x.shape[0]
     dim = x.shape[1]
     nt = mass_copies.shape[0]
-    width = 2 * p + 1
     nq = (p + 1) ** dim
     for t in prange(nt):
         M = mass_copies[t]
@@ -493,44 +541,13 @@ def consistent_axes(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, 
         hi = (t + 1) * n // nt
         for i in range(lo, hi):
             mi = m[i]
-            base = 0
-            stride = 1
-            for d in range(dim):
-                if d == 0:
-                    e = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
-                elif d == 1:
-                    e = _axis(x[i, 1], b1, u1, ih1, C1, p, w[1], dw[1])
-                else:
-                    e = _axis(x[i, 2], b2, u2, ih2, C2, p, w[2], dw[2])
-                base += e * stride
-                stride *= nbx if d == 0 else nby
+            base = _tensor_point(x, i, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p,
+                                 nbx, nby, w, dw)
             for q in range(nq):
-                rest = q
-                value = 1.0
-                node = 0
-                offset = 0
-                stride = 1
-                power = 1
-                for d in range(dim):
-                    a = rest % (p + 1)
-                    rest //= p + 1
-                    value *= w[d, a]
-                    node += a * stride
-                    offset += a * power
-                    stride *= nbx if d == 0 else nby
-                    power *= width
+                value, grad2, node, offset = _tensor_node(q, w, dw, p, nbx, nby, dim)
                 N[q] = value
                 dof[q] = base + node
                 slot[q] = offset
-                grad2 = 0.0
-                for c in range(dim):
-                    rest = q
-                    g = 1.0
-                    for d in range(dim):
-                        a = rest % (p + 1)
-                        rest //= p + 1
-                        g *= dw[d, a] if d == c else w[d, a]
-                    grad2 += g * g
                 K[base + node] += mi * grad2
             for q in range(nq):
                 k = dof[q]
@@ -803,6 +820,7 @@ class Kernels:
         self.nbx = grid.basis_per_axis[0]
         self._scratch = {}
         self._small = np.empty(grid.ndofs, dtype=np.bool_)
+        self._coverage = None  # particle_coverage's copies, touched ranges and sums
 
     def kernel(self, kernel):
         """``kernel`` as this run calls it: itself, or its serial copy."""
@@ -939,6 +957,21 @@ class Kernels:
         self.kernel(reduce_stencil)(self._stencil_copies, self._stiff_copies, touched, lo, hi,
                        *self.stencil_geometry, stencil, K)
         return stencil, K
+
+    def particle_coverage(self, particles):
+        """The fast-dof guard's coverage sums of ``particles`` (3, dofs):
+        rows K, D, m of :func:`particle_coverage`; reused by the next call."""
+        if self._coverage is None:
+            self._coverage = (np.zeros((self.nthreads, 3, self.ndofs)),
+                              np.zeros((self.nthreads, 2), dtype=np.int64),
+                              np.zeros((3, self.ndofs)))
+        copies, touched, out = self._coverage
+        axes = list(self.args) + [self.args[0]] * (3 - self.dim)
+        nby = self.grid.basis_per_axis[1] if self.dim > 1 else 1
+        self.kernel(particle_coverage)(particles.x, particles.m, *axes[0], *axes[1], *axes[2],
+                                       self.p, self.nbx, nby, copies, touched)
+        self.kernel(reduce_coverage)(copies, touched, out)
+        return out
 
     @property
     def stencil_geometry(self):
@@ -1157,36 +1190,208 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, near, A, cols, F, fco
         A[r, centre] = diag
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
-def covered_stiffness(stiffness, stencil, mass, weights, mass_ratios, moving, lo, hi, tail,
-                      floor, out):
-    """out_k = K_k (c_k moving_k) + a_k moving_k: the fast-dof guard's
-    stiffness of :func:`skfem_mpm.solve.timestep.covered_weights`,
-    c_k = tail + (w_k - tail) s_k, a_k = (1 - s_k) (1 - tail) floor M_kk,
-    s_k = smoothstep over (lo, hi) of tau_k = M_kk / (m_k mu_k), and zero on the dofs that never move (the
-    same operations as the NumPy function, so the same bits)."""
-    centre = (stencil.shape[1] - 1) // 2
-    for k in prange(mass.shape[0]):
-        diagonal = stencil[k, centre]
-        tau = diagonal / (max(mass[k], 1e-300) * mass_ratios[k])
-        s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
-        smooth = s * s * (3.0 - 2.0 * s)
-        w = tail + (weights[k] - tail) * smooth
-        a = (1.0 - smooth) * (1.0 - tail) * floor * diagonal
-        out[k] = stiffness[k] * (w * moving[k]) + a * moving[k]
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def particle_coverage(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, nbx, nby,
+                      copies, touched):
+    """The fast-dof guard's coverage sums of the particles, per dof k:
+    K_k = sum_p m_p |grad N_k(x_p)|^2, D_k = sum_p m_p N_k(x_p)^2 and
+    m_k = sum_p m_p N_k(x_p) (rows 0, 1, 2), into per-thread copies
+    (threads, 3, dofs) over the node ranges each thread's particle block
+    touches (``touched``, as the scatter kernels); :func:`reduce_coverage`
+    sums them. The axes as :func:`consistent_axes` takes them (those from
+    dim = x.shape[1] on are not read), N_k and grad N_k as it forms them.
+    The NumPy twin: :func:`skfem_mpm.solve.steps.particle_coverage`."""
+    n = x.shape[0]
+    dim = x.shape[1]
+    nt = copies.shape[0]
+    nq = (p + 1) ** dim
+    for t in prange(nt):
+        g = copies[t]
+        g[:, touched[t, 0]:touched[t, 1]] = 0.0
+        first = g.shape[1]
+        last = 0
+        w = np.zeros((3, 4))
+        dw = np.zeros((3, 4))
+        lo = t * n // nt
+        hi = (t + 1) * n // nt
+        if dim == 1:  # interior cells in registers (closed_axis_functions), as consistent_1d
+            x0, ncx = b0[0], b0.shape[0] - 1
+            for i in range(lo, hi):
+                mi = m[i]
+                closed, base, v0, v1, v2, v3, d0, d1, d2, d3 = closed_axis_functions(
+                    x[i, 0], x0, ncx, u0, ih0, p)
+                if not closed:
+                    base = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
+                    v0, v1, v2, v3 = w[0, 0], w[0, 1], w[0, 2], w[0, 3]
+                    d0, d1, d2, d3 = dw[0, 0], dw[0, 1], dw[0, 2], dw[0, 3]
+                mv = mi * v0
+                g[0, base] += mi * (d0 * d0)
+                g[1, base] += mv * v0
+                g[2, base] += mv
+                mv = mi * v1
+                g[0, base + 1] += mi * (d1 * d1)
+                g[1, base + 1] += mv * v1
+                g[2, base + 1] += mv
+                if p >= 2:
+                    mv = mi * v2
+                    g[0, base + 2] += mi * (d2 * d2)
+                    g[1, base + 2] += mv * v2
+                    g[2, base + 2] += mv
+                if p >= 3:
+                    mv = mi * v3
+                    g[0, base + 3] += mi * (d3 * d3)
+                    g[1, base + 3] += mv * v3
+                    g[2, base + 3] += mv
+                first = min(first, base)
+                last = max(last, base + p + 1)
+        elif dim == 2:  # written out: no digit arithmetic per node
+            x0, ncx, y0, ncy = b0[0], b0.shape[0] - 1, b1[0], b1.shape[0] - 1
+            for i in range(lo, hi):
+                mi = m[i]
+                closed, ex, w00, w01, w02, w03, g00, g01, g02, g03 = closed_axis_functions(
+                    x[i, 0], x0, ncx, u0, ih0, p)
+                if not closed:
+                    ex = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
+                    w00, w01, w02, w03 = w[0, 0], w[0, 1], w[0, 2], w[0, 3]
+                    g00, g01, g02, g03 = dw[0, 0], dw[0, 1], dw[0, 2], dw[0, 3]
+                closed, ey, w10, w11, w12, w13, g10, g11, g12, g13 = closed_axis_functions(
+                    x[i, 1], y0, ncy, u1, ih1, p)
+                if not closed:
+                    ey = _axis(x[i, 1], b1, u1, ih1, C1, p, w[1], dw[1])
+                    w10, w11, w12, w13 = w[1, 0], w[1, 1], w[1, 2], w[1, 3]
+                    g10, g11, g12, g13 = dw[1, 0], dw[1, 1], dw[1, 2], dw[1, 3]
+                base = ex + nbx * ey
+                for b in range(p + 1):
+                    wy = w10 if b == 0 else w11 if b == 1 else w12 if b == 2 else w13
+                    dy = g10 if b == 0 else g11 if b == 1 else g12 if b == 2 else g13
+                    row = base + b * nbx
+                    for a in range(p + 1):
+                        wx = w00 if a == 0 else w01 if a == 1 else w02 if a == 2 else w03
+                        dx = g00 if a == 0 else g01 if a == 1 else g02 if a == 2 else g03
+                        value = wx * wy
+                        gx = dx * wy
+                        gy = wx * dy
+                        mv = mi * value
+                        g[0, row + a] += mi * (gx * gx + gy * gy)
+                        g[1, row + a] += mv * value
+                        g[2, row + a] += mv
+                first = min(first, base)
+                last = max(last, base + p * nbx + p + 1)
+        else:
+            for i in range(lo, hi):
+                mi = m[i]
+                base = _tensor_point(x, i, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2,
+                                     p, nbx, nby, w, dw)
+                node = 0
+                for q in range(nq):
+                    value, grad2, node, _ = _tensor_node(q, w, dw, p, nbx, nby, dim)
+                    mv = mi * value
+                    g[0, base + node] += mi * grad2
+                    g[1, base + node] += mv * value
+                    g[2, base + node] += mv
+                first = min(first, base)
+                last = max(last, base + node + 1)
+        touched[t, 0] = first
+        touched[t, 1] = last
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def fast_row_fractions(stiffness, stencil, mass, limit, out):
-    """out_k = theta(K_k / (limit M_kk)) on dofs with mass, 0 on the others:
-    the fast-row lumping fractions of :func:`skfem_mpm.solve.timestep.lumping_fraction`
-    (theta(q) = smoothstep(2 q - 1)) in one pass; returns their count > 0."""
-    centre = (stencil.shape[1] - 1) // 2
+def reduce_coverage(copies, touched, out):
+    """out (3, dofs) = the sum of :func:`particle_coverage`'s per-thread
+    copies (zero outside every touched range)."""
+    nt, nc, nk = copies.shape
+    for r in prange(nt):
+        cuts, threads, counts = holders(touched, r * nk // nt, (r + 1) * nk // nt)
+        for j in range(cuts.shape[0] - 1):
+            count = counts[j]
+            for k in range(cuts[j], cuts[j + 1]):
+                for c in range(nc):
+                    s = 0.0
+                    for i in range(count):
+                        s += copies[threads[j, i], c, k]
+                    out[c, k] = s
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def covered_stiffness(stiffness, diagonal, mass, weights, mass_ratios, moving, lo, hi, tail,
+                      floor, limit, p, nbx, nby, work, out):
+    """out_k: the fast-dof guard's stiffness of
+    :func:`skfem_mpm.solve.timestep.covered_stiffness` (the same operations,
+    so the same bits). With the tail weight, T_k = K_k (c_k moving_k) +
+    a_k moving_k, c_k = tail + (w_k - tail) s_k, a_k = (1 - s_k) (1 - tail)
+    floor D_k, s_k = smoothstep over (lo, hi) of tau_k = D_k / (m_k mu_k)
+    (K, D = M_kk and m the particles' coverage sums,
+    :func:`particle_coverage`); without it (the plain limit)
+    P_k = K_k (c'_k moving_k), c'_k = 1 + (w_k - 1) s_k; the tail weight
+    withdrawn near a cut cell: out_k = T_k + b_k (P_k - T_k), b_k the
+    largest theta_j = smoothstep(2 T_j / (limit D_j) - 1) over the dofs j
+    within p indices of k per axis (theta_j = 0 where D_j = 0). inf on a moving dof no
+    particle sees (D_k = 0), zero on the dofs that never move. ``work``
+    (2, dofs): the theta_j and their running maxima (nbx, nby the dofs per
+    axis; nbx = dofs in 1D, nby = 1 in 1D)."""
+    nd = mass.shape[0]
+    x = work[0]
+    for k in prange(nd):
+        d = diagonal[k]
+        tau = d / (max(mass[k], 1e-300) * mass_ratios[k])
+        s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
+        smooth = s * s * (3.0 - 2.0 * s)
+        w = tail + (weights[k] - tail) * smooth
+        a = (1.0 - smooth) * (1.0 - tail) * floor * d
+        if d > 0.0:
+            seen = stiffness[k] * (w * moving[k]) + a * moving[k]
+            out[k] = seen
+            r = min(max(2.0 * (seen / (limit * d)) - 1.0, 0.0), 1.0)
+            x[k] = r * r * (3.0 - 2.0 * r)
+        else:
+            out[k] = np.inf if moving[k] > 0.0 else 0.0
+            x[k] = 0.0
+    _box_max(work, p, nbx, nby)
+    b = work[0]
+    for k in prange(nd):
+        d = diagonal[k]
+        if d > 0.0 and b[k] > 0.0:
+            tau = d / (max(mass[k], 1e-300) * mass_ratios[k])
+            s = min(max((tau - lo) / (hi - lo), 0.0), 1.0)
+            smooth = s * s * (3.0 - 2.0 * s)
+            plain = stiffness[k] * ((1.0 + (weights[k] - 1.0) * smooth) * moving[k])
+            out[k] = out[k] + b[k] * (plain - out[k])
+
+
+@njit(cache=True, error_model="numpy")
+def _box_max(work, p, nbx, nby):
+    """work[0]_k <- the largest work[0]_j over the dofs j within p indices
+    of k per axis (x fastest; nbz = dofs / (nbx nby)), one axis at a time
+    through work[1]."""
+    nd = work.shape[1]
+    nbz = nd // (nbx * nby)
+    src, dst = work[0], work[1]
+    for axis in range(3):
+        n, stride = (nbx, 1) if axis == 0 else ((nby, nbx) if axis == 1 else (nbz, nbx * nby))
+        if n == 1:
+            continue
+        for k in range(nd):
+            i = (k // stride) % n
+            v = src[k]
+            for o in range(max(i - p, 0) - i, min(i + p, n - 1) - i + 1):
+                v = max(v, src[k + o * stride])
+            dst[k] = v
+        for k in range(nd):
+            src[k] = dst[k]
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def fast_row_fractions(stiffness, diagonal, mass, limit, out):
+    """out_k = theta(k_k / (limit D_k)) on dofs with ``mass``, 0 on the
+    others: the fast-row lumping fractions of
+    :func:`skfem_mpm.solve.timestep.lumping_fraction` (theta(q) =
+    smoothstep(2 q - 1); k the guard's stiffness, D the diagonal it was
+    formed with) in one pass; returns their count > 0."""
     count = 0
     for k in prange(mass.shape[0]):
         theta = 0.0
         if mass[k] > 0.0:
-            q = stiffness[k] / (limit * max(stencil[k, centre], 1e-300))
+            q = stiffness[k] / (limit * max(diagonal[k], 1e-300))
             t = min(max(2.0 * q - 1.0, 0.0), 1.0)
             theta = t * t * (3.0 - 2.0 * t)
         out[k] = theta

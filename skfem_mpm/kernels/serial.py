@@ -32,7 +32,7 @@ SERIAL_BELOW = 4096
 # the modules whose parallel kernels get serial copies (the generated
 # transfer kernels are generated serial or parallel by their templates)
 _MODULES = ("mpm", "scatter", "kronecker", "band_factor", "tiny_mass", "constitutive", "staging",
-            "fringe", "fast_dof", "tls", "mls", "cell_integrals")
+            "fringe", "tls", "mls", "cell_integrals")
 _SKIPPED_NAMES = ("np", "njit", "prange", "FAST", "IN_ORDER", "overload", "len")
 # helpers the serial copies call as functions compiled without numba's
 # runtime (no reference counts; they allocate nothing): inlined into a
@@ -41,7 +41,7 @@ _SKIPPED_NAMES = ("np", "njit", "prange", "FAST", "IN_ORDER", "overload", "len")
 # consistent_2d's time on a 16 x 16 grid, where a quarter of the particles
 # per axis sit in boundary cells). The parallel kernels keep the inlined
 # helpers: there they cost nothing and the call would cost.
-_NO_RUNTIME = ("_axis",)
+_NO_RUNTIME = ("_axis", "_tensor_point")
 
 
 def _is_kernel(value):

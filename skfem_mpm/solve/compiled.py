@@ -19,7 +19,8 @@ this executor fuses them into few kernels:
     update_stress                the materials' update (nothing when fused)
 
 Consistent mass: a kernel assembles M into a fixed stencil pattern (and the
-per-dof stiffness weights of the fast-dof guard); :class:`StencilSystem`
+per-dof stiffness weights of the fast-dof guard; with a reconstruction the
+guard's sums are the particles', Kernels.particle_coverage); :class:`StencilSystem`
 solves it by conjugate gradients, or the grid system of
 :mod:`skfem_mpm.solve.grid_system` by sparse LU. Hybrid mass: the same
 system solves the velocities (no fast-dof guard), the lumped solve the
@@ -47,7 +48,6 @@ from ..kernels.bbar import average_dilatation
 from ..kernels.constitutive import material_update
 from ..kernels.records import grid_record
 from ..kernels import serial
-from ..kernels.fast_dof import limit_by_effective_mass
 from ..kernels.mpm import Kernels, covered_stiffness, fast_row_fractions
 from ..kernels.pages import lazy_zeros
 from ..kernels.step_size import guard_limit
@@ -61,7 +61,7 @@ from .compiled_modifiers import CompiledModifiers
 from .compiled_runge_kutta import CompiledRungeKutta
 from .grid_system import GridSystem
 from .stencil_system import StencilSystem
-from .timestep import covered_parameters, effective_mass_ratio, fast_dof_limit, lumping_fraction
+from .timestep import covered_parameters, fast_dof_limit, lumping_fraction
 
 __all__ = ["compiled_executor_applies", "CompiledExecutor", "side_traction"]
 
@@ -124,6 +124,7 @@ class CompiledGrid:
         self.L = None
         self.outside = -1               # first particle outside the grid, or -1
         self.projection = None          # reconstruction: what the MUSL re-projection reuses
+        self.coverage = None            # reconstruction: the particles' guard sums (3, dofs)
 
 
 class CompiledExecutor(CompiledRungeKutta):
@@ -338,13 +339,16 @@ class CompiledExecutor(CompiledRungeKutta):
             self._L = np.empty((p.n, p.dim, p.dim)) if not self.fused else np.empty((1, 1, 1))
         return self._acc, self._L
 
-    def _consistent_system(self, state, mass, stencil, K, small):
+    def _consistent_system(self, state, mass, stencil, K, small, coverage=None):
         """The step's consistent-mass system: compiled stencil CG (with
         tiny-mass dofs, ``small`` > 0, on the merged system), or the general
         grid system (sparse LU with ``mass_solver="direct"``, and when a
         merged row outgrows the compiled merge's lists); ``small`` counts
         the tiny-mass dofs. No fast-dof guard for hybrid mass (it guards a
-        consistent-mass acceleration)."""
+        consistent-mass acceleration). The guard's coverage sums are the
+        particles' (K, D, m): ``coverage`` (3, dofs) with a reconstruction
+        (Kernels.particle_coverage), else ``K``, the stencil's diagonal and
+        ``mass``, which are the particles' own."""
         guard = 0.0 if state.method.mass == "hybrid" else state.method.frequency_guard
         limit = None
         if guard > 0:
@@ -355,20 +359,22 @@ class CompiledExecutor(CompiledRungeKutta):
                 weights, ratios, moving = state.fast_dof_guard_arrays()  # scalars): the run's
                 self._guard_arrays = (weights, ratios, moving.astype(np.float64),
                                       *covered_parameters(state.grid))
-            self.kernels.kernel(covered_stiffness)(K, stencil, mass, *self._guard_arrays,
-                                                   guarded)
-            grid = state.grid
-            nbx, nby = (grid.ndofs, 1) if grid.dim == 1 else tuple(grid.basis_per_axis[:2])
-            self.kernels.kernel(limit_by_effective_mass)(
-                guarded, K, stencil, mass, limit, effective_mass_ratio(grid.degree),
-                grid.degree, nbx, nby, grid.dim)
-            K = guarded
+            if coverage is None:
+                diagonal = self.kernels.scratch("guard_diagonal", mass.size)
+                diagonal[:] = stencil[:, (stencil.shape[1] - 1) // 2]
+                coverage = (K, diagonal, mass)
+            K, diagonal = guarded, coverage[1]
+            p, nbx, nby, _ = self.kernels.stencil_geometry
+            self.kernels.kernel(covered_stiffness)(coverage[0], diagonal, coverage[2],
+                                                   *self._guard_arrays, limit, p, nbx, nby,
+                                                   self.kernels.scratch("guard_near",
+                                                                        (2, K.size)), guarded)
         fast_rows = None if limit is None else (
-            lambda diag: lumping_fraction(K / (limit * np.maximum(diag, 1e-300))))
+            lambda _: lumping_fraction(K / (limit * np.maximum(diagonal, 1e-300))))
         if self._use_cg(state):
             fast = self.kernels.scratch("fast_rows", mass.size)
             if limit is not None:  # fast_rows of the dofs with mass, in one kernel
-                self.kernels.kernel(fast_row_fractions)(K, stencil, mass, limit, fast)
+                self.kernels.kernel(fast_row_fractions)(K, diagonal, mass, limit, fast)
             else:
                 fast[:] = 0.0
             system = StencilSystem(self.kernels, stencil, mass, state.constraints, fast,
@@ -434,6 +440,10 @@ class CompiledExecutor(CompiledRungeKutta):
                 grid_force = g if grid_force is None else grid_force + g
         mass, momentum, force, stencil, projection = self.recon.to_grid(state, p, volume)
         grid = CompiledGrid(mass, momentum, force, stencil, work_forces, grid_force)
+        if stencil is not None and state.method.mass != "hybrid" and \
+                state.method.frequency_guard > 0:  # the guard's coverage: the particles'
+            with state.timer("mass_matrix"):
+                grid.coverage = self.kernels.particle_coverage(p)
         grid.side_loads = self._side_loads
         grid.projection = projection
         return grid
@@ -452,7 +462,8 @@ class CompiledExecutor(CompiledRungeKutta):
                 self.kernels.transfers.occupy_all()  # nonzero beyond the particles' nodes
             if grid.stencil is not None:
                 small = self._small_dofs(state, grid.mass)
-                grid.system = self._consistent_system(state, grid.mass, *grid.stencil, small)
+                grid.system = self._consistent_system(state, grid.mass, *grid.stencil, small,
+                                                      grid.coverage)
                 grid.small = True  # solves go through the system
                 grid.hybrid = state.method.mass == "hybrid"
                 grid.lumped_small = small

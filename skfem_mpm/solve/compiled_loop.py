@@ -67,10 +67,9 @@ import numpy as np
 from numba.core.typing.typeof import Purpose
 
 from ..kernels import (band_factor, bbar, by_symbol, cell_integrals, cholesky, constitutive,
-                       fast_dof, fringe,
-                       gauss_rule, grid_modifiers, kronecker, merged_mass, mls, mpm, scatter,
-                       spline_1d, spline_2d, staging, step_size, tiny_mass, tls, traction,
-                       weights)
+                       fringe, gauss_rule, grid_modifiers, kronecker, merged_mass, mls, mpm,
+                       scatter, spline_1d, spline_2d, staging, step_size, tiny_mass, tls,
+                       traction, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
 from ..kernels.generated import load
@@ -85,7 +84,7 @@ from .compiled_loop_tables import ForceTable, PrescribedTable, TractionTable, re
 from ..kernels.fringe import FringePattern
 from .stencil_system import StencilSystem, stencil_residual
 from .timestep import (RECONSTRUCTION_EVERY, STABILITY_LIMIT, covered_parameters,
-                       effective_mass_ratio, fast_dof_limit, stiffness_root)
+                       fast_dof_limit, stiffness_root)
 
 __all__ = ["ENABLED", "StepLoop", "loop_applies", "precompile_mass"]
 
@@ -155,7 +154,8 @@ _GRID_KERNELS = {
     "LUMPED_REACH": mpm.lumped_reach,
     "FAST_ROW_FRACTIONS": mpm.fast_row_fractions,
     "COVERED_STIFFNESS": mpm.covered_stiffness,
-    "LIMIT_BY_EFFECTIVE_MASS": fast_dof.limit_by_effective_mass,
+    "PARTICLE_COVERAGE": mpm.particle_coverage,
+    "REDUCE_COVERAGE": mpm.reduce_coverage,
     "COMPACT_PROBLEM": mpm.compact_problem,
     "EXPAND_PROBLEM": mpm.expand_problem,
     "ELL_PCG": mpm.ell_pcg,
@@ -345,6 +345,15 @@ def _prelude(dim, parallel, window, variant):
                 3: "(b0, u0, ih0, C0), (b1, u1, ih1, C1), (b2, u2, ih2, C2) = axes\n"
                    "    CONSISTENT_AXES(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, "
                    "p, nbx, nby, copies, stiff, touched)"}[dim]
+    coverage = {1: "(b0, u0, ih0, C0), = axes\n"
+                   "    PARTICLE_COVERAGE(x, m, b0, u0, ih0, C0, b0, u0, ih0, C0, b0, u0, ih0, C0, "
+                   "p, nbx, nby, copies, touched)",
+                2: "(b0, u0, ih0, C0), (b1, u1, ih1, C1) = axes\n"
+                   "    PARTICLE_COVERAGE(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b0, u0, ih0, C0, "
+                   "p, nbx, nby, copies, touched)",
+                3: "(b0, u0, ih0, C0), (b1, u1, ih1, C1), (b2, u2, ih2, C2) = axes\n"
+                   "    PARTICLE_COVERAGE(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, "
+                   "p, nbx, nby, copies, touched)"}[dim]
     assemble_cells = ("(bx, ux, ihx, Cx), (by, uy, ihy, Cy) = axes\n"
                       "    CONSISTENT_CELLS_2D(x, m, cells, k, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, "
                       "nbx, copies, stiff, touched)" if dim == 2 else
@@ -400,6 +409,13 @@ def ASSEMBLE(x, m, axes, p, nbx, nby, copies, stiff, touched):
 
 
 @njit(cache=True)
+def COVERAGE(x, m, axes, p, nbx, nby, copies, touched):
+    """Per-thread copies of the particles' guard sums (kernels.mpm.particle_coverage;
+    the axes as Kernels.particle_coverage passes them)."""
+    {coverage}
+
+
+@njit(cache=True)
 def ASSEMBLE_CELLS(x, m, axes, cells, k, p, nbx, copies, stiff, touched):
     """2D: per-thread copies of the consistent mass stencil of points whose
     first cells k x k blocks are cells' tensor rules (kernels.mpm.consistent_cells_2d)."""
@@ -442,9 +458,9 @@ def loop_module(dim, parallel, window):
     # the operations' callees are not tracked by numba's cache: their
     # sources go into the file's name (kernels.generated.load hashes it)
     depends = "".join(inspect.getsource(m) for m in (
-        schemes, mpm, scatter, kronecker, fringe, band_factor, tiny_mass, merged_mass, fast_dof,
-        staging, gauss_rule, spline_1d, spline_2d, tls, mls, cholesky, weights, traction,
-        constitutive, grid_modifiers, bbar, by_symbol, step_size))
+        schemes, mpm, scatter, kronecker, fringe, band_factor, tiny_mass, merged_mass, staging,
+        gauss_rule, spline_1d, spline_2d, tls, mls, cholesky, weights, traction, constitutive,
+        grid_modifiers, bbar, by_symbol, step_size))
     tag = hashlib.sha1(depends.encode()).hexdigest()[:8]
     return load(f"loop_{name}_{tag}", source)
 
@@ -812,6 +828,7 @@ class StepLoop:
         nbz = nd // (nbx * nby)
         hybrid = method.mass == "hybrid"
         guard = 0.0 if hybrid else method.frequency_guard
+        reconstructed = method.reconstruction != "none"
         limit = 0.0
         weights, ratios, moving = np.ones(nd), np.ones(nd), np.ones(nd)
         if guard > 0:
@@ -840,9 +857,11 @@ class StepLoop:
             weights=np.ascontiguousarray(weights, dtype=np.float64),
             mass_ratios=np.ascontiguousarray(ratios, dtype=np.float64),
             moving=np.asarray(moving, dtype=np.float64), covered=np.array(covered_parameters(grid), dtype=float),
-            guarded=zeros(nd), fast=zeros(nd),
+            guarded=zeros(nd), fast=zeros(nd), near=zeros((2, nd)), diagonal=zeros(nd),
+            by_particles=reconstructed and guard > 0,
+            coverage_copies=zeros((nt if reconstructed and guard > 0 else 1, 3, nd)),
+            coverage_touched=zeros((nt, 2), dtype=np.int64), coverage=zeros((3, nd)),
             reach=zeros(nd, dtype=np.bool_),
-            effective_ratio=effective_mass_ratio(p),
             group_comps=group_comps,
             group_size=np.array([len(c) for c in groups.values()], dtype=np.int64),
             rows=zeros((G, nd), dtype=np.int64), n_rows=zeros(G, dtype=np.int64),

@@ -10,11 +10,15 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
                     weights K_k = sum_p m_p |grad N_k(x_p)|^2 (kernel pair
                     consistent_1d, consistent_2d or, 3D, consistent_axes;
                     + reduce_stencil)
+    cover           with a reconstruction (and the guard on) the particles'
+                    own sums K_k, M_kk, m_k of the fast-dof guard
+                    (Kernels.particle_coverage: kernels.mpm.particle_coverage
+                    and reduce_coverage); without one the assembly's K, the
+                    stencil's diagonal and the lumped mass are those sums
     prepare         the fast-row lumping fractions theta_k of
-                    :func:`skfem_mpm.solve.timestep.lumping_fraction`, with K
-                    scaled by :func:`skfem_mpm.solve.timestep.covered_weights`
-                    and bounded by the effective-mass rule of
-                    :func:`skfem_mpm.solve.timestep.guarded_stiffness`
+                    :func:`skfem_mpm.solve.timestep.lumping_fraction` of the
+                    guard's stiffness
+                    :func:`skfem_mpm.solve.timestep.covered_stiffness`
                     (hybrid mass: no guard, theta = 0); for each constraint
                     pattern ("group") its free dofs (not constrained, with
                     mass), their rows in ELL form (compact_system), and the
@@ -83,12 +87,15 @@ MASS_FIELDS = (
     # rows the last assembly touched, the axes' (breakpoints, uniform, 1/h,
     # extraction)
     "stencil", "stiffness", "copies", "stiff_copies", "touched", "row_range", "axes",
-    # fast-dof guard: on?, its limit, covered_weights' w, mu, the moving
-    # dofs (1.0 / 0.0), timestep.covered_parameters (lo, hi, tail, floor), the scaled K, the lumping fractions,
-    # the rows the lumping changes (reach: kernels.mpm.lumped_reach),
-    # q / Lambda (timestep.effective_mass_ratio)
-    "guard", "limit", "weights", "mass_ratios", "moving", "covered", "guarded", "fast",
-    "reach", "effective_ratio",
+    # fast-dof guard: on?, its limit, covered_stiffness' w, mu, the moving
+    # dofs (1.0 / 0.0), timestep.covered_parameters (lo, hi, tail, floor),
+    # the guard's stiffness, the lumping fractions, the stencil's diagonal
+    # (its M_kk without a reconstruction); with a reconstruction (by_particles)
+    # the particles' sums (K, M_kk, m: Kernels.particle_coverage), their
+    # per-thread copies and touched ranges; covered_stiffness' work (2, dofs);
+    # the rows the lumping changes (kernels.mpm.lumped_reach)
+    "guard", "limit", "weights", "mass_ratios", "moving", "covered", "guarded", "fast", "near",
+    "diagonal", "by_particles", "coverage", "coverage_copies", "coverage_touched", "reach",
     # groups: their components, the free rows and dof -> row, the ELL rows
     "group_comps", "group_size", "rows", "n_rows", "index", "A", "cols", "F", "fcols",
     "inv_diag",
@@ -342,6 +349,13 @@ def assemble_mass(cm, x, m, p, nbx, nby, dim):
 
 
 @njit(cache=True)
+def cover_particles(cm, x, m, p, nbx, nby):
+    """The particles' own sums of the fast-dof guard (Kernels.particle_coverage)."""
+    COVERAGE(x, m, cm.axes, p, nbx, nby, cm.coverage_copies, cm.coverage_touched)
+    REDUCE_COVERAGE(cm.coverage_copies, cm.coverage_touched, cm.coverage)
+
+
+@njit(cache=True)
 def assemble_mass_cells(cm, x, m, cells, k, p, nbx, nby):
     """2D: the consistent mass stencil and K of points whose first ``cells``
     blocks of k x k are whole cells' tensor Gauss rules
@@ -431,13 +445,21 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
     its free rows (the executor takes the step and factorises)."""
     stencil = cm.stencil
     nd, ns = stencil.shape
-    if cm.guard:  # K_k covered_weights_k moving_k (timestep.guarded_stiffness), then theta
-        COVERED_STIFFNESS(cm.stiffness, stencil, mass, cm.weights, cm.mass_ratios, cm.moving,
-                          cm.covered[0], cm.covered[1], cm.covered[2], cm.covered[3],
-                          cm.guarded)
-        LIMIT_BY_EFFECTIVE_MASS(cm.guarded, cm.stiffness, stencil, mass, cm.limit,
-                                cm.effective_ratio, p, nbx, nby, dim)
-        FAST_ROW_FRACTIONS(cm.guarded, stencil, mass, cm.limit, cm.fast)
+    if cm.guard:  # the guard's stiffness (timestep.covered_stiffness), then theta
+        if cm.by_particles:  # the particles' sums (cover_particles)
+            COVERED_STIFFNESS(cm.coverage[0], cm.coverage[1], cm.coverage[2], cm.weights,
+                              cm.mass_ratios, cm.moving, cm.covered[0], cm.covered[1],
+                              cm.covered[2], cm.covered[3], cm.limit, p, nbx, nby, cm.near,
+                              cm.guarded)
+            FAST_ROW_FRACTIONS(cm.guarded, cm.coverage[1], mass, cm.limit, cm.fast)
+        else:  # K, the stencil's diagonal and the lumped mass are the particles' own
+            centre = (ns - 1) // 2
+            for k in range(nd):
+                cm.diagonal[k] = stencil[k, centre]
+            COVERED_STIFFNESS(cm.stiffness, cm.diagonal, mass, cm.weights, cm.mass_ratios,
+                              cm.moving, cm.covered[0], cm.covered[1], cm.covered[2],
+                              cm.covered[3], cm.limit, p, nbx, nby, cm.near, cm.guarded)
+            FAST_ROW_FRACTIONS(cm.guarded, cm.diagonal, mass, cm.limit, cm.fast)
     else:
         cm.fast[:] = 0.0
     LUMPED_REACH(cm.fast, p, nbx, nby, dim, ns, cm.reach)

@@ -448,6 +448,9 @@ def _scatter(run, particles, column):
             else:
                 call(assemble_mass, run.cm, points[0], points[3], run.degree, run.nbx, run.nby,
                      run.x.shape[1])
+            if reconstructed and run.cm.by_particles:  # the guard's sums: the particles'
+                call(cover_particles, run.cm, particles[0], particles[3], run.degree, run.nbx,
+                     run.nby)
             run.phase_ns[3] += monotonic_ns() - t1
         return run
     return impl

@@ -37,6 +37,7 @@ coupled spectrum exceeds a dof's own Rayleigh quotient K_ii / M_ii by
 Lambda(p) / q(p). So with
 
     r_i = w_i dt^2 K_ii / M_ii / (g * 4 q(p) / Lambda(p)),   K_ii ~ c^2 sum_p m_p |grad N_i(x_p)|^2,
+    M_ii = sum_p m_p N_i(x_p)^2,
 
 (``Method(frequency_guard=g)``, default 1; the limit is 0.34 for p = 2,
 0.12 for p = 3 at g = 1; the 4 is s^2 for a scheme stable up to
@@ -51,15 +52,19 @@ open knot vector have a full-grid K_ii / M_ii of 2.2 and 3.7 q(p) (p = 2),
 lumped the rows next to a fixed end at the default cfl 0.5 (S1, cubic,
 spline: error 1.65e-2 instead of 2.9e-4). So w_i = min(1, q(p) sum_d
 h_d^-2 / Q_i), Q_i the Gauss full-grid quotient, while particles cover the
-function, blending to 1 where they see only its tail (from
-M_ii / (m_i mu_i), see :func:`skfem_mpm.solve.timestep.covered_weights`),
-and w_i = 0 on dofs constrained in every component (they never move;
-lumping their rows only moved mass onto their free neighbours). A dof
-its particles see only at the tail keeps w_i = 1: on the bar whose free end
-is a knot (S3) that lumps the last function's rows (it is no faster than
-the step allows) and costs up to 400x in accuracy; the tail rule that
-weighs such a dof as the open knot vector's first function fixes S3 and is
-off by default (see :func:`skfem_mpm.solve.timestep.covered_parameters`).
+function, blending to the open knot vector's first function's weight
+q(p) / Q_1 where they see only its tail (from M_ii / (m_i mu_i)): a body
+ending at a knot (S3) leaves such a tail, no faster than the step allows,
+and a body ending a fraction l into a cell gives r ~ cfl^2 / l^2, lumped
+where the cut cell would break the step, and the dofs within p indices
+of a dof so lumped (the cut cell's other functions) go back to weight 1
+by the fraction it is lumped;
+and w_i = 0 on dofs constrained
+in every component (they never move; lumping their rows only moved mass
+onto their free neighbours). K_ii, M_ii and m_i are the particles' own
+sums with a reconstruction too (the reconstruction's Gauss points span a
+cut cell as they span a filled one). See
+:func:`skfem_mpm.solve.timestep.covered_stiffness`.
 
 Consistent mass is solved with a sparse LU factorisation (reused for every
 solve of the step with the same free set) or with conjugate gradients

@@ -17,7 +17,7 @@ RECONSTRUCTIONS = ("none", "spline", "tls", "mls")
 ON_EXIT = ("raise", "remove")
 MASS_SOLVERS = ("auto", "direct", "cg")
 
-DEFAULT_CFL = {"rk4": 0.7}
+DEFAULT_CFL = {"rk4": 0.6}
 """The default ``cfl`` of a scheme (a fraction of its own critical step), 0.5
 where it is not listed. Each scheme's dt_crit is s / omega_max with s its
 stability limit on undamped oscillations (2 for the central difference,
@@ -26,23 +26,37 @@ MUSL, USL; 2 sqrt(2) for classical RK4,
 estimate of :func:`skfem_mpm.solve.timestep.critical_time_step`, so one
 fraction means the same margin on the top frequency for every scheme.
 
-rk4: 0.7. Its time error is fourth order, below the spatial error at any
+rk4: 0.6. Its time error is fourth order, below the spatial error at any
 fraction up to 1 on the benchmarks (S1 small, cubic, spline, consistent:
 6.76e-7 at 16 cells from cfl 0.5 to 0.9 with the fast-dof guard off), so
 its cost for an accuracy falls as 1 / cfl; what bounds the fraction is the
 fast-dof guard of consistent mass (:mod:`skfem_mpm.solve.grid_system`).
 It compares r_i = cfl^2 w_i Q_i / q with 1/2 (Q_i a dof's K_ii / M_ii, q
-an interior dof's, on unit cells, w_i of
-:func:`skfem_mpm.solve.timestep.covered_weights`) and lumps the fraction
+an interior dof's, on unit cells, w_i its weight in
+:func:`skfem_mpm.solve.timestep.covered_stiffness`) and lumps the fraction
 smoothstep(2 r_i - 1) of the row
 (:func:`skfem_mpm.solve.timestep.lumping_fraction`): a covered interior
 dof has Q_i = q and w_i = 1, so r_i = cfl^2, and above cfl = 1 / sqrt(2)
 = 0.707 every interior row is lumped a little, for any scheme (S1 at
 0.75: all 17 interior rows by 3.8%, the error 6.8e-7 -> 1.3e-4 at 16
-cells). 0.7 is the largest tenth below 1 / sqrt(2); RK4's amplification
-on the imaginary axis, |R(i y)| = sqrt(1 - y^6 / 72 + y^8 / 576), is 0.76
-at its top frequency there (y = 0.7 * 2 sqrt(2)): it damps the top
-modes. The second-order schemes keep 0.5: their time error is second
+cells). A body that ends at a knot (S3 small: the bar's free end) leaves
+a tail the guard weighs as the open knot vector's first function
+(:func:`skfem_mpm.solve.timestep.tail_weight`, weight q / Q_1), but it
+measures Q_i from the particles' own sums, which over-sample the tail's
+steep end: for cubic splines and 2 particles per cell (at 1/4 and 3/4 of
+the one cell the bar covers) sum 9 s^4 / sum s^6 = 16.2 against
+Q_1 = 63 / 5 = 12.6 on the cell, so r = 1.29 cfl^2 (measured on S3 at 8
+cells: 0.319 at cfl 0.5, 0.455 at 0.6, 0.539 at 0.65), and the end row
+is lumped from cfl = sqrt(0.5 / 1.29) = 0.62 on (with 3 and 4 particles
+per cell: 1.11 and 1.06, from 0.67 and 0.69). A lumped tail also
+withdraws the tail weight from its neighbours (a cut cell: see
+:func:`skfem_mpm.solve.timestep.covered_stiffness`), so past that cfl the
+error jumps (S3 at 8 cells: 1.23e-5 with and without the guard at 0.5 and
+0.6; 2.7e-3 at 0.65, 5.2e-3 at 0.7 against 1.24e-5 and 1.25e-5 without
+it). So 0.6, the largest tenth below 0.62. RK4's amplification on the
+imaginary axis, |R(i y)| = sqrt(1 - y^6 / 72 + y^8 / 576), is 0.89 at
+its top frequency there (y = 0.6 * 2 sqrt(2)): it damps the top modes
+a little. The second-order schemes keep 0.5: their time error is second
 order, and a smaller step is their accuracy."""
 
 
@@ -112,7 +126,7 @@ class Method:
     cfl
         Fraction of the critical time step used when ``dt`` is None; above 1
         it raises ``ValueError`` unless ``allow_unstable``. None (the
-        default): the scheme's own default, 0.7 for ``"rk4"`` and 0.5 for
+        default): the scheme's own default, 0.6 for ``"rk4"`` and 0.5 for
         the others (:data:`DEFAULT_CFL`, which gives the derivation). With a
         reconstruction on a 2D grid dt_crit is the Gauss-FEM one times a
         factor <= 1 estimated by power iteration where the reconstructed

@@ -12,7 +12,7 @@ from ..spline import SplineGrid
 from .grid_system import Constraints, dof_adjacency
 from .runge_kutta import check_staged
 from ..reconstruct import RECONSTRUCTORS
-from .timestep import (RECONSTRUCTION_EVERY, covered_parameters, covered_weights,
+from .timestep import (RECONSTRUCTION_EVERY, covered_parameters, covered_stiffness,
                        critical_time_step, fast_dof_weights, reconstruction_factor,
                        stable_time_step)
 from .timing import PhaseTimer
@@ -122,20 +122,20 @@ class State:
         return self._adjacency
 
     # ------------------------------------------------------------ time step
-    def guard_weights(self, lumped, diagonal):
-        """Per-dof scale and addend of the fast-dof guard's stiffness from
-        the step's lumped mass and consistent diagonal (see
-        :func:`skfem_mpm.solve.timestep.covered_weights`; 1 and 0 off spline
-        grids; 0 on dofs constrained in every component, which never move)."""
+    def guard_stiffness(self, stiffness, diagonal, lumped, limit):
+        """The fast-dof guard's stiffness k_i from the particles' coverage
+        sums (K_i, M_ii, m_i: :func:`skfem_mpm.solve.steps.particle_coverage`)
+        on a spline grid (:func:`skfem_mpm.solve.timestep.covered_stiffness`,
+        ``limit`` the guard's); K_i itself off spline grids."""
         if not isinstance(self.grid, SplineGrid):
-            return 1.0, 0.0
+            return stiffness
         w, mu, moving = self.fast_dof_guard_arrays()
         _, _, tail, floor = covered_parameters(self.grid)
-        scale, addend = covered_weights(w, mu, lumped, diagonal, tail, floor)
-        return scale * moving, addend * moving
+        return covered_stiffness(stiffness, diagonal, lumped, w, mu, moving.astype(np.float64),
+                                 tail, floor, limit, self.grid.degree, self.grid.basis_per_axis)
 
     def fast_dof_guard_arrays(self):
-        """(w, mu, moving) of :meth:`guard_weights` on a spline grid: the
+        """(w, mu, moving) of :meth:`guard_stiffness` on a spline grid: the
         full-grid weights and mass ratios of
         :func:`skfem_mpm.solve.timestep.fast_dof_weights`, and the dofs not
         constrained in every component."""

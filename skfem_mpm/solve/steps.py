@@ -34,12 +34,12 @@ from ..kernels.step_size import guard_limit
 from ..materials.state import split_update
 from ..quadrature import _csr, _csr_pattern, transfer_matrices
 from ..reconstruct import RECONSTRUCTORS, integration_rule
-from .timestep import fast_dof_limit, guarded_stiffness, lumping_fraction
+from .timestep import fast_dof_limit, lumping_fraction
 
 __all__ = ["Transfer", "GridData", "particles_to_grid", "solve_velocity", "solve_grid",
            "update_particle_velocities", "project_velocity", "move_particles",
            "grid_to_particles", "update_stress", "material_updates", "external_work", "commit",
-           "particle_forces", "internal_force"]
+           "particle_forces", "internal_force", "particle_coverage"]
 
 
 class Transfer:
@@ -91,11 +91,10 @@ class GridData:
     """What the particles put on the grid in one step."""
 
     def __init__(self, transfer, lumped, consistent, momentum, force, external, system=None,
-                 project_momentum=None, point_mass=None, stiffness_weights=None):
+                 project_momentum=None, point_mass=None):
         self.transfer = transfer
         self._project_momentum = project_momentum
         self._point_mass = point_mass
-        self._stiffness_weights = stiffness_weights
         self.lumped = lumped
         self.consistent = consistent
         self.momentum = momentum
@@ -113,13 +112,10 @@ class GridData:
         self.keep_acceleration = False     # CD: the state keeps N a (reported velocities)
         self.work = None                   # external work when a scheme computes its own
 
-    def stiffness_weights(self):
-        """sum over the integration points of mass * |grad N_i|^2 per dof:
-        K_ii / c^2 of the step's stiffness (for the fast-dof guard)."""
-        if self._stiffness_weights is not None:
-            return self._stiffness_weights()
-        tr = self.transfer
-        return sum(G.multiply(G).T @ self._point_mass for G in tr.grad_N)
+    def coverage(self):
+        """The fast-dof guard's per-dof sums over the particles (K_i, M_ii,
+        m_i) of :func:`particle_coverage`, with a reconstruction too."""
+        return particle_coverage(self.transfer, self._point_mass)
 
     def project_momentum(self, particles, v):
         """Grid momentum of particle velocities v: N^T (m v), or its
@@ -127,6 +123,17 @@ class GridData:
         if self._project_momentum is not None:
             return self._project_momentum(v)
         return self.transfer.to_grid(particles.m[:, None] * v)
+
+
+def particle_coverage(transfer, m):
+    """(K, D, m_L): per dof, K_i = sum_p m_p |grad N_i(x_p)|^2 (K_ii / c^2 of
+    the particle stiffness), D_i = sum_p m_p N_i(x_p)^2 (the particle
+    consistent diagonal) and m_i = sum_p m_p N_i(x_p) (the lumped mass):
+    what the fast-dof guard measures a dof's coverage and frequency with
+    (:func:`skfem_mpm.solve.timestep.covered_stiffness`; compiled twin
+    :func:`skfem_mpm.kernels.coverage.particle_coverage`)."""
+    K = sum(G.multiply(G).T @ m for G in transfer.grad_N)
+    return K, transfer.N.multiply(transfer.N).T @ m, transfer.to_grid(m)
 
 
 def particle_forces(state, which=None, particles=None, t=None):
@@ -210,12 +217,9 @@ def reconstructed_grid_data(state, transfer, particles=None, t=None):
         with state.timer("p2g"):
             return NgT @ (w[:, None] * rv)
 
-    def stiffness_weights():
-        return sum(G.multiply(G).T @ (w * rho_g) for G in Gg)
-
     external = volume if surface is None else (surface if volume is None else volume + surface)
     return GridData(transfer, lumped, consistent, momentum, force, external,
-                    project_momentum=project_momentum, stiffness_weights=stiffness_weights)
+                    project_momentum=project_momentum, point_mass=p.m)
 
 
 def internal_force(state, transfer, particles=None):
@@ -279,12 +283,11 @@ def step_system(state, data, kind="acceleration"):
             limit = guard_limit(guard * fast_dof_limit(state.grid.degree, state.method.scheme),
                                 state.dt, state.wave_speed_now)
 
-            def fast_rows(mass_diagonal):
-                # sum over points of mass |grad N_i|^2, scaled per dof
-                scale, addend = state.guard_weights(data.lumped, mass_diagonal)
-                k = guarded_stiffness(state.grid, data.stiffness_weights(), scale, limit,
-                                      data.consistent, data.lumped, addend)
-                return lumping_fraction(k / (limit * np.maximum(mass_diagonal, 1e-300)))
+            def fast_rows(_):
+                # the particles' coverage sums, with a reconstruction too
+                stiffness, diagonal, lumped = data.coverage()
+                k = state.guard_stiffness(stiffness, diagonal, lumped, limit)
+                return lumping_fraction(k / (limit * np.maximum(diagonal, 1e-300)))
 
         data.system = GridSystem(data.lumped, state.constraints, consistent,
                                  state.adjacency, state.method.small_mass,

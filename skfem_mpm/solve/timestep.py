@@ -45,10 +45,8 @@ from .compiled_reconstruct import CompiledReconstruction, unsupported
 __all__ = ["spectral_radius", "interior_rayleigh_quotient", "critical_time_step", "STABILITY_LIMIT",
            "stable_time_step", "stiffness_root",
            "fast_dof_limit", "full_grid_quotients", "full_grid_mass_ratios", "fast_dof_weights",
-           "covered_weights", "tail_weight", "covered_parameters", "TAIL_RULE",
-           "EFFECTIVE_MASS_RULE", "effective_mass_ratio",
-           "guarded_stiffness", "lumping_fraction", "ReconstructedOperator", "power_iteration",
-           "compiled_twin", "reconstruction_factor"]
+           "covered_stiffness", "near_maximum", "tail_weight", "covered_parameters", "lumping_fraction",
+           "ReconstructedOperator", "power_iteration", "compiled_twin", "reconstruction_factor"]
 
 
 @BilinearForm
@@ -141,7 +139,7 @@ def full_grid_mass_ratios(grid):
 def fast_dof_weights(grid):
     """(w, mu): w_i = min(1, q(p) sum_d h_d^-2 / Q_i) with Q_i from
     :func:`full_grid_quotients` and h_d the smallest cell of axis d, and mu
-    from :func:`full_grid_mass_ratios`. See :func:`covered_weights`."""
+    from :func:`full_grid_mass_ratios`. See :func:`covered_stiffness`."""
     h = np.asarray(grid.h, dtype=np.float64)
     reference = interior_rayleigh_quotient(grid.degree) * np.sum(1.0 / h ** 2)
     return np.minimum(1.0, reference / full_grid_quotients(grid)), full_grid_mass_ratios(grid)
@@ -171,186 +169,134 @@ def tail_weight(degree):
     return float(interior_rayleigh_quotient(degree) / full_grid_quotients(grid)[0])
 
 
-TAIL_RULE = False
-"""Whether the fast-dof guard weighs a dof its particles see only at the
-tail as the open knot vector's first function (:func:`tail_weight`), or
-with weight 1, the plain limit (the default; see :func:`covered_parameters`
-for what the rule fixes and what it breaks)."""
-
-
 def covered_parameters(grid):
     """(lo, hi, t, F): COVERED, :func:`tail_weight` of the grid's degree and
     F = q(p) (sum_d h_d^-2 - min_d h_d^-2) (h_d the smallest cell of axis
-    d), the scalars of :func:`covered_weights` (and of its compiled twin,
-    :func:`skfem_mpm.kernels.mpm.covered_stiffness`); (lo, hi, 1, 0), the
-    plain limit on tails, while TAIL_RULE is off.
-
-    With the plain limit the guard fires on S3 (the bar's free end is a
-    knot; cubic, 2 particles per cell, consistent mass, cfl 0.5): the last
-    function, which the bar covers over one cell of its support, has the
-    Gauss quotient of the open knot vector's first function (12.6, 9.1
-    q(p)), r = 2.25 against the threshold 1/2 with either scheme, and its
-    rows are lumped: spline + rk4 5.2e-3, 4.5e-3, 2.2e-3 at 8-16-32 cells
-    (1.2e-5, 5.1e-7, 9.6e-8 with the rule). What the rule breaks: with a
-    reconstruction the guard's K_ii and M_ii are integrated at the Gauss
-    points of every cell the body touches, so the cell S3's bar fills and
-    the cell S2's free top cuts give the same quotient; on S2 large (cubic,
-    spline, consistent CD, 40 cells; tests/hard/test_free_surface) the rule
-    then never lumps the moving top and a particle leaves the grid. A rule
-    for reconstructed methods needs the particles' own coverage of the
-    cell, which the guard does not measure yet."""
-    if not TAIL_RULE:
-        return (COVERED[0], COVERED[1], 1.0, 0.0)
+    d), the scalars of :func:`covered_stiffness` (and of its compiled twin,
+    :func:`skfem_mpm.kernels.mpm.covered_stiffness`)."""
     inv = 1.0 / np.asarray(grid.h, dtype=np.float64) ** 2
     floor = interior_rayleigh_quotient(grid.degree) * float(np.sum(inv) - np.min(inv))
     return (COVERED[0], COVERED[1], tail_weight(grid.degree), floor)
 
 
-def covered_weights(weights, mass_ratios, lumped, diagonal, tail=1.0, floor=0.0):
-    """The fast-dof guard's per-dof scale c_i and addend a_i (its stiffness
-    is K_i c_i + a_i): c_i = t + (w_i - t) s_i (``tail`` t:
-    :func:`tail_weight`, or 1), a_i = (1 - s_i) (1 - t) F M_ii
-    (``floor``: F of :func:`covered_parameters`), s_i = smoothstep over
-    COVERED of tau_i = M_ii / (m_i mu_i).
+def covered_stiffness(stiffness, diagonal, lumped, weights, mass_ratios, moving, tail, floor,
+                      limit, degree, shape):
+    """The fast-dof guard's stiffness k_i = (K_i c_i + a_i) moving_i, which
+    it compares with its limit times M_ii (theta_i = :func:`lumping_fraction`
+    of k_i / (limit M_ii)); the NumPy twin of
+    :func:`skfem_mpm.kernels.mpm.covered_stiffness` (same operations). Per
+    dof: K_i = sum m |grad N_i|^2, M_ii = sum m N_i^2 (``diagonal``) and
+    m_i = sum m N_i (``lumped``) over the particles (see "Coverage"), w_i
+    and mu_i of :func:`fast_dof_weights` (``weights``, ``mass_ratios``),
+    ``moving`` 1 on dofs not constrained in every component (0: they never
+    move, k_i = 0; lumping their rows only moved mass onto their free
+    neighbours);
 
-    The guard compares a dof's Rayleigh quotient with a limit built on an
-    interior dof of the smallest cells. The first functions of an open knot
-    vector have a higher quotient on a fully covered grid (2.2 and 3.7 q(p)
-    for p = 2, 4.9 and 9.1 for p = 3) without being faster than the time
-    step allows (Lambda includes those outlier modes), so a filled grid
-    tripped the guard there at cfl 0.5 and lost accuracy. Such a dof gets
-    the limit times 1 / w_i while it is covered: tau_i, the particles'
-    consistent diagonal over their lumped mass relative to the full-grid
-    value, is about 1 when particles cover the function (0.98-0.99 for the
-    second function at 2-4 particles per cell) and drops when they see only
-    its tail (0.16-0.45 measured). With TAIL_RULE a tail is weighed as the
-    open knot vector's first function (see :func:`tail_weight`): a body ending at a
-    knot (S3's free end) leaves a tail whose quotient is that function's
-    and which is no faster than the step allows; with weight 1 there (the
-    plain limit) the guard lumped S3's end dof (r = 2.25 at cubic, rk4,
-    cfl 0.5) and cost up to 400x in accuracy. In 2D and 3D a dof is
-    usually a tail along one axis only; t weighs its whole quotient, the
-    covered axes' share too, so the addend puts back an interior quotient
-    for every axis but one: (1 - t) F, F = q sum_(d != e) h_d^-2."""
+        c_i = t + (w_i - t) s_i,   a_i = (1 - s_i) (1 - t) F M_ii,
+        s_i = smoothstep over COVERED of tau_i = M_ii / (m_i mu_i),
+
+    t = :func:`tail_weight` (``tail``), F of :func:`covered_parameters`
+    (``floor``); a moving dof that no particle sees (M_ii = 0) gets
+    k_i = inf: it is lumped fully. Near a cut cell the tail weight is
+    withdrawn (see "Cut cells"):
+
+        k_i = T_i + b_i (P_i - T_i),   b_i = max_(|j - i| <= p) theta_j,
+        theta_j = smoothstep(2 T_j / (``limit`` M_jj) - 1),
+
+    T_i the stiffness above, P_i = K_i (1 + (w_i - 1) s_i) moving_i the
+    plain limit's (weight 1 on tails, no addend), j over the dofs within
+    ``degree`` indices of i per axis (``shape``: the dofs per axis, x
+    fastest; :func:`near_maximum`) that particles see (theta_j = 0 where
+    M_jj = 0): theta_j is the fraction the tail-weighted rule lumps dof j
+    by (:func:`lumping_fraction`).
+
+    Weights. The guard compares a dof's Rayleigh quotient with a limit
+    built on an interior dof of the smallest cells. The first functions of
+    an open knot vector have a higher quotient on a fully covered grid
+    (2.2 and 3.7 q(p) for p = 2, 4.9 and 9.1 for p = 3) without being
+    faster than the time step allows (Lambda includes those outlier modes),
+    so a filled grid tripped the guard there at cfl 0.5 and lost accuracy.
+    Such a dof gets the limit times 1 / w_i while it is covered: tau_i,
+    the particles' consistent diagonal over their lumped mass relative to
+    the full-grid value, is about 1 when particles cover the function
+    (0.98-0.99 for the second function at 2-4 particles per cell) and drops
+    when they see only its tail (0.16-0.45 measured). A tail is weighed as
+    the open knot vector's first function (:func:`tail_weight`): a body
+    ending at a knot (S3's free end) leaves a tail whose quotient is that
+    function's and which is no faster than the step allows (with weight 1
+    there the guard lumped S3's end dof, r = 2.25 at cubic, rk4, cfl 0.5,
+    and cost up to 400x in accuracy); a body ending a fraction l into the
+    support gives r ~ cfl^2 / l^2 and is lumped where the cut cell would
+    break the step (l <= cfl) by itself. In 2D and 3D a dof is usually a tail along
+    one axis only; t weighs its whole quotient, the covered axes' share
+    too, so the addend puts back an interior quotient for every axis but
+    one: (1 - t) F, F = q sum_(d != e) h_d^-2.
+
+    Coverage. K_i, M_ii and m_i are the particles' own sums with a
+    reconstruction too (:func:`skfem_mpm.solve.steps.particle_coverage`),
+    not those of the reconstructed density at the Gauss points: the Gauss
+    rule spans the body's extent, so its sums cannot tell a bar that fills
+    its end cell (S3: the end function is a covered tail, not fast) from a
+    free surface that cuts its top cell (S2 large: the top dofs are fast;
+    with the Gauss sums the tail weight left them unlumped and a particle
+    left the grid at step 1034). A dof that has mass but that no particle
+    sees (the Gauss rule of a 1D body reaches the sliver of a cell beyond
+    its last particle) is the limit l -> 0 of a tail, r -> inf.
+
+    Cut cells. The tail weight holds where the body ends at a knot (the
+    restricted space is an open-knot space). A body whose surface cuts a
+    cell (l < 1) has a cut-cell mode on all the p + 1 functions of that
+    cell, not on the sliver function alone: with the weight the guard
+    lumped the slivers only and the step's top frequency rose towards the
+    stability limit (omega dt of M^-1 K with the rows lumped as the guard
+    lumps them, MUSL at cfl 0.5: colliding disks at 20 x 20, t = 0.15,
+    1.62 against 0.70 with the plain limit; colliding spheres at 8^3,
+    t = 0.3, 1.92 against 0.54; with no guard 41 and unstable, J <= 0 at
+    steps 11 and 5), and it left rows unlumped that break the Kronecker
+    preconditioner's tensor structure (CG iterations a solve 18 against 12
+    on the disks, 71 against 24 on the spheres). A dof the tail-weighted
+    rule lumps (theta_j > 0) marks a cut cell: the dofs within p indices
+    of it take the plain limit by the fraction theta_j (continuous in the
+    particles' positions, as the lumping is). On the disks the guard then
+    lumps the rows the plain limit lumps (at t = 0 and 0.3 with the same
+    fractions, at the contact, t = 0.15, 52 of them fully against 64;
+    omega dt 0.75 against 0.70), and where no dof is lumped (a body that
+    fills its cells: S3 small, D2 small) the tail weight stands. A steeper
+    withdrawal (fully from r_j = 2/3) matched the plain limit's rows on the
+    contact scenes exactly but changed the lumping faster as the falling
+    block (p = 2, consistent MUSL, tests/hard/test_free_surface) moved
+    through cells: its energy rose 1.5e-2 of the work above budget (limit
+    1e-2; with theta_j 8.8e-3, the plain limit 6.9e-3)."""
     tau = diagonal / (np.maximum(lumped, 1e-300) * mass_ratios)
     lo, hi = COVERED
     s = np.clip((tau - lo) / (hi - lo), 0.0, 1.0)
     smooth = s * s * (3.0 - 2.0 * s)
-    return tail + (weights - tail) * smooth, (1.0 - smooth) * (1.0 - tail) * floor * diagonal
+    c = tail + (weights - tail) * smooth
+    a = (1.0 - smooth) * (1.0 - tail) * floor * diagonal
+    seen = stiffness * (c * moving) + a * moving
+    seen = np.where(diagonal > 0.0, seen, np.where(moving > 0.0, np.inf, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.clip(2.0 * (seen / (limit * diagonal)) - 1.0, 0.0, 1.0)
+    x = np.where(diagonal > 0.0, r * r * (3.0 - 2.0 * r), 0.0)
+    b = near_maximum(x, degree, shape)
+    plain = stiffness * ((1.0 + (weights - 1.0) * smooth) * moving)
+    with np.errstate(invalid="ignore"):
+        return np.where((diagonal > 0.0) & (b > 0.0), seen + b * (plain - seen), seen)
 
 
-EFFECTIVE_MASS_RULE = False
-"""Whether the fast-dof guard also applies the effective-mass rule of
-:func:`guarded_stiffness` (off by default: see there for what it fixes and
-what it breaks)."""
-
-
-def effective_mass_ratio(degree):
-    """q(p) / Lambda(p, consistent): K_kk / S_k times this, over the guard's
-    limit (which holds Lambda / q), is dt^2 c^2 K_kk / S_k / s^2 (see
-    :func:`guarded_stiffness`); inf while EFFECTIVE_MASS_RULE is off (the
-    rule then never lowers a dof's guarded stiffness)."""
-    if not EFFECTIVE_MASS_RULE:
-        return np.inf
-    return interior_rayleigh_quotient(degree) / spectral_radius(degree, "consistent")
-
-
-def _patch_offsets(dim, radius):
-    """The patch of :mod:`skfem_mpm.kernels.fast_dof`: offsets
-    ((2 radius + 1)^dim, 3), the neighbours in slot order (x fastest), the
-    dof itself last."""
-    r = [tuple(range(-radius, radius + 1)) if d < dim else (0,) for d in range(3)]
-    out = [(a, b, c) for c in r[2] for b in r[1] for a in r[0] if (a, b, c) != (0, 0, 0)]
-    return np.array(out + [(0, 0, 0)], dtype=np.int64)
-
-
-def effective_masses(grid, consistent, lumped, dofs):
-    """S_k = M_kk - M_kN M_NN^+ M_Nk for the dofs ``dofs`` of a spline grid
-    (N: the dofs with mass within PATCH_RADIUS (default p) indices per axis; the NumPy twin of
-    :func:`skfem_mpm.kernels.fast_dof.effective_mass`, same order of
-    operations, vectorised over the dofs). ``consistent`` is the sparse
-    consistent mass, ``lumped`` the lumped one."""
-    from ..kernels.fast_dof import DROP, PATCH_RADIUS
-
-    dofs = np.asarray(dofs, dtype=np.int64)
-    shape = tuple(grid.basis_per_axis) + (1,) * (3 - grid.dim)
-    idx = np.stack(np.unravel_index(dofs, shape[::-1])[::-1], axis=1)  # (a, b, c)
-    offsets = _patch_offsets(grid.dim, PATCH_RADIUS if PATCH_RADIUS > 0 else grid.degree)
-    at = idx[:, None, :] + offsets[None, :, :]
-    inside = np.all((at >= 0) & (at < np.array(shape)), axis=2)
-    j = np.where(inside, np.ravel_multi_index(tuple(np.clip(at, 0, np.array(shape) - 1)
-                                                    .transpose(2, 0, 1))[::-1], shape[::-1]), 0)
-    present = inside & (np.asarray(lumped)[j] > 0)
-    present[:, -1] = True
-    n = offsets.shape[0]
-    rows = np.repeat(j, n, axis=1)
-    cols = np.tile(j, (1, n))
-    A = np.asarray(consistent.tocsr()[rows.ravel(), cols.ravel()]).reshape(len(dofs), n, n)
-    A = A * (present[:, :, None] & present[:, None, :])
-    pivot = np.zeros(len(dofs))
-    indefinite = np.zeros(len(dofs), dtype=bool)
-    for u in range(n):  # Cholesky, dependent neighbours left out
-        pivot = A[:, u, u] - np.sum(A[:, u, :u] * A[:, u, :u], axis=1) if u else A[:, u, u].copy()
-        if u == n - 1:
-            break
-        indefinite |= pivot < -DROP * A[:, u, u]
-        keep = pivot > DROP * A[:, u, u]
-        root = np.sqrt(np.where(keep, pivot, 1.0))
-        s = A[:, u + 1:, u] - np.einsum("kiq,kq->ki", A[:, u + 1:, :u], A[:, u, :u])
-        A[:, u, u] = np.where(keep, root, 0.0)
-        A[:, u + 1:, u] = np.where(keep[:, None], s / root[:, None], 0.0)
-    return np.where(indefinite, -1.0, pivot)
-
-
-def guarded_stiffness(grid, stiffness, weights, limit, consistent, lumped, addend=0.0):
-    """K_k w'_k (+ ``addend``, the a_k of :func:`covered_weights`), the stiffness the fast-dof guard compares with ``limit``
-    M_kk (``fast_row_fractions``): w'_k = min(w_k, (q / Lambda) M_kk / S_k)
-    on the dofs where K_k w_k > limit M_kk / 2 (those the plain rule would
-    lump; w_k from :func:`covered_weights`, times 0 on dofs that never
-    move), w_k elsewhere; S_k the effective mass of
-    :mod:`skfem_mpm.kernels.fast_dof`, and K_k = sum_p m_p |grad N_k(x_p)|^2.
-
-    The plain rule r_k = w_k dt^2 c^2 (K_kk / M_kk) (Lambda / q) / s^2
-    assumes each dof is coupled as an interior one, whose own quotient the
-    coupled spectrum exceeds by Lambda / q (33.9 for p = 3); the effective
-    mass rule r_k = dt^2 c^2 (K_kk / S_k) / s^2 estimates the frequency of a
-    mode localised at k directly. Taking the smaller keeps the guard off
-    wherever it was off and lets it fire only where the localised estimate
-    agrees: on S3 (a bar whose free end is a knot, cubic, spline
-    reconstruction, rk4 at cfl 0.5) the plain rule lumped the end dof
-    (r = 2.25; the exact top eigenvalue is Lambda's, i.e. not fast), the
-    effective-mass rule gives r = 0.21 (radius-1 patch; 0.35 with the
-    default patch of radius p), and S3's orders reach the issue's targets
-    (cubic spline + rk4: 1.229e-5, 5.055e-7 at 8, 16 cells, order 4.60). A
-    body ending half-way into its last cell is still lumped.
-
-    Why it is off (EFFECTIVE_MASS_RULE): on S2 large (40 cells, cubic,
-    spline reconstruction, consistent MUSL; tests/hard/test_free_surface)
-    the column's top moves through cells, the rule un-lumps the top dofs
-    (M_kk / S_k only 1.3-12 there) and the run fails at step 1234 (J <= 0),
-    where the plain rule runs (without any guard it fails at step 149). The
-    estimate uses the Gauss stiffness diagonal K_kk; the reconstructed
-    operator's stiffness at a moving free end is not K (its operator is
-    not symmetric), and the plain rule's 34-fold amplification was the
-    margin that covered it. The falling block (p2 consistent MUSL) gained
-    1.03% of the work with the radius-1 patch (limit 1%), 0.87% with
-    radius p."""
-    w = np.broadcast_to(np.asarray(weights, dtype=np.float64), np.shape(stiffness))
-    guarded = stiffness * w + addend
-    ratio = effective_mass_ratio(grid.degree) if hasattr(grid, "degree") else np.inf
-    if not ratio < np.inf:
-        return guarded
-    diagonal = consistent.diagonal()
-    lumped = np.asarray(lumped)
-    candidates = np.flatnonzero((lumped > 0) & (guarded > 0.5 * limit * diagonal))
-    if candidates.size == 0 or not hasattr(grid, "basis_per_axis"):
-        return guarded
-    S = effective_masses(grid, consistent, lumped, candidates)
-    ok = S > 0.0
-    k = candidates[ok]
-    bound = ratio * stiffness[k] * (diagonal[k] / S[ok])
-    guarded[k] = np.minimum(guarded[k], bound)
-    return guarded
+def near_maximum(x, radius, shape):
+    """The largest x_j over the dofs j within ``radius`` indices of each dof
+    per axis (``shape``: the dofs per axis, x fastest): a box maximum."""
+    out = np.asarray(x, dtype=np.float64).reshape(tuple(shape)[::-1])
+    for axis in range(out.ndim):
+        n = out.shape[axis]
+        padded = np.moveaxis(out, axis, 0)
+        m = padded.copy()
+        for o in range(1, radius + 1):
+            m[o:] = np.maximum(m[o:], padded[:n - o])
+            m[:n - o] = np.maximum(m[:n - o], padded[o:])
+        out = np.moveaxis(m, 0, axis)
+    return out.ravel()
 
 
 def lumping_fraction(ratio):

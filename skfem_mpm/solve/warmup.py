@@ -121,7 +121,8 @@ def _warm_up_consistent(k, p, grid):
         system.FRINGE_FROM = fringe_from
         system.solve(np.ones((grid.ndofs, dim)), np.zeros((grid.ndofs, dim)), "velocity")
     system.residual(np.ones((grid.ndofs, dim)), np.ones((grid.ndofs, dim)))
-    k.kernel(fast_row_fractions)(K, st, np.ones(grid.ndofs), 1.0, np.empty(grid.ndofs))
+    k.kernel(fast_row_fractions)(K, np.ones(grid.ndofs), np.ones(grid.ndofs), 1.0,
+                                 np.empty(grid.ndofs))
 
 
 def _warm_up_grid_rules(ndofs, dim):
