@@ -358,7 +358,8 @@ class CompiledExecutor(CompiledRungeKutta):
             if self._guard_arrays is None:  # (w, mu, moving as 1.0 / 0.0, the rule's
                 weights, ratios, moving = state.fast_dof_guard_arrays()  # scalars): the run's
                 self._guard_arrays = (weights, ratios, moving.astype(np.float64),
-                                      *covered_parameters(state.grid))
+                                      *covered_parameters(state.grid,
+                                                         state.method.reconstruction))
             if coverage is None:
                 diagonal = self.kernels.scratch("guard_diagonal", mass.size)
                 diagonal[:] = stencil[:, (stencil.shape[1] - 1) // 2]

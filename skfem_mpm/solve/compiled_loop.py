@@ -856,7 +856,7 @@ class StepLoop:
             guard=bool(guard > 0), limit=float(limit),
             weights=np.ascontiguousarray(weights, dtype=np.float64),
             mass_ratios=np.ascontiguousarray(ratios, dtype=np.float64),
-            moving=np.asarray(moving, dtype=np.float64), covered=np.array(covered_parameters(grid), dtype=float),
+            moving=np.asarray(moving, dtype=np.float64), covered=np.array(covered_parameters(grid, method.reconstruction), dtype=float),
             guarded=zeros(nd), fast=zeros(nd), near=zeros((2, nd)), diagonal=zeros(nd),
             by_particles=reconstructed and guard > 0,
             coverage_copies=zeros((nt if reconstructed and guard > 0 else 1, 3, nd)),

@@ -130,7 +130,7 @@ class State:
         if not isinstance(self.grid, SplineGrid):
             return stiffness
         w, mu, moving = self.fast_dof_guard_arrays()
-        _, _, tail, floor = covered_parameters(self.grid)
+        _, _, tail, floor = covered_parameters(self.grid, self.method.reconstruction)
         return covered_stiffness(stiffness, diagonal, lumped, w, mu, moving.astype(np.float64),
                                  tail, floor, limit, self.grid.degree, self.grid.basis_per_axis)
 

@@ -169,12 +169,43 @@ def tail_weight(degree):
     return float(interior_rayleigh_quotient(degree) / full_grid_quotients(grid)[0])
 
 
-def covered_parameters(grid):
+def covered_parameters(grid, reconstruction):
     """(lo, hi, t, F): COVERED, :func:`tail_weight` of the grid's degree and
     F = q(p) (sum_d h_d^-2 - min_d h_d^-2) (h_d the smallest cell of axis
     d), the scalars of :func:`covered_stiffness` (and of its compiled twin,
-    :func:`skfem_mpm.kernels.mpm.covered_stiffness`)."""
+    :func:`skfem_mpm.kernels.mpm.covered_stiffness`), for a method with a
+    ``reconstruction``; (lo, hi, 1, 0), the plain limit on tails, without
+    one (``"none"``).
+
+    The tail weight rests on the step's system being integrated by Gauss
+    quadrature (a reconstruction's density at its Gauss points): a body
+    ending at a knot then restricts the space to an open-knot space, whose
+    top frequency Lambda(p) the step is built on (:func:`tail_weight`).
+    With particle quadrature (no reconstruction) the particles over-sample
+    the steep end of that space's first function, and its mode is faster
+    than Lambda by itself: omega dt_crit / 2 (the step at cfl 1) of the
+    particle system 1.64 for p = 3 at 2 particles per cell (1.19 at 3, 1.09
+    at 4; p = 2: 1.15 at 2, 1.06 at 3), the same for a body ending at an
+    interior knot and for a grid's open end. MUSL at cfl 0.5 then runs that
+    mode at omega dt = 1.64 of the limit 2, and a body cutting its end cell
+    (l < 1) raises it as 1 / l: it breaks the step from l = 0.82, where the
+    tail-weighted ratio, 1.29 cfl^2 / l^2 (the particles' own sums), is
+    still below the 1/2 where lumping starts (a column whose top moves
+    through cells, cubic, consistent MUSL: J <= 0 at step 138, with
+    omega dt of the unlumped rows above 2 for the five steps before).
+    The plain limit lumps such a tail fully at l = 1 (r = 2.9), as it
+    lumps the open-knot end function wherever its particles' coverage
+    ratio reads as a tail (tau_i below COVERED: at 2 particles per cell
+    for p = 3); a Wall's rows among them: its contact force m_i d_n / dt
+    (lumped mass) changes the row's normal velocity by m_i (M^-1)_ii d_n,
+    d_n on a lumped row but 10.1 d_n on the first row of a cubic
+    consistent mass at 2 particles per cell (3.3 for p = 2), and an
+    overshoot above 2 d_n grows (a cubic bar against a wall, consistent
+    MUSL: J <= 0 at step 5 with that row unlumped; the tail weight left it
+    so)."""
     inv = 1.0 / np.asarray(grid.h, dtype=np.float64) ** 2
+    if reconstruction == "none":
+        return (COVERED[0], COVERED[1], 1.0, 0.0)
     floor = interior_rayleigh_quotient(grid.degree) * float(np.sum(inv) - np.min(inv))
     return (COVERED[0], COVERED[1], tail_weight(grid.degree), floor)
 
