@@ -157,3 +157,47 @@ def test_a_bar_ending_at_a_knot_trips_no_guard_with_a_reconstruction(backend):
                                    backend=backend, frequency_guard=g)) for g in (1.0, 0.0)]
     assert runs[0].counts["steps"] >= 10
     assert np.array_equal(runs[0].particles.u, runs[1].particles.u)
+
+
+def test_without_a_reconstruction_a_tail_takes_the_plain_limit():
+    """A cubic bar ending at an interior knot, 2 particles per cell, fixed
+    at its base (the sliver column's top, S3's end). With particle
+    quadrature its end mode is faster than the Gauss Lambda the step is
+    built on (omega dt_crit / 2 = 1.64: the particles over-sample the end
+    function's steep end), so the guard weighs that tail with the plain
+    limit and lumps its row fully (r = 2.9); with a reconstruction the step's
+    system is Gauss-integrated, the tail is weighed as the open knot
+    vector's first function and nothing is lumped (r = 0.32)
+    (timestep.covered_parameters). With the tail weight without a
+    reconstruction the end row stayed unlumped and a column whose top cut
+    its end cell failed (tests/hard/test_near_empty, J <= 0 at step 138)."""
+    import scipy.linalg as sl
+
+    from skfem_mpm import Body, Fixed, LinearElastic, Particles, Scene
+    from skfem_mpm.kernels.step_size import guard_limit
+    from skfem_mpm.quadrature import transfer_matrices
+    from skfem_mpm.solve.state import prepare
+    from skfem_mpm.solve.timestep import critical_time_step, fast_dof_limit, lumping_fraction
+
+    grid = SplineGrid.line(0.0, 1.5, 12, 3)
+    parts = Particles.seed(grid, 2, 1.0, region=((0.0, 1.0),))  # ends at knot 8: dof 10's tail
+    scene = Scene(grid, Body(parts, LinearElastic(100.0)), 0.1, effects=[Fixed("left")])
+    N, G = transfer_matrices(grid, parts.x)
+    m = parts.m
+    M = (N.T @ N.multiply(m[:, None])).toarray()
+    K = (G[0].T @ G[0].multiply(m[:, None])).toarray()
+    seen = np.flatnonzero(np.diag(M) > 0)[1:]  # dof 0 fixed
+    top = sl.eigh(K[np.ix_(seen, seen)], M[np.ix_(seen, seen)], eigvals_only=True)[-1]
+    assert np.sqrt(top) * critical_time_step(grid, 1.0, "consistent") / 2 > 1.6
+    sums = (np.diag(K).copy(), np.diag(M).copy(), np.asarray(N.T @ m).ravel())
+    fractions = {}
+    for reconstruction in ("none", "spline"):
+        state = prepare(scene, Method(mass="consistent", reconstruction=reconstruction,
+                                      backend="numpy"))
+        limit = guard_limit(fast_dof_limit(3, state.method.scheme), state.dt,
+                            state.wave_speed_now)
+        k = state.guard_stiffness(*sums, limit)
+        fractions[reconstruction] = np.where(sums[1] > 0, lumping_fraction(
+            k / (limit * np.maximum(sums[1], 1e-300))), 0.0)
+    assert fractions["none"][10] == 1.0 and np.count_nonzero(fractions["none"]) == 1
+    assert np.all(fractions["spline"] == 0.0)

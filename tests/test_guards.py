@@ -375,9 +375,8 @@ def test_the_guard_still_lumps_a_body_ending_inside_a_cell(backend):
     dof is fast (a mode localised at the cut cell, ~ Lambda / l^2), and
     the guard must lump it: without the guard the run fails at step 16
     (J <= 0); with it, 220 steps and |v| stays below its initial 1e-3.
-    ~5 s per backend. The end dof is a tail weighed as the open knot
-    vector's first function (timestep.tail_weight): r ~ cfl^2 / l^2 = 1 at
-    l = 1/2."""
+    ~5 s per backend. Without a reconstruction the end dof, a tail, takes
+    the plain limit (timestep.covered_parameters)."""
     r = simulate(_sliver_scene(), Method(scheme="cd", mass="consistent", backend=backend))
     assert r.counts["steps"] == 220
     assert np.abs(r.particles.v).max() < 1e-3

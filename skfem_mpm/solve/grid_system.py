@@ -52,14 +52,15 @@ open knot vector have a full-grid K_ii / M_ii of 2.2 and 3.7 q(p) (p = 2),
 lumped the rows next to a fixed end at the default cfl 0.5 (S1, cubic,
 spline: error 1.65e-2 instead of 2.9e-4). So w_i = min(1, q(p) sum_d
 h_d^-2 / Q_i), Q_i the Gauss full-grid quotient, while particles cover the
-function, blending to the open knot vector's first function's weight
-q(p) / Q_1 where they see only its tail (from M_ii / (m_i mu_i)): a body
-ending at a knot (S3) leaves such a tail, no faster than the step allows,
-and a body ending a fraction l into a cell gives r ~ cfl^2 / l^2, lumped
-where the cut cell would break the step, and the dofs within p indices
-of a dof so lumped (the cut cell's other functions) go back to weight 1
-by the fraction it is lumped;
-and w_i = 0 on dofs constrained
+function, blending where they see only its tail (from M_ii / (m_i mu_i))
+to 1 without a reconstruction (particle quadrature over-samples a tail's
+steep end: its mode outruns Lambda) and, with one (a Gauss-integrated
+system), to the open knot vector's first function's weight q(p) / Q_1: a
+body ending at a knot (S3) leaves such a tail, no faster than the step
+allows, and a body ending a fraction l into a cell gives r ~ cfl^2 / l^2,
+lumped where the cut cell would break the step, and the dofs within p
+indices of a dof so lumped (the cut cell's other functions) go back to
+weight 1 by the fraction it is lumped; and w_i = 0 on dofs constrained
 in every component (they never move; lumping their rows only moved mass
 onto their free neighbours). K_ii, M_ii and m_i are the particles' own
 sums with a reconstruction too (the reconstruction's Gauss points span a

@@ -40,7 +40,8 @@ dof has Q_i = q and w_i = 1, so r_i = cfl^2, and above cfl = 1 / sqrt(2)
 = 0.707 every interior row is lumped a little, for any scheme (S1 at
 0.75: all 17 interior rows by 3.8%, the error 6.8e-7 -> 1.3e-4 at 16
 cells). A body that ends at a knot (S3 small: the bar's free end) leaves
-a tail the guard weighs as the open knot vector's first function
+a tail the guard weighs, with a reconstruction (S3's spline), as the open
+knot vector's first function
 (:func:`skfem_mpm.solve.timestep.tail_weight`, weight q / Q_1), but it
 measures Q_i from the particles' own sums, which over-sample the tail's
 steep end: for cubic splines and 2 particles per cell (at 1/4 and 3/4 of

@@ -227,7 +227,8 @@ def covered_stiffness(stiffness, diagonal, lumped, weights, mass_ratios, moving,
         s_i = smoothstep over COVERED of tau_i = M_ii / (m_i mu_i),
 
     t = :func:`tail_weight` (``tail``), F of :func:`covered_parameters`
-    (``floor``); a moving dof that no particle sees (M_ii = 0) gets
+    (``floor``; t = 1 and F = 0, the plain limit, without a
+    reconstruction: see there); a moving dof that no particle sees (M_ii = 0) gets
     k_i = inf: it is lumped fully. Near a cut cell the tail weight is
     withdrawn (see "Cut cells"):
 
@@ -280,7 +281,8 @@ def covered_stiffness(stiffness, diagonal, lumped, weights, mass_ratios, moving,
     cell, not on the sliver function alone: with the weight the guard
     lumped the slivers only and the step's top frequency rose towards the
     stability limit (omega dt of M^-1 K with the rows lumped as the guard
-    lumps them, MUSL at cfl 0.5: colliding disks at 20 x 20, t = 0.15,
+    lumps them, MUSL at cfl 0.5, measured when the tail weight applied
+    without a reconstruction too: colliding disks at 20 x 20, t = 0.15,
     1.62 against 0.70 with the plain limit; colliding spheres at 8^3,
     t = 0.3, 1.92 against 0.54; with no guard 41 and unstable, J <= 0 at
     steps 11 and 5), and it left rows unlumped that break the Kronecker
@@ -297,7 +299,9 @@ def covered_stiffness(stiffness, diagonal, lumped, weights, mass_ratios, moving,
     contact scenes exactly but changed the lumping faster as the falling
     block (p = 2, consistent MUSL, tests/hard/test_free_surface) moved
     through cells: its energy rose 1.5e-2 of the work above budget (limit
-    1e-2; with theta_j 8.8e-3, the plain limit 6.9e-3)."""
+    1e-2; with theta_j 8.8e-3, the plain limit 6.9e-3). Those scenes have
+    no reconstruction and now take the plain limit (t = 1: the withdrawal
+    changes nothing there, P_i = T_i)."""
     tau = diagonal / (np.maximum(lumped, 1e-300) * mass_ratios)
     lo, hi = COVERED
     s = np.clip((tau - lo) / (hi - lo), 0.0, 1.0)
