@@ -137,7 +137,10 @@ def test_three_factor_kronecker_is_exact_for_gauss_filled_cells():
     grid = SplineGrid((np.array([0.0, 0.3, 0.5, 1.0]), np.linspace(0.0, 0.8, 5),
                        np.array([-1.0, 0.0, 0.5])), 2)
     particles = Particles.seed(grid, 3, 2.0, layout="gauss")
-    kernels = Kernels(grid)
+    # the serial kernels (what a run below SERIAL_BELOW particles calls, the
+    # same bits): the parallel 3D assembly and CG compile for about 40 s and
+    # only the slow tier needs them
+    kernels = Kernels(grid, parallel=False)
     stencil, _ = kernels.consistent_stencil(particles)
     lumped, _, _ = kernels.p2g(particles, None)
 
