@@ -372,6 +372,7 @@ def test_stage_combination_is_the_weighted_sum_of_the_rates():
     the stress and V fields only with ``small``, F only with ``finite``."""
     from skfem_mpm.kernels.staging import combine_stages
 
+    combine_stages = serial(combine_stages)  # the copy Runge-Kutta runs below SERIAL_BELOW call
     rng = np.random.default_rng(11)
     n, dim, stages = 57, 2, 4
     y = [rng.standard_normal(s) for s in ((n, dim), (n, dim), (n, dim), (n, dim, dim), (n,),
