@@ -114,7 +114,7 @@ def test_consistent_mass_kernel_equals_transfer_matrices():
                  SplineGrid((np.array([0, 0.3, 0.5, 1.0]), np.linspace(0, 1, 5)), 3),
                  SplineGrid.rectangle((0, 1), (0, 2), (7, 8), 2)):  # unrolled interior cells
         p = Particles.seed(grid, 3, 1.0, layout="random", seed=2)
-        M, K = Kernels(grid).consistent_mass(p)
+        M, K = Kernels(grid, parallel=False).consistent_mass(p)
         tr = Transfer(grid, p.x, PhaseTimer())
         assert abs(M - tr.consistent_mass(p.m)).max() < 1e-15
         assert np.abs(K - sum(G.multiply(G).T @ p.m for G in tr.grad_N)).max() < 1e-12
@@ -192,6 +192,9 @@ def test_kronecker_preconditioner(grid):
 
     from skfem_mpm.kernels.kronecker import KroneckerData, apply_kronecker, axis_mass_bands
     from skfem_mpm.kernels.mpm import Kernels
+    from skfem_mpm.kernels.serial import serial
+
+    apply_kronecker = serial(apply_kronecker)
 
     @BilinearForm
     def mass(u, v, w):
@@ -204,7 +207,7 @@ def test_kronecker_preconditioner(grid):
     if grid.dim == 2:
         kron = np.kron(_dense_bands(bands[1]), kron)
     assert np.abs(kron - gauss).max() < 1e-14 * np.abs(gauss).max()
-    geometry = Kernels(grid).stencil_geometry
+    geometry = Kernels(grid, parallel=False).stencil_geometry
     rows = np.arange(grid.ndofs)
     data = KroneckerData(bands, sums, geometry, rows, 3.0 * gauss.sum(axis=1))
     r = np.random.default_rng(0).random((grid.ndofs, 3))
@@ -224,6 +227,13 @@ def test_kronecker_preconditioner(grid):
     assert np.linalg.eigvalsh(P).min() > 0
 
 
+# The kernels the solver tests build or call directly are the serial copies
+# (Kernels(grid, parallel=False), kernels.serial.serial: the same thread
+# blocks in a loop, the same bits; what a run below SERIAL_BELOW particles
+# calls): the parallel consistent-mass CG, Kronecker and fringe kernels
+# compile for about a minute of CPU and no default-tier run calls them
+# (test_scatter_kernels_in_any_particle_order keeps the parallel transfers
+# and consistent mass; tests/test_kernels_generic.py compares the two kinds).
 def _block_system(cells=32):
     """The consistent mass of the 2D benchmark's particle block on a
     ``cells`` x ``cells`` grid: (kernels, stencil, lumped mass, constraints)."""
@@ -233,7 +243,7 @@ def _block_system(cells=32):
 
     scene, _ = scene_2d(cells=cells, steps=1)
     p = scene.bodies[0].particles
-    k = Kernels(scene.grid)
+    k = Kernels(scene.grid, parallel=False)
     mass = k.p2g(p, None)[0].copy()
     stencil, _ = k.consistent_stencil(p)
     constraints = Constraints(scene.grid, [e for e in scene.effects if type(e).__name__ == "Fixed"])
@@ -253,8 +263,10 @@ def _preconditioned_system(k, stencil, mass, constraints, fast):
     """(P^-1 A, A) dense on the first constraint group's free dofs, P the
     Kronecker preconditioner StencilSystem fits to A."""
     from skfem_mpm.kernels.kronecker import apply_kronecker
+    from skfem_mpm.kernels.serial import serial
     from skfem_mpm.solve.stencil_system import StencilSystem
 
+    apply_kronecker = serial(apply_kronecker)
     system = StencilSystem(k, stencil, mass, constraints, fast, {})
     A, cols, _, _, _, kron, _, _ = system._compact(next(iter(system.groups.values())))
     n = A.shape[0]
@@ -272,7 +284,7 @@ def _random_line_system(seed, fast_seed):
 
     grid = SplineGrid.line(0.0, 1.0, 12, 2)
     particles = Particles.seed(grid, 3, 1.0, layout="random", seed=seed)
-    k = Kernels(grid)
+    k = Kernels(grid, parallel=False)
     mass = k.p2g(particles, None)[0].copy()
     stencil, _ = k.consistent_stencil(particles)
     return grid, k, stencil, mass, np.random.default_rng(fast_seed).uniform(0.0, 0.6, mass.size)
@@ -346,6 +358,9 @@ def test_kronecker_marginals_in_blocks_and_in_one_agree(rows):
     bands, axis sums and row sums to round-off, so each size's tests check
     the other path too."""
     from skfem_mpm.kernels.kronecker import _axis_marginals, _one_block_marginals
+    from skfem_mpm.kernels.serial import serial
+
+    _axis_marginals = serial(_axis_marginals)  # (the same blocks in a loop)
 
     p, n = 2, 40
     rng = np.random.default_rng(rows)
@@ -437,6 +452,10 @@ def test_fringe_correction_matches_its_formula():
     holds the outliers of P^-1 M)."""
     from skfem_mpm.kernels.fringe import apply_corrected, fringe_solve
     from skfem_mpm.kernels.kronecker import apply_kronecker
+    from skfem_mpm.kernels.serial import serial
+
+    apply_corrected, fringe_solve, apply_kronecker = (
+        serial(apply_corrected), serial(fringe_solve), serial(apply_kronecker))
 
     A, cols, kron, M, factor = _fringe_block()
     n = A.shape[0]
@@ -489,7 +508,9 @@ def test_fringe_solve_gives_each_column_the_same_bits_in_any_company():
     and a column's bits do not depend on the columns solved with it (one to
     four, four or two lanes) nor on one or two thread blocks."""
     from skfem_mpm.kernels.fringe import fringe_solve
+    from skfem_mpm.kernels.serial import serial
 
+    fringe_solve = serial(fringe_solve)  # (the same thread blocks in a loop)
     _, _, _, M, factor = _fringe_block()
     F = factor.pattern.fringe
     MFF = M[np.ix_(F, F)]
@@ -517,7 +538,9 @@ def test_kronecker_banded_solves_of_any_band(band):
     0, L_i,i-d in column d), for bands 1-3 (written out) and 4 (the
     one-term-at-a-time loop), one to four columns."""
     from skfem_mpm.kernels.kronecker import apply_kronecker
+    from skfem_mpm.kernels.serial import serial
 
+    apply_kronecker = serial(apply_kronecker)
     rng = np.random.default_rng(band)
     ny, nx = 6, 9
 
@@ -681,6 +704,9 @@ def test_velocity_warm_start_is_the_last_end_velocity(scheme):
 
 def test_fast_row_fractions_kernel_matches_lumping_fraction():
     from skfem_mpm.kernels.mpm import fast_row_fractions
+    from skfem_mpm.kernels.serial import serial
+
+    fast_row_fractions = serial(fast_row_fractions)
     from skfem_mpm.solve.timestep import lumping_fraction
 
     rng = np.random.default_rng(3)
@@ -751,7 +777,7 @@ def test_stencil_systems_reuse_what_depends_on_the_free_dofs_only():
 
     scene, _ = scene_2d(cells=12, steps=1)
     grid = scene.grid
-    k = Kernels(grid)
+    k = Kernels(grid, parallel=False)
     constraints = Constraints(grid, [e for e in scene.effects if type(e).__name__ == "Fixed"])
     full = Particles.seed(grid, 3, 1.0, region=((0.0, 1.0), (0.0, 1.0)))
     part = full.subset(np.flatnonzero(full.x[:, 0] < 0.6))

@@ -10,6 +10,7 @@ from numba import get_num_threads
 
 from skfem_mpm import LinearElastic, NeoHookean, Particles
 from skfem_mpm.kernels.constitutive import material_update
+from skfem_mpm.kernels.serial import serial
 from skfem_mpm.materials.state import split_update, state_layout
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
@@ -49,11 +50,15 @@ def compiled_update(material, particles, L, dt, index=None):
     state_in = layout.pack(particles.state, index) if layout else np.zeros((n, 0))
     state_out = np.full_like(state_in, np.nan)
     every = index is None
-    material_update(material.point_update.address(), material.point_parameters(dim),
-                    np.zeros(0, dtype=np.int64) if every else index, every, L, dt,
-                    material.finite_strain, particles.stress,
-                    particles.F if F is not None else L, particles.V, particles.V0, state_in,
-                    stress, F if F is not None else L.copy(), V, state_out, first_bad)
+    # the serial copy (the same thread blocks in a loop, the same bits): what
+    # the runs below SERIAL_BELOW particles compile (the parallel kernel is
+    # for runs above it)
+    update = serial(material_update)
+    update(material.point_update.address(), material.point_parameters(dim),
+           np.zeros(0, dtype=np.int64) if every else index, every, L, dt,
+           material.finite_strain, particles.stress,
+           particles.F if F is not None else L, particles.V, particles.V0, state_in,
+           stress, F if F is not None else L.copy(), V, state_out, first_bad)
     bad = first_bad[first_bad >= 0]
     state = layout.views(state_out) if layout else {}
     return stress, V, F, (int(bad.min()) if bad.size else -1), state

@@ -137,7 +137,10 @@ def test_three_factor_kronecker_is_exact_for_gauss_filled_cells():
     grid = SplineGrid((np.array([0.0, 0.3, 0.5, 1.0]), np.linspace(0.0, 0.8, 5),
                        np.array([-1.0, 0.0, 0.5])), 2)
     particles = Particles.seed(grid, 3, 2.0, layout="gauss")
-    kernels = Kernels(grid)
+    # the serial kernels (what a run below SERIAL_BELOW particles calls, the
+    # same bits): the parallel 3D assembly and CG compile for about 40 s and
+    # only the slow tier needs them
+    kernels = Kernels(grid, parallel=False)
     stencil, _ = kernels.consistent_stencil(particles)
     lumped, _, _ = kernels.p2g(particles, None)
 
@@ -168,20 +171,26 @@ def test_3d_tiny_masses_are_merged_as_the_reference_does():
 def test_small_mass_axes_is_the_1d_and_2d_rule():
     """The one tiny-mass count for 1-3 axes gives the 1D and 2D kernels'
     masks on random masses with zeros, and a brute-force 3D mask."""
+    from skfem_mpm.kernels.serial import serial
+
+    # the serial copies (the same thread blocks in a loop, the same bits),
+    # which the runs below SERIAL_BELOW particles compile
+    small_1d, small_2d, small_axes = (serial(small_mass_1d), serial(small_mass_2d),
+                                      serial(small_mass_axes))
     rng = np.random.default_rng(3)
     for p in (1, 2, 3):
         m = rng.random(40) ** 8 * (rng.random(40) > 0.2)
         a, b = np.empty(40, bool), np.empty(40, bool)
-        assert small_mass_1d(m, p, 1e-3, a) == small_mass_axes(m, 40, 1, 1, p, 1e-3, b)
+        assert small_1d(m, p, 1e-3, a) == small_axes(m, 40, 1, 1, p, 1e-3, b)
         assert np.array_equal(a, b)
         m2 = rng.random(7 * 6) ** 8 * (rng.random(42) > 0.2)
         a, b = np.empty(42, bool), np.empty(42, bool)
-        assert small_mass_2d(m2, 7, 6, p, 1e-3, a) == small_mass_axes(m2, 7, 6, 1, p, 1e-3, b)
+        assert small_2d(m2, 7, 6, p, 1e-3, a) == small_axes(m2, 7, 6, 1, p, 1e-3, b)
         assert np.array_equal(a, b)
         shape = (5, 4, 6)
         m3 = rng.random(120) ** 8 * (rng.random(120) > 0.2)
         b = np.empty(120, bool)
-        count = small_mass_axes(m3, *shape, p, 1e-3, b)
+        count = small_axes(m3, *shape, p, 1e-3, b)
         cube = m3.reshape(shape[::-1])  # (z, y, x)
         expected = np.zeros(120, bool)
         for k in range(120):
