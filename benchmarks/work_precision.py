@@ -200,10 +200,12 @@ def _g(x, fmt=".3g"):
 
 
 def curve_table(records):
-    """Markdown: every run, by method and cells."""
+    """Markdown: every run, by method and cells (with its steps' CPU time
+    divided by its steps: the cost a step, the run's fixed cost included)."""
     rows = ["| method | cells | ppc | steps | error | order | steps' CPU median [s] (range) | "
-            "steps' wall median [s] | whole call CPU [s] | repeats | timed compiles |",
-            "|---" * 11 + "|"]
+            "CPU a step [us] | steps' wall median [s] | whole call CPU [s] | repeats | "
+            "timed compiles |",
+            "|---" * 12 + "|"]
     prev = {}
     for r in records:
         order = None
@@ -213,11 +215,12 @@ def curve_table(records):
         prev[r["method"]] = r if r["status"] == "ok" else None
         if r["status"] != "ok":
             rows.append(f"| {r['method']} | {r['cells']} | {r['ppc']} | | {r['status'][:80]} "
-                        f"| | | | | | |")
+                        f"| | | | | | | |")
             continue
         rows.append(f"| {r['method']} | {r['cells']} | {r['ppc']} | {r['steps']} | "
                     f"{_g(r.get('error'))} | {_g(order, '.2f')} | {_g(r['cpu_time_s'], '.4g')} "
                     f"({_g(r['cpu_time_min_s'], '.3g')}-{_g(r['cpu_time_max_s'], '.3g')}) | "
+                    f"{_g(1e6 * r['cpu_time_s'] / max(r['steps'], 1), '.3g')} | "
                     f"{_g(r['wall_time_s'], '.4g')} | {_g(r.get('call_cpu_time_s'), '.4g')} | "
                     f"{r['repeats']} | {r['timed_compiles']} |")
     return "\n".join(rows)

@@ -127,6 +127,10 @@ def test_cheapest_of_each_class_and_their_ratio():
     assert "| high-a | 0.002 | 8-16 | 1e-07 |" in table
     matrix = wp.matrix_table(records)
     assert "| method | 8 | 16 |" in matrix and "| high-a | 1e-05 (1) | 1e-07 (4) |" in matrix
+    # each run's CPU a step [us]: its steps' CPU over its steps (0.1 s over 40
+    # steps at 16 cells), after the steps' CPU and its range
+    run = dict(_rec("lin-a", 1, 16, 1e-7, 0.1), steps=40)
+    assert "| lin-a | 16 | 2 | 40 | 1e-07 |  | 0.1 (0.1-0.1) | 2.5e+03 |" in wp.curve_table([run])
     # the wall time instead of the CPU time: 10x each, the same ratio
     assert wp.cheapest(records, 1e-6, key="wall_time_s")["high"][1] == pytest.approx(0.02)
 
