@@ -1103,9 +1103,11 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, near, A, cols, F, fco
     :func:`compact_problem` moves to the right-hand side. cols depends on
     the free-dof set only and F, fcols are read only for nonzero fixed
     values: they are written when ``write_cols``, ``write_fixed``. A row
-    p or more from the grid's edges whose every theta is 0 (not ``near``,
-    :func:`lumped_reach`) takes its entries of M as they are (each term
-    theta M_kj its diagonal would add is 0)."""
+    whose every theta is 0 (not ``near``, :func:`lumped_reach`) takes its
+    entries of M as they are (each term theta M_kj its diagonal would add
+    is 0) at its free columns: those that ``cols`` holds when it is not
+    written (cols[r, s] != r, and the centre), else those of ``index`` (rows
+    p or more from the grid's edges, whose slots need no bounds test)."""
     nr = rows.shape[0]
     ns = M.shape[1]
     centre = (ns - 1) // 2
@@ -1118,6 +1120,11 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, near, A, cols, F, fco
     pc = p if dim == 3 else 0
     for r in prange(nr):
         k = rows[r]
+        if not near[k] and not write_fixed and not write_cols:  # cols: the free columns
+            for s in range(ns):
+                A[r, s] = M[k, s] if cols[r, s] != r else 0.0
+            A[r, centre] = M[k, centre]
+            continue
         a, b, c = _row_indices(k, nbx, nby, dim)
         inside = p <= a < nbx - p and pb <= b < nby - pb and pc <= c < nbz - pc
         if inside and not near[k] and not write_fixed:
