@@ -777,7 +777,7 @@ def test_serial_conjugate_gradients_let_converged_columns_leave():
     converged by its warm start, two converging at different iterations.
     Each solves A x = b to its tolerance and the iterations are the
     slowest column's in a NumPy Jacobi PCG with the same stopping rule."""
-    for name in ("_ell_product_dot", "_cg_update", "_cg_direction", "_dots", "_precondition"):
+    for name in ("_ell_product_dot", "_cg_update", "_cg_direction", "_dots"):
         assert serial(getattr(mpm, name)).targetoptions.get("_nrt") is False, name
     rng = np.random.default_rng(17)
     n, ns = 80, 5

@@ -48,10 +48,9 @@ _NO_RUNTIME = ("_axis", "_one_column_product_dot")
 # conjugate-gradient passes (they allocate nothing) that ell_pcg calls a
 # few times per iteration, each call counting a reference to every array
 # argument on entry and exit (atomic operations that cost more than a
-# pass over a small system); _precondition's overloads (apply_kron) are
-# compiled so with it, the kernels they call keep the runtime
-_NO_RUNTIME_COPIES = ("_ell_product_dot", "_cg_update", "_cg_direction", "_dots",
-                      "_precondition")
+# pass over a small system). Not _precondition: its fringe correction
+# needs the runtime.
+_NO_RUNTIME_COPIES = ("_ell_product_dot", "_cg_update", "_cg_direction", "_dots")
 
 
 def _is_kernel(value):
