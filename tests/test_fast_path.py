@@ -723,10 +723,12 @@ def test_fast_row_fractions_kernel_matches_lumping_fraction():
 
 def test_compact_system_rows_beyond_the_lumping_take_the_stencil_as_it_is():
     """The rows that lumped_reach leaves unmarked (no theta_kj = max(fast_k,
-    fast_j) != 0 in their stencil) take compact_system's short path; its
-    rows, with and without the fixed-column part, are those of the full
-    path (every row marked) bit for bit, and the marks are the rows whose
-    stencil holds a fast dof."""
+    fast_j) != 0 in their stencil) take compact_system's short paths (by
+    the free columns of ``cols`` when it holds this set's, interior and
+    edge rows alike, else by ``index`` for interior rows); their rows, with
+    and without the fixed-column part, are those of the full path (every
+    row marked) bit for bit, and the marks are the rows whose stencil holds
+    a fast dof."""
     from skfem_mpm.kernels.mpm import compact_system, lumped_reach
     from skfem_mpm.kernels.serial import serial
 
@@ -745,23 +747,27 @@ def test_compact_system_rows_beyond_the_lumping_take_the_stencil_as_it_is():
     j = np.where(inside, np.arange(nd)[:, None] + db * nbx + da, 0)
     assert np.array_equal(near, (inside & ((fast[:, None] != 0) | (fast[j] != 0))).any(axis=1))
     assert 0 < near.sum() < nd // 2
-    short = ~near & (p <= a) & (a < nbx - p) & (p <= b) & (b < nby - p)
-    assert short.sum() >= 5
+    interior = (p <= a) & (a < nbx - p) & (p <= b) & (b < nby - p)
+    assert (~near & interior).sum() >= 5 and (~near & ~interior).sum() >= 5
     free = np.flatnonzero(rng.uniform(size=nd) < 0.85)
     index = np.full(nd, -1, dtype=np.int64)
     index[free] = np.arange(free.size)
     kernel = serial(compact_system)
     for write_fixed in (False, True):
         out = []
-        for marks in (near, np.ones(nd, dtype=np.bool_)):
+        for marks, write_cols in ((np.ones(nd, dtype=np.bool_), True), (near, True),
+                                  (near, False)):
             A, F = np.zeros((free.size, ns)), np.zeros((free.size, ns))
-            cols = np.zeros((free.size, ns), dtype=np.int32)
+            # not written: this set's columns, as the full path wrote them
+            cols = np.zeros((free.size, ns), dtype=np.int32) if write_cols else \
+                out[0][1].copy()
             fcols = np.zeros((free.size, ns), dtype=np.int32)
-            kernel(M, p, nbx, nby, dim, free, index, fast, marks, A, cols, F, fcols, True,
-                   write_fixed)
+            kernel(M, p, nbx, nby, dim, free, index, fast, marks, A, cols, F, fcols,
+                   write_cols, write_fixed)
             out.append((A, cols, F, fcols))
-        for short, full in zip(*out):
-            assert np.array_equal(short, full)
+        for short in out[1:]:
+            for got, full in zip(short, out[0]):
+                assert np.array_equal(got, full)
 
 
 def test_stencil_systems_reuse_what_depends_on_the_free_dofs_only():

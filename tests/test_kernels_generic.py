@@ -777,3 +777,60 @@ def test_small_lazy_zeros_are_numpy_zeros_and_large_ones_are_mapped():
     t = Transfers(SplineGrid.rectangle((0, 1), (0, 1), cells=(16, 16), degree=2), nthreads=2)
     copies, _ = t.copies(5)
     assert not any(mapped(a) for a in (t.mass, t._momentum, t._force, copies))
+
+
+def test_serial_conjugate_gradients_let_converged_columns_leave():
+    """The serial ell_pcg (its passes compiled without numba's runtime,
+    serial._NO_RUNTIME_COPIES; its iterations in a loop that assigns no
+    array, the columns packed between such loops) on three columns: one
+    converged by its warm start, two converging at different iterations.
+    Each solves A x = b to its tolerance and the iterations are the
+    slowest column's in a NumPy Jacobi PCG with the same stopping rule."""
+    for name in ("_ell_product_dot", "_cg_update", "_cg_direction", "_dots"):
+        assert serial(getattr(mpm, name)).targetoptions.get("_nrt") is False, name
+    rng = np.random.default_rng(17)
+    n, ns = 80, 5
+    offsets = np.arange(ns) - ns // 2
+    cols = np.clip(np.arange(n)[:, None] + offsets, 0, n - 1)
+    inside = (np.arange(n)[:, None] + offsets >= 0) & (np.arange(n)[:, None] + offsets < n)
+    dense = np.zeros((n, n))
+    for k in range(1, 3):  # symmetric off-diagonals, a dominant diagonal
+        band = rng.uniform(0.1, 1.0, n - k)
+        dense[np.arange(n - k), np.arange(k, n)] = band
+        dense[np.arange(k, n), np.arange(n - k)] = band
+    dense[np.arange(n), np.arange(n)] = 4.5 + rng.uniform(0.0, 20.0, n)
+    A = np.where(inside, dense[np.arange(n)[:, None], cols], 0.0)
+    cols = np.where(inside, cols, np.arange(n)[:, None]).astype(np.int32)
+    exact = rng.standard_normal((n, 3))
+    inv_diag = 1.0 / np.diag(dense)
+    # an eigenvector of the Jacobi-scaled matrix: one iteration
+    scaled = np.sqrt(inv_diag)[:, None] * dense * np.sqrt(inv_diag)
+    exact[:, 1] = np.sqrt(inv_diag) * np.linalg.eigh(scaled)[1][:, 7]
+    b = dense @ exact
+    x = np.zeros((n, 3))
+    x[:, 0] = exact[:, 0]  # converged by the warm start
+    rtol = 1e-10
+    its = serial(mpm.ell_pcg)(A, cols, inv_diag, None, None, b, x, np.arange(3), rtol, 500, 1,
+                              np.zeros((6, n, 3)))
+
+    def reference(bc):
+        xc = np.zeros(n)
+        r = bc.copy()
+        z = inv_diag * r
+        d = z.copy()
+        it = 0
+        while r @ r > rtol ** 2 * (bc @ bc):
+            q = dense @ d
+            alpha = (r @ z) / (d @ q)
+            xc += alpha * d
+            r_new = r - alpha * q
+            z_new = inv_diag * r_new
+            d = z_new + (r_new @ z_new) / (r @ z) * d
+            r, z = r_new, z_new
+            it += 1
+        return it
+
+    counts = [reference(b[:, c]) for c in (1, 2)]
+    assert 0 < counts[0] < counts[1] and its == counts[1]
+    for c in range(3):
+        assert np.linalg.norm(dense @ x[:, c] - b[:, c]) <= 2 * rtol * np.linalg.norm(b[:, c])

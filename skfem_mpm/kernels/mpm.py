@@ -1136,9 +1136,11 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, near, A, cols, F, fco
     :func:`compact_problem` moves to the right-hand side. cols depends on
     the free-dof set only and F, fcols are read only for nonzero fixed
     values: they are written when ``write_cols``, ``write_fixed``. A row
-    p or more from the grid's edges whose every theta is 0 (not ``near``,
-    :func:`lumped_reach`) takes its entries of M as they are (each term
-    theta M_kj its diagonal would add is 0)."""
+    whose every theta is 0 (not ``near``, :func:`lumped_reach`) takes its
+    entries of M as they are (each term theta M_kj its diagonal would add
+    is 0) at its free columns: those that ``cols`` holds when it is not
+    written (cols[r, s] != r, and the centre), else those of ``index`` (rows
+    p or more from the grid's edges, whose slots need no bounds test)."""
     nr = rows.shape[0]
     ns = M.shape[1]
     centre = (ns - 1) // 2
@@ -1151,6 +1153,11 @@ def compact_system(M, p, nbx, nby, dim, rows, index, fast, near, A, cols, F, fco
     pc = p if dim == 3 else 0
     for r in prange(nr):
         k = rows[r]
+        if not near[k] and not write_fixed and not write_cols:  # cols: the free columns
+            for s in range(ns):
+                A[r, s] = M[k, s] if cols[r, s] != r else 0.0
+            A[r, centre] = M[k, centre]
+            continue
         a, b, c = _row_indices(k, nbx, nby, dim)
         inside = p <= a < nbx - p and pb <= b < nby - pb and pc <= c < nbz - pc
         if inside and not near[k] and not write_fixed:
@@ -1767,7 +1774,11 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
     beta = np.zeros(nc)
     first = True
     it = 0
-    alphas = np.zeros(nc)
+    alpha = np.zeros(nc)
+    # the work views of the current width (made again only when columns
+    # leave: each view made counts references)
+    z = work[1]
+    spare = work[4]
     while True:
         width = xc.shape[1]
         n = 0
@@ -1805,12 +1816,13 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
                                             _narrow(fringe_now[13], n),
                                             _narrow(fringe_now[14], (n + 1) // 2),
                                             _narrow(fringe_now[15], n))
+            z = _narrow(work[1], n)
+            q = _narrow(work[3], n)
+            spare = _narrow(work[4], n)
+            alpha = alpha[:n]
         if it >= maxiter:
             break
         width = n
-        z = _narrow(work[1], width)
-        q = _narrow(work[3], width)
-        spare = _narrow(work[4], width)
         if first:  # z = P^-1 r, d = z
             first = False
             d = _narrow(work[2], width)
@@ -1832,44 +1844,53 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
                 if rz[j] <= 0.0:  # breakdown
                     active[j] = False
             continue
-        it += 1
-        _ell_product_dot(A, cols, d, q, partial)
-        alpha = alphas[:width]
-        for j in range(width):
-            dq = 0.0
-            for t in range(nt):
-                dq += partial[t, j]
-            if dq <= 0.0:
-                active[j] = False
-            alpha[j] = rz[j] / dq if active[j] else 0.0
-        _cg_update(xc, r, z, d, q, inv_diag, kron is None, alpha, active, sums)
-        if kron is not None and _all_converged(sums, limit, active):
-            for j in range(width):  # the next z = P^-1 r is not needed
-                if active[j]:
+        # the iterations while every column stays: no array is assigned in
+        # this loop (each array a loop assigns counts references at every pass)
+        while True:
+            it += 1
+            _ell_product_dot(A, cols, d, q, partial)
+            for j in range(width):
+                dq = 0.0
+                for t in range(nt):
+                    dq += partial[t, j]
+                if dq <= 0.0:
+                    active[j] = False
+                alpha[j] = rz[j] / dq if active[j] else 0.0
+            _cg_update(xc, r, z, d, q, inv_diag, kron is None, alpha, active, sums)
+            if kron is not None and _all_converged(sums, limit, active):
+                for j in range(width):  # the next z = P^-1 r is not needed
+                    if active[j]:
+                        active[j] = False
+                        converged[columns[j]] = True
+                break
+            if kron is not None:  # z = P^-1 r and its r.z
+                _precondition(A, cols, r, z, spare, inv_diag, kron_now, fringe_now)
+                _dots(r, z, partial)
+                for t in range(partial.shape[0]):  # sums[:, 0, :] = partial
+                    for j in range(partial.shape[1]):
+                        sums[t, 0, j] = partial[t, j]
+            for j in range(width):
+                if not active[j]:
+                    continue
+                rz_new = 0.0
+                rr_j = 0.0
+                for t in range(nt):
+                    rz_new += sums[t, 0, j]
+                    rr_j += sums[t, 1, j]
+                if rr_j <= limit[j]:
                     active[j] = False
                     converged[columns[j]] = True
-            continue
-        if kron is not None:  # z = P^-1 r and its r.z
-            _precondition(A, cols, r, z, spare, inv_diag, kron_now, fringe_now)
-            _dots(r, z, partial)
-            for t in range(partial.shape[0]):  # sums[:, 0, :] = partial
-                for j in range(partial.shape[1]):
-                    sums[t, 0, j] = partial[t, j]
-        for j in range(width):
-            if not active[j]:
-                continue
-            rz_new = 0.0
-            rr_j = 0.0
-            for t in range(nt):
-                rz_new += sums[t, 0, j]
-                rr_j += sums[t, 1, j]
-            if rr_j <= limit[j]:
-                active[j] = False
-                converged[columns[j]] = True
-                continue
-            beta[j] = rz_new / rz[j]
-            rz[j] = rz_new
-        _cg_direction(d, z, beta, active)
+                    continue
+                beta[j] = rz_new / rz[j]
+                rz[j] = rz_new
+            _cg_direction(d, z, beta, active)
+            if it >= maxiter:
+                break
+            leaving = False
+            for j in range(width):
+                leaving = leaving or not active[j]
+            if leaving:  # (packed at the top of the outer loop)
+                break
     if packed:
         for j in range(xc.shape[1]):
             for i in range(nr):

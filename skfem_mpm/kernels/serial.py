@@ -40,8 +40,17 @@ _SKIPPED_NAMES = ("np", "njit", "prange", "FAST", "IN_ORDER", "overload", "len")
 # counted at every call (atomic increments, the larger part of the serial
 # consistent_2d's time on a 16 x 16 grid, where a quarter of the particles
 # per axis sit in boundary cells). The parallel kernels keep the inlined
-# helpers: there they cost nothing and the call would cost.
-_NO_RUNTIME = ("_axis", "_tensor_point")
+# helpers: there they cost nothing and the call would cost. (And the
+# product of one column, which the copy of _ell_product_dot calls per
+# block: see _NO_RUNTIME_COPIES.)
+_NO_RUNTIME = ("_axis", "_tensor_point", "_one_column_product_dot")
+# kernels whose serial copies are compiled without numba's runtime: the
+# conjugate-gradient passes (they allocate nothing) that ell_pcg calls a
+# few times per iteration, each call counting a reference to every array
+# argument on entry and exit (atomic operations that cost more than a
+# pass over a small system). Not _precondition: its fringe correction
+# needs the runtime.
+_NO_RUNTIME_COPIES = ("_ell_product_dot", "_cg_update", "_cg_direction", "_dots")
 
 
 def _is_kernel(value):
@@ -136,8 +145,10 @@ def source(kernels):
         names[func.__name__] = func
     imports, bodies = {}, []
     for func in funcs:
-        text = inspect.getsource(func)
-        bodies.append(text.replace("parallel=True", "parallel=False", 1))
+        text = inspect.getsource(func).replace("parallel=True", "parallel=False", 1)
+        if func.__name__ in _NO_RUNTIME_COPIES:
+            text = text.replace("@njit(", "@njit(_nrt=False, ", 1)
+        bodies.append(text)
         module = inspect.getmodule(func)
         for name in _names(func.__code__):
             if name in vars(module) and name not in names and name not in _SKIPPED_NAMES:
