@@ -1510,7 +1510,7 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
     ``apply_kronecker`` before r, z, then a band factor and whether it
     replaces the Kronecker step, see ``apply_kron``), with the fringe correction of
     :mod:`skfem_mpm.kernels.fringe` unless ``fringe`` is None (else
-    ``FringeFactor.args``: L and U by rows). Each combination compiles separately, and only
+    ``FringeFactor.args``, its work space last). Each combination compiles separately, and only
     when used (see ``_precondition``).
     ``work`` holds six arrays shaped like b. Returns the iterations, negated
     when a column ended above its tolerance (the iteration limit, or a
@@ -1596,10 +1596,10 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
             if kron is not None:  # the preconditioners' work space
                 kron_now = narrow_kron(kron, kron_now, n)
             if fringe is not None:
-                fringe_now = fringe[:12] + (_narrow(fringe_now[12], n),
-                                            _narrow(fringe_now[13], n),
-                                            _narrow(fringe_now[14], (n + 1) // 2),
-                                            _narrow(fringe_now[15], n))
+                fringe_now = fringe[:-4] + (_narrow(fringe_now[-4], n),
+                                            _narrow(fringe_now[-3], n),
+                                            _narrow(fringe_now[-2], (n + 1) // 2),
+                                            _narrow(fringe_now[-1], n))
         if it >= maxiter:
             break
         width = n
