@@ -1275,9 +1275,12 @@ def _one_column_product_dot(A, cols, d, q, rows_d):
     return dq
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=IN_ORDER)
 def _ell_product_dot(A, cols, d, q, partial):
-    """q = A d and partial[t, c] = sum over thread t's rows of d_c q_c."""
+    """q = A d and partial[t, c] = sum over thread t's rows of d_c q_c
+    (compiled without reassociation: each row's columns summed in slot order
+    with the row of d one vector load; with reassociation LLVM gathered d's
+    entries over the slots instead, slower for two or four columns)."""
     nr, ns = A.shape
     nc = d.shape[1]
     nt = partial.shape[0]
