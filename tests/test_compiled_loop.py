@@ -20,6 +20,7 @@ from skfem_mpm import (Body, DruckerPrager, Fixed, Gravity, LinearElastic, Metho
                        NeoHookean, Particles, Scene, SimulationError, SplineGrid, Traction,
                        VonMises, simulate)
 from skfem_mpm.kernels import serial
+from skfem_mpm.kernels.fringe import NO_FACTOR
 from skfem_mpm.solve import compiled_loop, compiled_reconstruct
 from skfem_mpm.solve.compiled import CompiledExecutor
 from skfem_mpm.solve.state import prepare
@@ -409,10 +410,10 @@ def test_a_fringe_factor_serves_only_the_free_rows_it_was_made_for():
     state = prepare(fringe_scene(), Method(mass="consistent"))
     loop = compiled_loop.StepLoop(state, CompiledExecutor(state))
     rows = np.arange(10, 40, dtype=np.int64)
-    none, no_values = np.zeros(0, dtype=np.int64), np.zeros(0)
-    one = np.zeros(1, dtype=np.int64)
-    loop.module.load_fringe(loop.cm, 0, rows, none, none, np.zeros((0, 1), dtype=np.int64), one,
-                            none, no_values, one, none, no_values, no_values, none, none)
+    none, one = np.zeros(0, dtype=np.int64), np.zeros(1, dtype=np.int64)
+    no_entries = np.zeros((0, 2), dtype=np.int64)
+    loop.module.load_fringe(loop.cm, 0, rows, none, one, no_entries, none, one, no_entries,
+                            *NO_FACTOR)
     kept = loop.module._kept_fringe
     assert kept(loop.cm, 0, rows.copy())
     assert not kept(loop.cm, 0, rows + 1)

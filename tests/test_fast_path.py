@@ -466,7 +466,7 @@ def test_fringe_correction_matches_its_formula():
     rf = rng.standard_normal((F.size, nc))
     fr = factor.args(nc)
     zf = np.empty_like(rf)
-    fringe_solve(*fr[3:12], fr[14], rf, zf)
+    fringe_solve(*factor.arrays()[6:], fr[-2], rf, zf)
     MFF = M[np.ix_(F, F)]
     assert np.abs(MFF @ zf - rf).max() < 1e-12 * np.abs(rf).max()
 
@@ -519,16 +519,65 @@ def test_fringe_solve_gives_each_column_the_same_bits_in_any_company():
     for c in range(4):
         fr = factor.args(1)
         x = np.empty((F.size, 1))
-        fringe_solve(*fr[3:12], fr[14], np.ascontiguousarray(b[:, c:c + 1]), x)
+        fringe_solve(*factor.arrays()[6:], fr[-2], np.ascontiguousarray(b[:, c:c + 1]), x)
         alone.append(x[:, 0])
     assert np.abs(MFF @ np.array(alone).T - b).max() < 1e-12 * np.abs(b).max()
     for nc in (2, 3, 4):
         for threads in (1, 2):
             fr = factor.args(nc)
             x = np.empty((F.size, nc))
-            fringe_solve(*fr[3:12], fr[14], np.ascontiguousarray(b[:, :nc]), x, threads)
+            fringe_solve(*factor.arrays()[6:], fr[-2], np.ascontiguousarray(b[:, :nc]), x, threads)
             for c in range(nc):
                 assert np.array_equal(x[:, c], alone[c]), (nc, threads, c)
+
+
+def test_fringe_residuals_skip_only_zero_terms_in_slot_order():
+    """The correction's residuals read only the entries that can be nonzero
+    (FringePattern: the fringe rows' free columns, the near rows' fringe
+    columns), and give the bits of the whole ELL rows' products in slot
+    order: r - M z on the fringe rows, r - M z1 (z1 zero off the fringe) on
+    exactly the rows where M z1 can be nonzero."""
+    from skfem_mpm.kernels.fringe import _residual_rows
+
+    A, cols, _, M, factor = _fringe_block()
+    pattern = factor.pattern
+    n, ns = A.shape
+    F, near = pattern.fringe, pattern.near
+    assert np.array_equal(near, np.flatnonzero(np.isin(cols, F).any(axis=1)))
+    assert pattern.fringe_entries.shape[0] < F.size * ns
+    assert pattern.near_entries.shape[0] < near.size * ns
+
+    def whole(which):  # every slot of the rows, in order
+        ptr = np.arange(which.size + 1, dtype=np.int64) * ns
+        slots = np.broadcast_to(np.arange(ns), (which.size, ns))
+        return ptr, np.stack((slots.ravel(), cols[which].ravel()), axis=1).astype(np.int64)
+
+    rng = np.random.default_rng(5)
+    for nc in (4, 2):  # four running sums, or one column at a time
+        r, z = rng.standard_normal((n, nc)), rng.standard_normal((n, nc))
+        z1 = np.zeros((n, nc))
+        z1[F] = rng.standard_normal((F.size, nc))
+        for which, ptr, entries, vector, reads in (
+                (F, pattern.fringe_ptr, pattern.fringe_entries, z, z),
+                (near, pattern.near_ptr, pattern.near_entries, z1, np.ascontiguousarray(z1[F]))):
+            got, expected = np.empty((which.size, nc)), np.empty((which.size, nc))
+            _residual_rows(A, which, ptr, entries, r, reads, got)
+            _residual_rows(A, which, *whole(which), r, vector, expected)
+            assert np.array_equal(got, expected)
+            dense = (r - M @ vector)[which]
+            assert np.abs(got - dense).max() < 1e-12 * np.abs(dense).max()
+        off = np.setdiff1d(np.arange(n), near)
+        assert np.array_equal((M @ z1)[off], np.zeros((off.size, nc)))
+    # exact products whose sums round by their order: subtracted in slot order
+    big = rng.choice([2.0 ** 53, -(2.0 ** 53), 1.0, 3.0], size=A.shape)
+    ones = np.ones((n, 4))
+    got = np.empty((F.size, 4))
+    _residual_rows(big, F, pattern.fringe_ptr, pattern.fringe_entries, ones, ones, got)
+    for k, i in enumerate(F):
+        expected = 1.0
+        for e in range(pattern.fringe_ptr[k], pattern.fringe_ptr[k + 1]):
+            expected = expected - big[i, pattern.fringe_entries[e, 0]]
+        assert np.all(got[k] == expected), k
 
 
 @pytest.mark.parametrize("band", (1, 2, 3, 4))

@@ -37,7 +37,8 @@ from numba import njit, prange
 from .kronecker import apply_kronecker_replaced
 from .weights import FAST, IN_ORDER
 
-__all__ = ["fringe_rows", "FringePattern", "FringeFactor", "fringe_solve", "apply_corrected"]
+__all__ = ["fringe_rows", "FringePattern", "FringeFactor", "NO_FACTOR", "fringe_solve",
+           "apply_corrected"]
 
 
 def fringe_rows(rows, geometry, layers):
@@ -63,10 +64,19 @@ def fringe_rows(rows, geometry, layers):
     return np.flatnonzero(~inner[b + ly, a + layers])
 
 
+def _by_rows(keep, slots, columns):
+    """CSR of the entries (slot, column) of a row-major table where ``keep``:
+    row pointers and an (entries, 2) array, each row's slots ascending."""
+    ptr = np.concatenate(([0], np.cumsum(keep.sum(axis=1)))).astype(np.int64)
+    entries = np.stack((slots[keep], columns[keep]), axis=1).astype(np.int64)
+    return ptr, np.ascontiguousarray(entries)
+
+
 class FringePattern:
     """What the correction needs of one free-dof set, fixed while the set
     is: the fringe rows, the rows ``near`` it (with a column in the fringe:
-    where M z1 is nonzero for a fringe-supported z1), and the block's CSC
+    where M z1 is nonzero for a fringe-supported z1), the entries of both
+    that the residuals read (:meth:`arrays`), and the block's CSC
     structure with the map from the compact matrix's entries to it (the
     compact matrix repeats the diagonal for its unused slots; those are
     summed). ``factor`` caches the :class:`FringeFactor` of the values it
@@ -85,12 +95,26 @@ class FringePattern:
         unique, self.slot = np.unique(key, return_inverse=True)
         self.indices = (unique % nf).astype(np.int32)
         self.indptr = np.searchsorted(unique // nf, np.arange(nf + 1)).astype(np.int32)
+        # the residuals' rows by rows (CSR), each entry (slot of A's row,
+        # column): the fringe rows with their free columns, their other slots
+        # being the zeros compact_system writes beside the diagonal (column:
+        # the row itself); the rows near the fringe (a column in it: where
+        # M z1 is nonzero for a fringe-supported z1) with their fringe
+        # columns as fringe positions
+        ns = cols.shape[1]
+        centre = (ns - 1) // 2
+        slots = np.arange(ns)
+        free = (cols[self.fringe] != self.fringe[:, None]) | (slots == centre)
+        self.fringe_ptr, self.fringe_entries = _by_rows(
+            free, np.broadcast_to(slots, free.shape), cols[self.fringe])
         touches = np.zeros(n, dtype=bool)
         touches[self.fringe] = True
         self.near = np.flatnonzero(touches[cols].any(axis=1)).astype(np.int64)
-        # the near rows' columns as fringe positions, nf (a zero row) off the fringe
-        self.near_cols = np.where(position[cols[self.near]] >= 0, position[cols[self.near]],
-                                  nf).astype(np.int64)
+        near_cols = cols[self.near]
+        in_fringe = (position[near_cols] >= 0) & \
+            ((near_cols != self.near[:, None]) | (slots == centre))
+        self.near_ptr, self.near_entries = _by_rows(
+            in_fringe, np.broadcast_to(slots, in_fringe.shape), position[near_cols])
         self.key = rows.tobytes()
         self.layers = layers
         self.factor = None
@@ -99,6 +123,13 @@ class FringePattern:
         """The fringe block's entries (CSC order) from the compact matrix."""
         values = A[self.fringe].ravel()[self.keep]
         return np.bincount(self.slot, weights=values, minlength=self.indices.size)
+
+    def arrays(self):
+        """The fringe rows, their entries by rows (CSR: pointers and
+        (slot, column) pairs), the near rows and theirs (columns as
+        fringe positions), as :func:`apply_corrected` takes them."""
+        return (self.fringe, self.fringe_ptr, self.fringe_entries, self.near, self.near_ptr,
+                self.near_entries)
 
 
 class FringeFactor:
@@ -140,16 +171,29 @@ class FringeFactor:
         indptr = np.concatenate(([0], np.cumsum(np.bincount(i[kept], minlength=T.shape[0]))))
         return indptr.astype(np.int64), T.indices[kept].astype(np.int64), T.data[kept]
 
+    def arrays(self):
+        """The factor's arrays as :func:`apply_corrected` takes them after
+        the Kronecker ones (before the work space): its pattern's
+        (:meth:`FringePattern.arrays`), L and U by rows without their
+        diagonals (CSR), 1 / U_jj and the permutations."""
+        return (*self.pattern.arrays(), *self.L, *self.U, self.inv_udiag, self.perm_r,
+                self.perm_c)
+
     def args(self, nc):
         """The arguments of :func:`apply_corrected` after the Kronecker ones:
-        fringe and near rows, the near rows' columns in the fringe, L and U
-        by rows without their diagonals (CSR), 1 / U_jj, the permutations
-        and work space for ``nc`` right-hand sides."""
+        :meth:`arrays` and work space for ``nc`` right-hand sides (the last
+        four)."""
         nf = self.pattern.fringe.size
-        return (self.pattern.fringe, self.pattern.near, self.pattern.near_cols, *self.L,
-                *self.U, self.inv_udiag, self.perm_r, self.perm_c, np.empty((nf, nc)),
-                np.empty((nf + 1, nc)), np.empty((2, nf, (nc + 1) // 2)),
-                np.empty((self.pattern.near.size, nc)))
+        return self.arrays() + (np.empty((nf, nc)), np.empty((nf, nc)),
+                                np.empty((2, nf, (nc + 1) // 2)),
+                                np.empty((self.pattern.near.size, nc)))
+
+
+NO_FACTOR = (np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0),
+             np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0),
+             np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+"""The factor's part of :meth:`FringeFactor.arrays` for a pattern without
+fringe rows (nothing to factorise)."""
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=IN_ORDER)
@@ -244,21 +288,23 @@ def fringe_solve(Lp, Li, Lx, Up, Ui, Ux, inv_udiag, perm_r, perm_c, y, b, x, thr
                 x[i, c] = w[k, c - c0]
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _residual_rows(A, cols, which, by_position, r, z, out):
-    """out[k] = r_i - (A z)_i for the rows i = which[k]; the columns into z
-    of row i are cols[k] (``by_position``: the near rows' columns into the
-    fringe) or cols[i] (A's own)."""
-    ns = A.shape[1]
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=IN_ORDER)
+def _residual_rows(A, which, ptr, entries, r, z, out):
+    """out[k] = r_i - sum_e A[i, s_e] z[j_e] for the rows i = which[k], over
+    their entries e = ptr[k] .. ptr[k + 1] - 1, (s_e, j_e) = entries[e]
+    (slot of A's row, row of z) in ascending slots: the ELL row's product
+    without its slots of zeros (A = 0, or z = 0 there), subtracted term by
+    term in slot order (compiled without reassociation: the ELL product in
+    order gives the same bits; with reassociation LLVM gathered the slots
+    into vector lanes, in an order of its own and slower)."""
     nc = r.shape[1]
     for k in prange(which.shape[0]):
         i = which[k]
-        row = np.int64(k) if by_position else i  # (k may be typed unsigned)
         if nc == 4:  # two 2D problems: four running sums
             s0, s1, s2, s3 = r[i, 0], r[i, 1], r[i, 2], r[i, 3]
-            for q in range(ns):
-                a = A[i, q]
-                j = cols[row, q]
+            for e in range(ptr[k], ptr[k + 1]):
+                a = A[i, entries[e, 0]]
+                j = entries[e, 1]
                 s0 -= a * z[j, 0]
                 s1 -= a * z[j, 1]
                 s2 -= a * z[j, 2]
@@ -270,40 +316,39 @@ def _residual_rows(A, cols, which, by_position, r, z, out):
         else:
             for c in range(nc):
                 s = r[i, c]
-                for q in range(ns):
-                    s -= A[i, q] * z[cols[row, q], c]
+                for e in range(ptr[k], ptr[k + 1]):
+                    s -= A[i, entries[e, 0]] * z[entries[e, 1], c]
                 out[k, c] = s
 
 
 @njit(cache=True, error_model="numpy", fastmath=FAST)
-def apply_corrected(A, cols, Lx, Ly, local, inv_scale, box, nblocks, fringe, near, near_cols,
-                    Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, rf, zf, yf, tn, r, z, t):
+def apply_corrected(A, cols, Lx, Ly, local, inv_scale, box, nblocks, fringe, fringe_ptr,
+                    fringe_entries, near, near_ptr, near_entries, Lp, Li, Lv, Up, Ui, Uv,
+                    inv_udiag, perm_r, perm_c, rf, zf, yf, tn, r, z, t):
     """z = B r, the Kronecker preconditioner with the fringe correction (see
-    the module docstring); A, cols the compact matrix (ELL), Lx ... nblocks
-    the arguments of :func:`~skfem_mpm.kernels.kronecker.apply_kronecker`,
-    fringe ... tn those of :class:`FringeFactor`; ``t`` is not used (the
-    work space of the other preconditioners). z1 lives on the fringe only
-    (zf, with a zero row nf that the near rows' other columns read), and
-    r - M z1 differs from r on the near rows only (tn), which the
-    Kronecker step takes in place of r's."""
+    the module docstring); A the compact matrix (ELL; ``cols`` is not read:
+    the pattern holds the fringe rows' columns), Lx ... nblocks the
+    arguments of :func:`~skfem_mpm.kernels.kronecker.apply_kronecker`,
+    fringe ... tn those of :meth:`FringeFactor.args`; ``t`` is not used
+    (the work space of the other preconditioners). z1 lives on the fringe
+    only (zf), and r - M z1 differs from r on the
+    near rows only (tn), which the Kronecker step takes in place of r's."""
     nc = r.shape[1]
     nf = fringe.shape[0]
     # z1 = R^T M_FF^-1 R r
     for k in range(nf):
         for c in range(nc):
             rf[k, c] = r[fringe[k], c]
-    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf[:nf], nblocks)
-    for c in range(nc):
-        zf[nf, c] = 0.0
+    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf, nblocks)
     # z2 = z1 + P^-1 (r - M z1); M z1 is nonzero only on the rows near F
-    _residual_rows(A, near_cols, near, True, r, zf, tn)
+    _residual_rows(A, near, near_ptr, near_entries, r, zf, tn)
     apply_kronecker_replaced(Lx, Ly, local, inv_scale, box, nblocks, r, near, tn, z)
     for k in range(nf):
         for c in range(nc):
             z[fringe[k], c] += zf[k, c]
     # z = z2 + R^T M_FF^-1 R (r - M z2)
-    _residual_rows(A, cols, fringe, False, r, z, rf)
-    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf[:nf], nblocks)
+    _residual_rows(A, fringe, fringe_ptr, fringe_entries, r, z, rf)
+    fringe_solve(Lp, Li, Lv, Up, Ui, Uv, inv_udiag, perm_r, perm_c, yf, rf, zf, nblocks)
     for k in range(nf):
         for c in range(nc):
             z[fringe[k], c] += zf[k, c]

@@ -1487,9 +1487,12 @@ def _one_column_product_dot(A, cols, d, q, rows_d):
     return dq
 
 
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=IN_ORDER)
 def _ell_product_dot(A, cols, d, q, partial):
-    """q = A d and partial[t, c] = sum over thread t's rows of d_c q_c."""
+    """q = A d and partial[t, c] = sum over thread t's rows of d_c q_c
+    (compiled without reassociation: each row's columns summed in slot order
+    with the row of d one vector load; with reassociation LLVM gathered d's
+    entries over the slots instead, slower for two or four columns)."""
     nr, ns = A.shape
     nc = d.shape[1]
     nt = partial.shape[0]
@@ -1722,7 +1725,7 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
     ``apply_kronecker`` before r, z, then a band factor and whether it
     replaces the Kronecker step, see ``apply_kron``), with the fringe correction of
     :mod:`skfem_mpm.kernels.fringe` unless ``fringe`` is None (else
-    ``FringeFactor.args``: L and U by rows). Each combination compiles separately, and only
+    ``FringeFactor.args``, its work space last). Each combination compiles separately, and only
     when used (see ``_precondition``).
     ``work`` holds six arrays shaped like b. Returns the iterations, negated
     when a column ended above its tolerance (the iteration limit, or a
@@ -1812,10 +1815,10 @@ def ell_pcg(A, cols, inv_diag, kron, fringe, b, x, problem, rtol, maxiter, nt, w
             if kron is not None:  # the preconditioners' work space
                 kron_now = narrow_kron(kron, kron_now, n)
             if fringe is not None:
-                fringe_now = fringe[:12] + (_narrow(fringe_now[12], n),
-                                            _narrow(fringe_now[13], n),
-                                            _narrow(fringe_now[14], (n + 1) // 2),
-                                            _narrow(fringe_now[15], n))
+                fringe_now = fringe[:-4] + (_narrow(fringe_now[-4], n),
+                                            _narrow(fringe_now[-3], n),
+                                            _narrow(fringe_now[-2], (n + 1) // 2),
+                                            _narrow(fringe_now[-1], n))
             z = _narrow(work[1], n)
             q = _narrow(work[3], n)
             spare = _narrow(work[4], n)

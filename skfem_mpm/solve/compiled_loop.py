@@ -81,7 +81,7 @@ from ..kernels.serial import for_threads
 from . import schemes
 from .compiled import side_traction
 from .compiled_loop_tables import ForceTable, PrescribedTable, TractionTable, reference_forces
-from ..kernels.fringe import FringePattern
+from ..kernels.fringe import NO_FACTOR, FringePattern
 from .stencil_system import StencilSystem, stencil_residual
 from .timestep import (RECONSTRUCTION_EVERY, STABILITY_LIMIT, covered_parameters,
                        fast_dof_limit, stiffness_root)
@@ -1034,14 +1034,9 @@ class StepLoop:
         """Load group g's fringe factor (a FringeFactor, or a pattern
         without fringe rows) into the run."""
         if isinstance(factor, FringePattern):
-            pattern, none = factor, np.zeros(0, dtype=np.int64)
-            arrays = (none, none, np.zeros((0, 1), dtype=np.int64), np.zeros(1, dtype=np.int64),
-                      none, np.zeros(0), np.zeros(1, dtype=np.int64), none, np.zeros(0),
-                      np.zeros(0), none, none)
+            pattern, arrays = factor, factor.arrays() + NO_FACTOR
         else:
-            pattern = factor.pattern
-            arrays = (pattern.fringe, pattern.near, pattern.near_cols, *factor.L, *factor.U,
-                      factor.inv_udiag, factor.perm_r, factor.perm_c)
+            pattern, arrays = factor.pattern, factor.arrays()
         rows = np.frombuffer(pattern.key, dtype=np.int64)
         load = self.module.load_fringe
         first = not load.signatures  # (compiled at a first need: compile time)

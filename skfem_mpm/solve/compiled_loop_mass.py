@@ -126,8 +126,9 @@ MASS_FIELDS = (
     # the fringe correction per group (kernels.fringe, FringeFactor.args):
     # the rows its factor was made for (count, -1: none loaded) and their
     # list, this step uses it, the sizes (fringe, near rows, L's and U's
-    # entries) and the factor packed (ints: fringe, near, near_cols, Lp, Li,
-    # Up, Ui, perm_r, perm_c; floats: Lx, Ux, 1 / U_jj), its work space
+    # entries) and the factor packed (ints: fringe, its row pointers and
+    # entries, near, theirs, Lp, Li, Up, Ui, perm_r, perm_c; floats: Lx,
+    # Ux, 1 / U_jj), its work space
     # (flat); the iterations of the first CG run with the factor per kind
     # of right-hand sides (FRESH_KINDS' order, -1: none yet) and those of
     # the last step taken; the groups that switched this step (turned on
@@ -217,12 +218,13 @@ def load_band(cm, g, rows, factor):
 
 
 @njit(cache=True)
-def load_fringe(cm, g, rows, fringe, near, near_cols, Lp, Li, Lx, Up, Ui, Ux, inv_udiag,
-                perm_r, perm_c):
-    """Group g's fringe factor (the executor's FringeFactor: its pattern's
-    fringe, near rows and their columns in the fringe, SuperLU's L and U
-    (CSC), 1 / U_jj, the permutations) made for the free ``rows``; no
-    fringe (empty ``fringe``): the Kronecker step alone on those rows."""
+def load_fringe(cm, g, rows, fringe, fringe_ptr, fringe_entries, near, near_ptr, near_entries,
+                Lp, Li, Lx, Up, Ui, Ux, inv_udiag, perm_r, perm_c):
+    """Group g's fringe factor (the executor's FringeFactor.arrays: its
+    pattern's fringe and near rows with their entries by rows, SuperLU's L
+    and U by rows, 1 / U_jj, the permutations) made for the free ``rows``;
+    no fringe (empty ``fringe``, fringe.NO_FACTOR): the Kronecker step
+    alone on those rows."""
     n = rows.shape[0]
     nf, nn, nl, nu = fringe.shape[0], near.shape[0], Li.shape[0], Ui.shape[0]
     cm.fringe_kept[g] = n
@@ -231,7 +233,12 @@ def load_fringe(cm, g, rows, fringe, near, near_cols, Lp, Li, Lx, Up, Ui, Ux, in
     cm.fringe_sizes[g, 1] = nn
     cm.fringe_sizes[g, 2] = nl
     cm.fringe_sizes[g, 3] = nu
-    ni = nf + nn + near_cols.size + nf + 1 + nl + nf + 1 + nu + nf + nf
+    ints_parts = (fringe, fringe_ptr, fringe_entries.reshape(fringe_entries.size), near,
+                  near_ptr, near_entries.reshape(near_entries.size), Lp, Li, Up, Ui, perm_r,
+                  perm_c)
+    ni = 0
+    for part in ints_parts:
+        ni += part.size
     nx = nl + nu + nf
     G = cm.fringe_kept.shape[0]
     if ni > cm.fringe_ints.shape[1]:  # room for this factor (the others' kept)
@@ -246,8 +253,7 @@ def load_fringe(cm, g, rows, fringe, near, near_cols, Lp, Li, Lx, Up, Ui, Ux, in
         cm.fringe_floats = floats
     ints = cm.fringe_ints[g]
     o = 0
-    for part in (fringe, near, near_cols.reshape(near_cols.size), Lp, Li, Up, Ui, perm_r,
-                 perm_c):
+    for part in ints_parts:
         copy_into(ints[o:o + part.size], part)
         o += part.size
     floats = cm.fringe_floats[g]
@@ -260,17 +266,25 @@ def load_fringe(cm, g, rows, fringe, near, near_cols, Lp, Li, Lx, Up, Ui, Ux, in
 @njit(cache=True)
 def fringe_args(cm, g, nc):
     """Group g's fringe factor for nc columns as ell_pcg takes it
-    (FringeFactor.args: the factor's arrays and the work space)."""
+    (FringeFactor.args: the factor's arrays and the work space); the
+    entries' counts are the row pointers' last."""
     nf, nn, nl, nu = (cm.fringe_sizes[g, 0], cm.fringe_sizes[g, 1], cm.fringe_sizes[g, 2],
                       cm.fringe_sizes[g, 3])
-    ns = cm.A.shape[2]
     ints = cm.fringe_ints[g]
     fringe = ints[:nf]
     o = nf
+    fringe_ptr = ints[o:o + nf + 1]
+    o += nf + 1
+    ef = fringe_ptr[nf]
+    fringe_entries = ints[o:o + 2 * ef].reshape((ef, 2))
+    o += 2 * ef
     near = ints[o:o + nn]
     o += nn
-    near_cols = ints[o:o + nn * ns].reshape((nn, ns))
-    o += nn * ns
+    near_ptr = ints[o:o + nn + 1]
+    o += nn + 1
+    en = near_ptr[nn]
+    near_entries = ints[o:o + 2 * en].reshape((en, 2))
+    o += 2 * en
     Lp = ints[o:o + nf + 1]
     o += nf + 1
     Li = ints[o:o + nl]
@@ -290,13 +304,13 @@ def fringe_args(cm, g, nc):
     h = (nc + 1) // 2
     rf = work[:nf * nc].reshape((nf, nc))
     o = nf * nc
-    zf = work[o:o + (nf + 1) * nc].reshape((nf + 1, nc))
-    o += (nf + 1) * nc
+    zf = work[o:o + nf * nc].reshape((nf, nc))
+    o += nf * nc
     yf = work[o:o + 2 * nf * h].reshape((2, nf, h))
     o += 2 * nf * h
     tn = work[o:o + nn * nc].reshape((nn, nc))
-    return (fringe, near, near_cols, Lp, Li, Lx, Up, Ui, Ux, inv_udiag, perm_r, perm_c, rf, zf,
-            yf, tn)
+    return (fringe, fringe_ptr, fringe_entries, near, near_ptr, near_entries, Lp, Li, Lx, Up,
+            Ui, Ux, inv_udiag, perm_r, perm_c, rf, zf, yf, tn)
 
 
 @njit(cache=True)
