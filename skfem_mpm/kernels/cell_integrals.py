@@ -1,6 +1,7 @@
-"""Grid integrals of per-cell quadratic polynomials on a 2D tensor B-spline
-grid, in closed form per axis (the TLS fit's grid side without its Gauss
-points).
+"""Grid integrals of per-cell polynomials on a 2D tensor B-spline grid, in
+closed form per axis: the TLS fit's quadratics and the 2D spline fit's
+bicubics (tensor degree 3 per axis; see "the 2D spline" below), the grid
+side of both fits without their Gauss points.
 
 A per-cell reconstruction (:mod:`skfem_mpm.kernels.tls`) gives in each
 cell e = ix + nx iy a polynomial in the cell's frame

@@ -16,12 +16,14 @@ the generated scatter kernels and the stencil assembly compute them. The
 MUSL re-projection P_i = sum_g w_g (rho v^new)_h N_i reconstructs the
 updated particle momentum with the same rule (g2p2g on points of mass w_g).
 
-The TLS fit in 2D (:data:`CELL_INTEGRALS`) is a polynomial per cell, so
+The TLS fit and the spline fit in 2D (:data:`CELL_INTEGRALS`) are a
+polynomial per cell (TLS: total degree 2; the spline: cubic per axis), so
 these sums over a whole cell's Gauss points are taken in closed form per
-axis from its coefficients instead (:mod:`skfem_mpm.kernels.cell_integrals`,
-the same quadrature summed in another order): the fit is never evaluated
-at the points but for its bound test, and p2g and the consistent mass run
-over the particle points of the rule alone (cells a free surface cuts).
+axis from their coefficients instead (:mod:`skfem_mpm.kernels.cell_integrals`,
+the same quadrature summed in another order; the rule is exact for both
+fits times the basis): the fit is never evaluated at the points but for
+TLS's bound test, and p2g and the consistent mass run over the particle
+points of the rule alone (cells a free surface cuts).
 
 The rule: in 1D the body's pieces (:func:`skfem_mpm.kernels.gauss_rule.gauss_rule_1d`),
 in 2D and 3D the part of each cell holding particles that the body covers
