@@ -1,8 +1,10 @@
-"""The 2D TLS step's grid sums in closed form per cell
+"""The 2D TLS and 2D spline steps' grid sums in closed form per cell
 (skfem_mpm.kernels.cell_integrals, CompiledReconstruction's CELL_INTEGRALS)
 equal the sums over the cells' Gauss points as quadrature particles (the
 path test_recon_compiled and test_executors check against the NumPy
-reference) to rounding: the same quadrature summed in another order.
+reference) to rounding: the same quadrature summed in another order, and
+the p + 2 point rule is exact for both fits (TLS: total degree 2; the
+spline: cubic per axis) times the basis.
 Quadratic and cubic, uniform and graded grids (closed-form B-splines and
 extraction), cells a free surface cuts (particle points), serial and
 parallel kernels. The loop's copy of the path gives the executor's bits
@@ -13,6 +15,7 @@ import numpy as np
 import pytest
 
 from skfem_mpm.kernels import tls as tls_kernel
+from skfem_mpm.kernels.cell_integrals import spline_axis_tables
 from skfem_mpm.kernels.gauss_rule import locate_cells
 from skfem_mpm.kernels.mpm import Kernels
 from skfem_mpm.kernels.serial import serial
@@ -23,9 +26,9 @@ from test_recon_compiled import axes_of, kernel_rule, layouts_tls
 LAYOUTS_2D = [c for c in layouts_tls() if c[1].dim == 2]
 
 
-def _reconstruction(grid, cells, parallel):
+def _reconstruction(grid, cells, parallel, name="tls"):
     recon = CompiledReconstruction.__new__(CompiledReconstruction)
-    recon._setup(grid, "tls", {})
+    recon._setup(grid, name, {})
     if not cells:
         recon.cell_tables = None  # the Gauss points as quadrature particles
     recon.kernels = Kernels(grid, parallel=parallel)
@@ -53,11 +56,12 @@ def _close(a, b, tol=1e-13):
     assert np.abs(a - b).max() <= tol * scale
 
 
+@pytest.mark.parametrize("fit", ("tls", "spline"))
 @pytest.mark.parametrize("parallel", (False, pytest.param(True, marks=pytest.mark.slow)),
                          ids=("serial", "parallel"))
 @pytest.mark.parametrize("name, grid, p", LAYOUTS_2D,
                          ids=lambda v: v if isinstance(v, str) else "")
-def test_the_fitted_cells_integrals_are_the_gauss_point_sums(name, grid, p, parallel):
+def test_the_fitted_cells_integrals_are_the_gauss_point_sums(name, grid, p, parallel, fit):
     """Lumped mass, momentum, force (with a body force's density), the
     consistent mass stencil and sum rho_h |grad N_k|^2, and the MUSL
     projection's momentum: the cells' closed form against the Gauss points
@@ -67,7 +71,7 @@ def test_the_fitted_cells_integrals_are_the_gauss_point_sums(name, grid, p, para
     v_new = p.v + 0.01 * p.x
     out = {}
     for cells in (False, True):
-        recon = _reconstruction(grid, cells, parallel)
+        recon = _reconstruction(grid, cells, parallel, fit)
         mass, momentum, force, (stencil, K), projection = recon.to_grid(_state(), p, volume)
         fields = [a.copy() for a in (mass, momentum, force, stencil, K)]
         fields.append(recon.project(_state(), p, v_new, projection).copy())
@@ -108,3 +112,20 @@ def test_the_tls_coefficients_are_the_fit_at_the_gauss_points(name, grid, p):
     assert np.abs(evaluated - at_points).max() <= 1e-12 * np.abs(at_points).max()
     assert np.array_equal(coef[:, 1:, 2], np.zeros_like(coef[:, 1:, 2])) or \
         np.abs(coef[:, 1:, 2]).max() < 1e-12
+
+
+@pytest.mark.parametrize("name, grid, p", LAYOUTS_2D[-2:],
+                         ids=lambda v: v if isinstance(v, str) else "")
+def test_the_spline_tables_are_exact_with_the_cells_rule(name, grid, p):
+    """spline_axis_tables' integrals of a cubic B-spline times the grid's
+    functions (degree 3 + 2p per axis) with the cells' p + 2 point rule
+    equal those of a rule three points longer: the rule is exact, so the
+    closed form is the Gauss-point sums' own value."""
+    recon = _reconstruction(grid, True, False, "spline")
+    cubic = recon.spline_ls.axes
+    for a in range(2):
+        ref, wref = np.polynomial.legendre.leggauss(grid.degree + 5)
+        longer = spline_axis_tables(recon.axes[a], recon.uniform[a], grid.extraction[a],
+                                    grid.degree, cubic[a][3], 0.5 * (ref + 1), 0.5 * wref)
+        for table, exact in zip(recon.cell_tables[a], longer):
+            assert np.abs(table - exact).max() <= 1e-14 * np.abs(exact).max()

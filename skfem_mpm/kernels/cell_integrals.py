@@ -1,6 +1,7 @@
-"""Grid integrals of per-cell quadratic polynomials on a 2D tensor B-spline
-grid, in closed form per axis (the TLS fit's grid side without its Gauss
-points).
+"""Grid integrals of per-cell polynomials on a 2D tensor B-spline grid, in
+closed form per axis: the TLS fit's quadratics and the 2D spline fit's
+bicubics (tensor degree 3 per axis; see "the 2D spline" below), the grid
+side of both fits without their Gauss points.
 
 A per-cell reconstruction (:mod:`skfem_mpm.kernels.tls`) gives in each
 cell e = ix + nx iy a polynomial in the cell's frame
@@ -45,7 +46,8 @@ from numba import njit, prange
 from .stencil import axis_functions
 from .weights import FAST
 
-__all__ = ["axis_tables", "cell_mass", "cell_momentum", "cell_p2g"]
+__all__ = ["axis_tables", "cell_mass", "cell_momentum", "cell_p2g", "spline_axis_tables",
+           "spline_cell_mass", "spline_cell_momentum", "spline_cell_p2g"]
 
 # IDX[q, p]: the index in phi of xi^p eta^q (-1: not a monomial of degree <= 2)
 IDX = np.array([[0, 1, 3], [2, 4, -1], [5, -1, -1]], dtype=np.int64)
@@ -53,19 +55,39 @@ IDX = np.array([[0, 1, 3], [2, 4, -1], [5, -1, -1]], dtype=np.int64)
 
 @njit(cache=True, error_model="numpy")
 def axis_tables(breaks, uniform, C, p, ref, wref):
-    """(P, D, Q, R) of one axis (see the module), each cell i taken whole,
-    its Gauss points x_j = u_i + h_i r_j (weights h_i w_j) and frame
-    centre 0.5 (x_min + x_max), span x_max - x_min, as
+    """(P, D, Q, R) of one axis (see the module), each (n, 3, ...) over the
+    frame's powers xi^q, q = 0..2, each cell i taken whole, its Gauss
+    points x_j = u_i + h_i r_j (weights h_i w_j) and frame centre
+    0.5 (x_min + x_max), span x_max - x_min, as
     :func:`skfem_mpm.kernels.gauss_rule.gauss_rule_cells` and
     :func:`skfem_mpm.kernels.tls.tls_factor` compute them. Entries beyond
     p are 0."""
+    return _tables(breaks, uniform, C, p, ref, wref, C, False)
+
+
+@njit(cache=True, error_model="numpy")
+def spline_axis_tables(breaks, uniform, C, p, cubic, ref, wref):
+    """(P, D, Q, R) of one axis (see the module) over the cell's four cubic
+    B-splines instead of the frame's powers, each (n, 4, ...):
+    P[i, q, a] = int_cell N^3_(i+q) N_a dx and so on (``cubic``: the
+    extraction of the cubic space on the same breakpoints, whose functions
+    on cell i are i..i+3; exact with the cell's p + 2 point Gauss rule,
+    degree 3 + 2p <= 2p + 3). Entries beyond p are 0."""
+    return _tables(breaks, uniform, C, p, ref, wref, cubic, True)
+
+
+@njit(cache=True, error_model="numpy")
+def _tables(breaks, uniform, C, p, ref, wref, cubic, splines):
+    """:func:`axis_tables` (``splines`` False: the frame's powers) or
+    :func:`spline_axis_tables` (True: the cubic B-splines of ``cubic``)."""
     n = breaks.shape[0] - 1
     inv_h = n / (breaks[n] - breaks[0])
     k = ref.shape[0]
-    P = np.zeros((n, 3, 4))
-    D = np.zeros((n, 3, 4))
-    Q = np.zeros((n, 3, 4, 4))
-    R = np.zeros((n, 3, 4))
+    nq = 4 if splines else 3
+    P = np.zeros((n, nq, 4))
+    D = np.zeros((n, nq, 4))
+    Q = np.zeros((n, nq, 4, 4))
+    R = np.zeros((n, nq, 4))
     x = np.empty(k)
     for i in range(n):
         h = breaks[i + 1] - breaks[i]
@@ -82,16 +104,24 @@ def axis_tables(breaks, uniform, C, p, ref, wref):
                                                                p)
             w = (w0, w1, w2, w3)
             g = (g0, g1, g2, g3)
-            xi = (x[j] - centre) / span
-            power = h * wref[j]
-            for q in range(3):
+            weight = h * wref[j]
+            if splines:
+                e, f0, f1, f2, f3, _, _, _, _ = axis_functions(x[j], breaks, uniform, inv_h,
+                                                               cubic, 3)
+                if e != i:
+                    raise ValueError("spline_axis_tables: a Gauss point outside its cell")
+                fit = (weight * f0, weight * f1, weight * f2, weight * f3)
+            else:
+                xi = (x[j] - centre) / span
+                fit = (weight, weight * xi, weight * xi * xi, 0.0)
+            for q in range(nq):
+                power = fit[q]
                 for a in range(p + 1):
                     P[i, q, a] += power * w[a]
                     D[i, q, a] += power * g[a]
                     R[i, q, a] += power * g[a] * g[a]
                     for b in range(p + 1):
                         Q[i, q, a, b] += power * w[a] * w[b]
-                power *= xi
     return P, D, Q, R
 
 
@@ -263,6 +293,181 @@ def cell_mass(coef, cell, ncx, tx, ty, p, nbx, mass_copies, stiff_copies, touche
                             M[kd, base + a2] += (Qy[iy, 0, b, b2] * T[0, a, a2]
                                                  + Qy[iy, 1, b, b2] * T[1, a, a2]
                                                  + Qy[iy, 2, b, b2] * T[2, a, a2])
+            first, last = _cell_nodes(first, last, ix, iy, p, nbx)
+        touched[t, 0] = first
+        touched[t, 1] = last
+
+
+# ------------------------------------------------------------ the 2D spline
+# The spline reconstruction's fit (kernels.spline_2d) is a cubic tensor
+# B-spline on the grid's own breakpoints: in cell (ix, iy)
+#     f_h = sum_(e, q = 0..3) c_(iy + q, ix + e) N^3_(ix + e)(x) N^3_(iy + q)(y)
+# (c the fit's coefficients, row (iy + q) nbf + ix + e, nbf = ncx + 3 the
+# cubic functions along x: SplineGrid's n_x + p), so the sums above hold
+# with the cell's cubic B-splines for the powers (spline_axis_tables) and
+# the x sums U_q[a] = sum_e c_(iy + q, ix + e) T^x[ix, e, a], q = 0..3.
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _spline_x_sums(coef, row, nbf, c0, c1, T, ix, p, U):
+    """U[q, a] = sum_e 0.5 (c_(row + q nbf + e, c0) + c_(..., c1)) T[ix, e, a]
+    (c0 = c1: one column's sums, U (4, 4))."""
+    for q in range(4):
+        first = row + q * nbf
+        for a in range(p + 1):
+            acc = 0.0
+            for e in range(4):
+                if c0 == c1:
+                    acc += coef[first + e, c0] * T[ix, e, a]
+                else:
+                    acc += 0.5 * (coef[first + e, c0] + coef[first + e, c1]) * T[ix, e, a]
+            U[q, a] = acc
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _spline_y_sum(U, T, iy, a, b):
+    """sum_q U[q, a] T[iy, q, b], q = 0..3."""
+    return (U[0, a] * T[iy, 0, b] + U[1, a] * T[iy, 1, b] + U[2, a] * T[iy, 2, b]
+            + U[3, a] * T[iy, 3, b])
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def spline_cell_p2g(coef, cell, ncx, tx, ty, p, nbx, has_fext, copies, touched):
+    """:func:`cell_p2g` of the spline's fit: coef (nbf nby, k) its cubic
+    coefficients of [rho, rho v, sigma (row by row), rho b (with
+    ``has_fext``)], ``cell`` the cells integrated, ``tx``, ``ty``
+    :func:`spline_axis_tables` of the axes (see above)."""
+    ns = cell.shape[0]
+    nt, nk, nf = copies.shape
+    nbf = ncx + 3
+    Px, Dx = tx[0], tx[1]
+    Py, Dy = ty[0], ty[1]
+    for t in prange(nt):
+        g = copies[t].reshape(nk * nf)
+        first = touched[t, 0]
+        last = touched[t, 1]
+        Um = np.empty((4, 4))
+        U0 = np.empty((4, 4))
+        U1 = np.empty((4, 4))
+        A00 = np.empty((4, 4))  # sigma_00 with D^x
+        A01 = np.empty((4, 4))  # sym sigma_01 with P^x
+        B01 = np.empty((4, 4))  # sym sigma_01 with D^x
+        A11 = np.empty((4, 4))  # sigma_11 with P^x
+        E0 = np.zeros((4, 4))
+        E1 = np.zeros((4, 4))
+        for s in range(t * ns // nt, (t + 1) * ns // nt):
+            ix = cell[s] % ncx
+            iy = cell[s] // ncx
+            row = iy * nbf + ix
+            _spline_x_sums(coef, row, nbf, 0, 0, Px, ix, p, Um)
+            _spline_x_sums(coef, row, nbf, 1, 1, Px, ix, p, U0)
+            _spline_x_sums(coef, row, nbf, 2, 2, Px, ix, p, U1)
+            _spline_x_sums(coef, row, nbf, 3, 3, Dx, ix, p, A00)
+            _spline_x_sums(coef, row, nbf, 4, 5, Px, ix, p, A01)
+            _spline_x_sums(coef, row, nbf, 4, 5, Dx, ix, p, B01)
+            _spline_x_sums(coef, row, nbf, 6, 6, Px, ix, p, A11)
+            if has_fext:
+                _spline_x_sums(coef, row, nbf, 7, 7, Px, ix, p, E0)
+                _spline_x_sums(coef, row, nbf, 8, 8, Px, ix, p, E1)
+            for b in range(p + 1):
+                for a in range(p + 1):
+                    k = ((iy + b) * nbx + ix + a) * nf
+                    g[k] += _spline_y_sum(Um, Py, iy, a, b)
+                    g[k + 1] += _spline_y_sum(U0, Py, iy, a, b)
+                    g[k + 2] += _spline_y_sum(U1, Py, iy, a, b)
+                    f0 = -(_spline_y_sum(A00, Py, iy, a, b) + _spline_y_sum(A01, Dy, iy, a, b))
+                    f1 = -(_spline_y_sum(B01, Py, iy, a, b) + _spline_y_sum(A11, Dy, iy, a, b))
+                    if has_fext:
+                        f0 += _spline_y_sum(E0, Py, iy, a, b)
+                        f1 += _spline_y_sum(E1, Py, iy, a, b)
+                    g[k + 3] += f0
+                    g[k + 4] += f1
+            first, last = _cell_nodes(first, last, ix, iy, p, nbx)
+        touched[t, 0] = first
+        touched[t, 1] = last
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def spline_cell_momentum(coef, cell, ncx, tx, ty, p, nbx, copies, touched):
+    """:func:`cell_momentum` of the spline's fitted momentum density (coef
+    (nbf nby, 2) its cubic coefficients; see :func:`spline_cell_p2g`)."""
+    ns = cell.shape[0]
+    nt, nk, nf = copies.shape
+    nbf = ncx + 3
+    Px = tx[0]
+    Py = ty[0]
+    for t in prange(nt):
+        g = copies[t].reshape(nk * nf)
+        first = touched[t, 0]
+        last = touched[t, 1]
+        U0 = np.empty((4, 4))
+        U1 = np.empty((4, 4))
+        for s in range(t * ns // nt, (t + 1) * ns // nt):
+            ix = cell[s] % ncx
+            iy = cell[s] // ncx
+            row = iy * nbf + ix
+            _spline_x_sums(coef, row, nbf, 0, 0, Px, ix, p, U0)
+            _spline_x_sums(coef, row, nbf, 1, 1, Px, ix, p, U1)
+            for b in range(p + 1):
+                for a in range(p + 1):
+                    k = ((iy + b) * nbx + ix + a) * nf
+                    g[k] += _spline_y_sum(U0, Py, iy, a, b)
+                    g[k + 1] += _spline_y_sum(U1, Py, iy, a, b)
+            first, last = _cell_nodes(first, last, ix, iy, p, nbx)
+        touched[t, 0] = first
+        touched[t, 1] = last
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def spline_cell_mass(coef, cell, ncx, tx, ty, p, nbx, mass_copies, stiff_copies, touched):
+    """:func:`cell_mass` of the spline's fitted density (column 0 of coef,
+    its cubic coefficients; see :func:`spline_cell_p2g`)."""
+    ns = cell.shape[0]
+    nt = mass_copies.shape[0]
+    width = 2 * p + 1
+    nbf = ncx + 3
+    Qx, Rx = tx[2], tx[3]
+    Qy, Ry = ty[2], ty[3]
+    for t in prange(nt):
+        M = mass_copies[t]
+        K = stiff_copies[t]
+        first = touched[t, 0]
+        last = touched[t, 1]
+        T = np.empty((4, 4, 4))  # T[q, a, a2] = sum_e c_(iy + q, ix + e) Q^x[ix, e, a, a2]
+        UR = np.empty((4, 4))
+        for s in range(t * ns // nt, (t + 1) * ns // nt):
+            ix = cell[s] % ncx
+            iy = cell[s] // ncx
+            row = iy * nbf + ix
+            _spline_x_sums(coef, row, nbf, 0, 0, Rx, ix, p, UR)
+            for q in range(4):
+                c = row + q * nbf
+                for a in range(p + 1):
+                    for a2 in range(a, p + 1):
+                        acc = 0.0
+                        for e in range(4):
+                            acc += coef[c + e, 0] * Qx[ix, e, a, a2]
+                        T[q, a, a2] = acc
+                        T[q, a2, a] = acc
+            for b in range(p + 1):
+                for a in range(p + 1):
+                    kd = (iy + b) * nbx + ix + a
+                    K[kd] += (UR[0, a] * Qy[iy, 0, b, b] + UR[1, a] * Qy[iy, 1, b, b]
+                              + UR[2, a] * Qy[iy, 2, b, b] + UR[3, a] * Qy[iy, 3, b, b]
+                              + T[0, a, a] * Ry[iy, 0, b] + T[1, a, a] * Ry[iy, 1, b]
+                              + T[2, a, a] * Ry[iy, 2, b] + T[3, a, a] * Ry[iy, 3, b])
+                    for a2 in range(a, p + 1):
+                        M[kd, a2 - a] += (Qy[iy, 0, b, b] * T[0, a, a2]
+                                          + Qy[iy, 1, b, b] * T[1, a, a2]
+                                          + Qy[iy, 2, b, b] * T[2, a, a2]
+                                          + Qy[iy, 3, b, b] * T[3, a, a2])
+                    for b2 in range(b + 1, p + 1):
+                        base = (b2 - b) * width - a
+                        for a2 in range(p + 1):
+                            M[kd, base + a2] += (Qy[iy, 0, b, b2] * T[0, a, a2]
+                                                 + Qy[iy, 1, b, b2] * T[1, a, a2]
+                                                 + Qy[iy, 2, b, b2] * T[2, a, a2]
+                                                 + Qy[iy, 3, b, b2] * T[3, a, a2])
             first, last = _cell_nodes(first, last, ix, iy, p, nbx)
         touched[t, 0] = first
         touched[t, 1] = last

@@ -131,6 +131,9 @@ _GRID_KERNELS = {
     "CELL_P2G": cell_integrals.cell_p2g,
     "CELL_MOMENTUM": cell_integrals.cell_momentum,
     "CELL_MASS": cell_integrals.cell_mass,
+    "SPLINE_CELL_P2G": cell_integrals.spline_cell_p2g,
+    "SPLINE_CELL_MOMENTUM": cell_integrals.spline_cell_momentum,
+    "SPLINE_CELL_MASS": cell_integrals.spline_cell_mass,
     "MLS_FIT": mls.mls_fit,
     "MLS_STORE": mls.mls_store,
     "SPLINE_LS_SYSTEM": spline_2d.spline_ls_system,
@@ -771,6 +774,10 @@ class StepLoop:
                 band = np.zeros((ls.ndofs, 3 * ls.nbx + 4))
                 fields["spline"] = (ls.axes, int(ls.nbx), int(ls.nby), float(ls.penalty),
                                     np.zeros_like(ls.A), band, np.zeros_like(band))
+                if recon.cell_tables is not None:  # closed-form integrals of its cubic fit
+                    fields.update(tables=recon.cell_tables,
+                                  cell_shape=(recon.ncx, recon.nbx, recon.degree),
+                                  coef=empty((0, k)), momentum_coef=empty((0, dim)))
             return self._record("new_rule_reconstruction", "RuleReconstructionType",
                                 self.module.RULED_FIELDS, fields)
         fields = dict(

@@ -357,21 +357,35 @@ def _fit_points(rc, x, V, values, out, fresh):
             return True
         return mls
 
-    def spline(rc, x, V, values, out, fresh):  # SplineLeastSquares.__call__, BandedCholesky
-        axes, nbx, nby, penalty, A, band, L = rc.spline
-        rhs = np.empty((nbx * nby, values.shape[1]))
-        SPLINE_LS_SYSTEM(x, V, values, axes[0], axes[1], nbx, nby, penalty, fresh, A, rhs)
-        if fresh:
-            SPLINE_BAND(A, nbx, band)
-            L[:] = 0.0
-            BANDED_CHOLESKY_INTO(band, 0, A.shape[0], L)
-            for i in range(L.shape[0]):
-                if not L[i, 0] > 0.0:
-                    return False
-        BAND_SOLVE(L, rhs)
-        SPLINE_EVALUATE(rc.xg, rhs, axes[0], axes[1], nbx, out)
-        return True
+    def spline(rc, x, V, values, out, fresh):  # SplineLeastSquares.__call__
+        done, coef = _spline_coefficients(rc, x, V, values, fresh)
+        if done:
+            axes, nbx = rc.spline[0], rc.spline[1]
+            SPLINE_EVALUATE(rc.xg, coef, axes[0], axes[1], nbx, out)
+        return done
     return spline
+
+
+@njit(cache=True)
+def _spline_coefficients(rc, x, V, values, fresh):
+    """(done, the 2D spline's cubic coefficients (ndofs, k) of ``values``):
+    its least-squares system (kernels.spline_2d) solved by the banded
+    Cholesky factor of A + P, which ``fresh`` first makes (and keeps in
+    rc.spline) as SplineLeastSquares.coefficients and BandedCholesky; done
+    False when a pivot is not positive (the executor then factorises by
+    SuperLU)."""
+    axes, nbx, nby, penalty, A, band, L = rc.spline
+    rhs = np.empty((nbx * nby, values.shape[1]))
+    SPLINE_LS_SYSTEM(x, V, values, axes[0], axes[1], nbx, nby, penalty, fresh, A, rhs)
+    if fresh:
+        SPLINE_BAND(A, nbx, band)
+        L[:] = 0.0
+        BANDED_CHOLESKY_INTO(band, 0, A.shape[0], L)
+        for i in range(L.shape[0]):
+            if not L[i, 0] > 0.0:
+                return False, rhs
+    BAND_SOLVE(L, rhs)
+    return True, rhs
 
 
 @njit(cache=True)
@@ -398,67 +412,171 @@ def _own_points(rc, x, V, values):
     return _quadrature_points(rc, points)
 
 
+# The fitted cells' closed-form integrals (CompiledReconstruction's
+# cell_tables: kernels.cell_integrals) of the 2D TLS (rc.spline None: its
+# monomial coefficients per cell slot, kernels.tls) or the 2D spline (its
+# cubic coefficients, the cells of the rule's Gauss blocks): each step
+# below takes its kind's kernels, chosen from the type of rc.spline.
+def _spline_type(rc):
+    """Whether a RuleReconstruction (its numba type) is the 2D spline's."""
+    return not isinstance(rc.field_dict["spline"], types.NoneType)
+
+
+def fit_cells(rc, x, V, values):
+    """The coefficients of the fit of ``values`` per fitted cell (rc.coef,
+    rc.slot_cell), what depends on the positions alone first (kept in rc);
+    False when the fit cannot be made here (see fit_points)."""
+
+
+@overload(fit_cells)
+def _fit_cells(rc, x, V, values):
+    if _spline_type(rc):
+        def spline(rc, x, V, values):  # CompiledReconstruction._cell_fit's spline
+            done, coef = _spline_coefficients(rc, x, V, values, True)
+            if not done:
+                return False
+            rc.coef = coef
+            block = rc.ref.shape[0] * rc.ref.shape[0]  # the Gauss blocks' cells
+            cells = np.empty(rc.wg.shape[0] // block, dtype=np.int64)
+            for j in range(cells.shape[0]):
+                cells[j] = rc.gcell[j * block]
+            rc.slot_cell = cells
+            return True
+        return spline
+
+    def tls(rc, x, V, values):
+        rc.factor = TLS_FACTOR(x, V, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.ncells)
+        rc.slot_cell = SLOT_CELLS(rc.factor, rc.gcell)
+        nact = rc.slot_cell.shape[0]
+        if rc.coef.shape[0] != nact:
+            rc.coef = np.empty((nact, 6, values.shape[1]))
+            rc.momentum_coef = np.empty((nact, 6, x.shape[1]))
+        TLS_COEFFICIENTS(x, V, values, rc.xg, rc.factor, rc.coef)
+        return True
+    return tls
+
+
+def refit_cells(rc, x, V, values):
+    """rc.momentum_coef = the coefficients of the fit of ``values`` on what
+    fit_cells kept."""
+
+
+@overload(refit_cells)
+def _refit_cells(rc, x, V, values):
+    if _spline_type(rc):
+        def spline(rc, x, V, values):
+            rc.momentum_coef = _spline_coefficients(rc, x, V, values, False)[1]
+        return spline
+
+    def tls(rc, x, V, values):
+        TLS_COEFFICIENTS(x, V, values, rc.xg, rc.factor, rc.momentum_coef)
+    return tls
+
+
+def _cell_kernels(rc):
+    """The fit's kernels.cell_integrals kernels (p2g, momentum, mass), from
+    the type of the RuleReconstruction ``rc``."""
+    if _spline_type(rc):
+        return SPLINE_CELL_P2G, SPLINE_CELL_MOMENTUM, SPLINE_CELL_MASS
+    return CELL_P2G, CELL_MOMENTUM, CELL_MASS
+
+
 @njit(cache=True)
 def cell_rule_points(rc, x, v, m, V, stress, forces):
-    """The 2D TLS with closed-form cell integrals
+    """The 2D TLS or spline with closed-form cell integrals
     (CompiledReconstruction._cells_to_grid): the step's rule, the fit's
-    coefficients per cell (rc.coef, rc.slot_cell; the position half kept
-    in rc.factor) and the rule's particle points as quadrature points."""
+    coefficients (fit_cells: rc.coef, rc.slot_cell) and the rule's particle
+    points as quadrature points; False when the fit cannot be made here."""
     values = _per_volume_fields(rc, v, m, V, stress, forces)
     _RULE(rc, x, V)
-    rc.factor = TLS_FACTOR(x, V, rc.pcell, rc.xg, rc.wg, rc.gcell, rc.ncells)
-    rc.slot_cell = SLOT_CELLS(rc.factor, rc.gcell)
-    nact = rc.slot_cell.shape[0]
-    if rc.coef.shape[0] != nact:
-        rc.coef = np.empty((nact, 6, values.shape[1]))
-        rc.momentum_coef = np.empty((nact, 6, x.shape[1]))
-    TLS_COEFFICIENTS(x, V, values, rc.xg, rc.factor, rc.coef)
+    if not fit_cells(rc, x, V, values):
+        return False
     return _own_points(rc, x, V, values)
 
 
 @njit(cache=True)
 def cell_rule_project(rc, x, V, v_new):
-    """MUSL (the 2D TLS with closed-form cell integrals): the coefficients
-    of the fitted rho v^new (rc.momentum_coef) and the particles' own
-    rho v^new at the rule's particle points (rc.momentum_fit)."""
+    """MUSL (the 2D TLS or spline with closed-form cell integrals): the
+    coefficients of the fitted rho v^new (rc.momentum_coef) and the
+    particles' own rho v^new at the rule's particle points (rc.momentum_fit)."""
     n, dim = v_new.shape
     for i in range(n):
         for c in range(dim):
             rc.momentum_values[i, c] = rc.rho[i] * v_new[i, c]
-    TLS_COEFFICIENTS(x, V, rc.momentum_values, rc.xg, rc.factor, rc.momentum_coef)
+    refit_cells(rc, x, V, rc.momentum_values)
     own = rc.own
     for j in range(own.shape[0]):
         for c in range(dim):
             rc.momentum_fit[j, c] = rc.momentum_values[own[j], c]
 
 
+def _add_cell_p2g(rc, has_fext, copies, touched):
+    """Add p2g's fields of the fitted cells into the copies."""
+
+
+@overload(_add_cell_p2g)
+def _add_cell_p2g_impl(rc, has_fext, copies, touched):
+    kernel = _cell_kernels(rc)[0]
+
+    def impl(rc, has_fext, copies, touched):
+        ncx, nbx, p = rc.cell_shape
+        tx, ty = rc.tables
+        kernel(rc.coef, rc.slot_cell, ncx, tx, ty, p, nbx, has_fext, copies, touched)
+    return impl
+
+
 @njit(cache=True)
 def cell_p2g(rc, has_fext, copies, touched):
     """Add p2g's fields of the fitted cells into the copies (kernels.cell_integrals)."""
-    ncx, nbx, p = rc.cell_shape
-    tx, ty = rc.tables
-    CELL_P2G(rc.coef, rc.slot_cell, ncx, tx, ty, p, nbx, has_fext, copies, touched)
+    _add_cell_p2g(rc, has_fext, copies, touched)
+
+
+def _add_cell_momentum(rc, copies, touched):
+    """Add the fitted cells' projected momentum into the copies."""
+
+
+@overload(_add_cell_momentum)
+def _add_cell_momentum_impl(rc, copies, touched):
+    kernel = _cell_kernels(rc)[1]
+
+    def impl(rc, copies, touched):
+        ncx, nbx, p = rc.cell_shape
+        tx, ty = rc.tables
+        kernel(rc.momentum_coef, rc.slot_cell, ncx, tx, ty, p, nbx, copies, touched)
+    return impl
 
 
 @njit(cache=True)
 def cell_momentum(rc, copies, touched):
     """Add the fitted cells' projected momentum into the copies."""
-    ncx, nbx, p = rc.cell_shape
-    tx, ty = rc.tables
-    CELL_MOMENTUM(rc.momentum_coef, rc.slot_cell, ncx, tx, ty, p, nbx, copies, touched)
+    _add_cell_momentum(rc, copies, touched)
+
+
+def _add_cell_mass(cm, rc, p, nbx):
+    """Add the fitted cells' consistent mass and K into cm's copies."""
+
+
+@overload(_add_cell_mass)
+def _add_cell_mass_impl(cm, rc, p, nbx):
+    kernel = _cell_kernels(rc)[2]
+
+    def impl(cm, rc, p, nbx):
+        ncx = rc.cell_shape[0]
+        tx, ty = rc.tables
+        kernel(rc.coef, rc.slot_cell, ncx, tx, ty, p, nbx, cm.copies, cm.stiff_copies,
+               cm.touched)
+    return impl
 
 
 @njit(cache=True)
 def assemble_mass_fitted_cells(cm, rc, x, m, k, nbx, nby):
     """2D: the consistent mass stencil and K of the rule's particle points
     (kernels.mpm.consistent_cells_2d with no cell blocks) plus the fitted
-    cells' closed-form integrals (kernels.cell_integrals.cell_mass), as
-    Kernels.consistent_stencil with ``add``."""
+    cells' closed-form integrals (kernels.cell_integrals.cell_mass or
+    spline_cell_mass), as Kernels.consistent_stencil with ``add``."""
     ncx, _, p = rc.cell_shape
-    tx, ty = rc.tables
     ASSEMBLE_CELLS(x, m, cm.axes, 0, k, p, nbx, cm.copies, cm.stiff_copies, cm.touched)
-    CELL_MASS(rc.coef, rc.slot_cell, ncx, tx, ty, p, nbx, cm.copies, cm.stiff_copies,
-              cm.touched)
+    _add_cell_mass(cm, rc, p, nbx)
     _reduce_mass(cm, p, nbx, nby, 2)
 
 

@@ -16,12 +16,14 @@ the generated scatter kernels and the stencil assembly compute them. The
 MUSL re-projection P_i = sum_g w_g (rho v^new)_h N_i reconstructs the
 updated particle momentum with the same rule (g2p2g on points of mass w_g).
 
-The TLS fit in 2D (:data:`CELL_INTEGRALS`) is a polynomial per cell, so
+The TLS fit and the spline fit in 2D (:data:`CELL_INTEGRALS`) are a
+polynomial per cell (TLS: total degree 2; the spline: cubic per axis), so
 these sums over a whole cell's Gauss points are taken in closed form per
-axis from its coefficients instead (:mod:`skfem_mpm.kernels.cell_integrals`,
-the same quadrature summed in another order): the fit is never evaluated
-at the points but for its bound test, and p2g and the consistent mass run
-over the particle points of the rule alone (cells a free surface cuts).
+axis from their coefficients instead (:mod:`skfem_mpm.kernels.cell_integrals`,
+the same quadrature summed in another order; the rule is exact for both
+fits times the basis): the fit is never evaluated at the points but for
+TLS's bound test, and p2g and the consistent mass run over the particle
+points of the rule alone (cells a free surface cuts).
 
 The rule: in 1D the body's pieces (:func:`skfem_mpm.kernels.gauss_rule.gauss_rule_1d`),
 in 2D and 3D the part of each cell holding particles that the body covers
@@ -48,14 +50,16 @@ from ..kernels.spline_2d import (WIDTH, band_solve, spline_band, spline_evaluate
                                  spline_ls_system)
 from ..kernels.serial import SERIAL_BELOW, for_threads
 from ..kernels.tls import slot_cells, tls_apply, tls_coefficients, tls_factor
-from ..kernels.cell_integrals import axis_tables, cell_mass, cell_momentum, cell_p2g
+from ..kernels.cell_integrals import (axis_tables, cell_mass, cell_momentum, cell_p2g,
+                                      spline_axis_tables, spline_cell_mass,
+                                      spline_cell_momentum, spline_cell_p2g)
 
 TLS_DEFAULTS = {"degree": 2, "neighbour_weight": 0.0}
 
 CELL_INTEGRALS = True
-"""2D TLS: the step's grid sums in closed form per cell (see the module);
-False: over the Gauss points as quadrature particles (tests compare the
-two). Read when a run is set up."""
+"""2D TLS and 2D spline: the step's grid sums in closed form per cell (see
+the module); False: over the Gauss points as quadrature particles (tests
+compare the two). Read when a run is set up."""
 
 __all__ = ["CompiledReconstruction", "unsupported"]
 
@@ -244,16 +248,23 @@ class SplineLeastSquares:
         # COLAMD; 128 x 128 (17,161 dofs) 1.6 s against 8.2 s
         return spla.splu(matrix, permc_spec="MMD_AT_PLUS_A"), rhs
 
-    def __call__(self, x, V, values, xg, out, lu=None):
-        """out = the fit at xg; returns the factorisation (pass it back as
-        ``lu`` for other values on the same particles)."""
+    def coefficients(self, x, V, values, lu=None):
+        """(the fit's cubic coefficients c (ndofs, k), the factorisation):
+        ``lu`` a factorisation of the same particles (x, V) to reuse, or
+        None."""
         if lu is None:
             lu, rhs = self.factor(x, V, values)
         else:
             rhs = np.empty((self.ndofs, values.shape[1]))
             spline_ls_system(x, V, values, *self.axes, self.nbx, self.nby, self.penalty,
                              False, self.A, rhs)
-        spline_evaluate(xg, np.ascontiguousarray(lu.solve(rhs)), *self.axes, self.nbx, out)
+        return np.ascontiguousarray(lu.solve(rhs)), lu
+
+    def __call__(self, x, V, values, xg, out, lu=None):
+        """out = the fit at xg; returns the factorisation (pass it back as
+        ``lu`` for other values on the same particles)."""
+        coef, lu = self.coefficients(x, V, values, lu)
+        spline_evaluate(xg, coef, *self.axes, self.nbx, out)
         return lu
 
 
@@ -295,14 +306,23 @@ class CompiledReconstruction:
         self._zero_a = np.zeros((grid.ndofs, grid.dim))
         if self.name == "spline" and self.dim == 2:
             self.spline_ls = SplineLeastSquares(grid, options.get("penalty", 1e-6))
-        self.cell_tables = None  # 2D TLS: kernels.cell_integrals.axis_tables per axis
-        if self.name == "tls" and self.dim == 2 and CELL_INTEGRALS:
+        # 2D TLS and spline: kernels.cell_integrals' tables per axis and kernels
+        self.cell_tables = None
+        if self.name in ("tls", "spline") and self.dim == 2 and CELL_INTEGRALS:
             self.degree = int(grid.degree)
             self.ncx = int(self.axes[0].size - 1)
             self.nbx = int(grid.basis_per_axis[0])
-            self.cell_tables = tuple(
-                axis_tables(self.axes[a], self.uniform[a], grid.extraction[a], self.degree,
-                            self.ref, self.wref) for a in range(2))
+            if self.name == "tls":
+                self.cell_tables = tuple(
+                    axis_tables(self.axes[a], self.uniform[a], grid.extraction[a], self.degree,
+                                self.ref, self.wref) for a in range(2))
+                self.cell_kernels = (cell_p2g, cell_momentum, cell_mass)
+            else:  # over the cubic space's functions (SplineLeastSquares' axes)
+                self.cell_tables = tuple(
+                    spline_axis_tables(self.axes[a], self.uniform[a], grid.extraction[a],
+                                       self.degree, self.spline_ls.axes[a][3], self.ref,
+                                       self.wref) for a in range(2))
+                self.cell_kernels = (spline_cell_p2g, spline_cell_momentum, spline_cell_mass)
         if self.name == "mls":  # the reference's kernel radius: radius cells of the smallest
             self.radius = float(options.get("radius", 1.5)) * min(grid.h)
             # the pairs of the last rule fitted with coefficients (kernels.mls.mls_fit)
@@ -425,11 +445,19 @@ class CompiledReconstruction:
         return rho, np.ascontiguousarray(np.concatenate(fields, axis=1))
 
     def _cell_fit(self, p, values, rule):
-        """(coefficients (cells, 6, k), cells): the TLS fit of ``values`` per
-        cell of the rule's Gauss points (kernels.tls.tls_coefficients; the
-        position half kept on the rule, as _fit), and each slot's cell."""
+        """(coefficients, cells): TLS: the fit of ``values`` per cell of the
+        rule's Gauss points (cells, 6, k) (kernels.tls.tls_coefficients; the
+        position half kept on the rule, as _fit), and each slot's cell; the
+        2D spline: its cubic coefficients (ndofs, k) (the factorisation kept
+        on the rule, as _fit) and the cells of the rule's Gauss points (its
+        k x k blocks, ascending)."""
         parallel = self.kernels.parallel
         n = getattr(rule, "ngauss", rule.w.shape[0])
+        if self.name == "spline":
+            coef, rule.lu = self.spline_ls.coefficients(p.x, p.V, values,
+                                                        getattr(rule, "lu", None))
+            k = self.ref.shape[0]
+            return coef, np.ascontiguousarray(rule.cell[:n:k * k])
         if getattr(rule, "tls", None) is None:
             rule.tls = for_threads(tls_factor, parallel)(
                 p.x, p.V, rule.pcell, rule.x[:n], rule.w[:n], rule.cell[:n], self.ncells)
@@ -445,12 +473,13 @@ class CompiledReconstruction:
         return np.zeros(0, dtype=np.int64) if own is None else own
 
     def _cells_to_grid(self, state, p, volume):
-        """to_grid of the 2D TLS with the cells' closed-form integrals
-        (:data:`CELL_INTEGRALS`): p2g and the consistent mass of the rule's
-        particle points, plus kernels.cell_integrals of the fitted
-        coefficients added into the same per-thread copies."""
+        """to_grid of the 2D TLS and spline with the cells' closed-form
+        integrals (:data:`CELL_INTEGRALS`): p2g and the consistent mass of
+        the rule's particle points, plus kernels.cell_integrals of the
+        fitted coefficients added into the same per-thread copies."""
         k, dim = self.kernels, self.dim
         tx, ty = self.cell_tables
+        cell_p2g, _, cell_mass = self.cell_kernels
         kernel = k.kernel
         with state.timer("reconstruct"):
             rule = self.rule(p)
@@ -480,9 +509,11 @@ class CompiledReconstruction:
         return mass, momentum, force, stencil, (rule, rho)
 
     def _cells_project(self, state, p, v_new, rule, rho):
-        """project of the 2D TLS with the cells' closed-form integrals."""
+        """project of the 2D TLS and spline with the cells' closed-form
+        integrals."""
         k = self.kernels
         tx, ty = self.cell_tables
+        cell_momentum = self.cell_kernels[1]
         with state.timer("reconstruct"):
             density = np.ascontiguousarray(rho[:, None] * v_new)
             coef, cells = self._cell_fit(p, density, rule)
