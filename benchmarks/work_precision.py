@@ -278,6 +278,8 @@ def verdict(records, target, ratio, key="cpu_time_s"):
     whether it meets ``ratio``."""
     got = cheapest(records, target, key)
     lin, high = got["linear"], got["high"]
+    if lin is None and high is not None:
+        return _unreached_linear(records, target, ratio, high, key)
     if lin is None or high is None:
         return (f"e = {target:.0e}: cheapest linear {lin and lin[0]}, cheapest high order "
                 f"{high and high[0]}: no ratio (a class does not reach e); target {ratio:g}x "
@@ -286,6 +288,30 @@ def verdict(records, target, ratio, key="cpu_time_s"):
     return (f"e = {target:.0e}: cheapest linear {lin[0]} {lin[1]:.4g} s, cheapest high order "
             f"{high[0]} {high[1]:.4g} s ({key}): {r:.2f}x, target {ratio:g}x: "
             f"{'MET' if r >= ratio else 'NOT met'}")
+
+
+def _unreached_linear(records, target, ratio, high, key):
+    """The verdict when high order reaches ``target`` and no linear run
+    does: each linear method's time to reach e is at least the time of its
+    finest run (a finer grid costs more), so t_lin / t_high is bounded below
+    by min over the linear methods of that time over the high-order time;
+    the smallest linear error says how far linear MPM stayed from e."""
+    finest = {}
+    for r in records:
+        if r["degree"] == 1 and r["status"] == "ok":
+            if r["method"] not in finest or r["cells"] > finest[r["method"]]["cells"]:
+                finest[r["method"]] = r
+    if not finest:
+        return f"e = {target:.0e}: no linear run; target {ratio:g}x NOT judged"
+    slow = min(finest.values(), key=lambda r: r[key])
+    low = min((r for r in records if r["degree"] == 1 and r["status"] == "ok"
+               and r.get("error")), key=lambda r: r["error"])
+    bound = slow[key] / high[1]
+    return (f"e = {target:.0e}: no linear run reaches e (smallest error {low['error']:.3g}, "
+            f"{low['method']} at {low['cells']} cells); cheapest high order {high[0]} "
+            f"{high[1]:.4g} s ({key}); every linear method's finest run took >= {slow[key]:.4g} s "
+            f"({slow['method']} at {slow['cells']} cells), so the ratio is > {bound:.2f}x "
+            f"(a lower bound), target {ratio:g}x: {'MET' if bound >= ratio else 'NOT met'}")
 
 
 def report(records, case, key="cpu_time_s", compact=False):

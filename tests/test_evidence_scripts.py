@@ -122,6 +122,16 @@ def test_cheapest_of_each_class_and_their_ratio():
     assert "NOT met" in wp.verdict(records, 1e-6, 20.0)
     only_linear = [r for r in records if r["degree"] == 1 or r["method"] == "high-b"]
     assert "NOT judged" in wp.verdict(only_linear, 1e-6, 10.0)
+    # no linear run reaches e (S3: linear MPM floors): the ratio is bounded
+    # below by the cheapest linear method's finest run over the high-order time
+    stalled = [_rec("lin-c", 1, 8, 1e-4, 0.01), _rec("lin-c", 1, 16, 5e-5, 0.05),
+               _rec("lin-d", 1, 8, 1e-4, 0.02), _rec("lin-d", 1, 16, 2e-5, 0.03),
+               _rec("high-a", 3, 8, 1e-5, 0.001), _rec("high-a", 3, 16, 1e-7, 0.004)]
+    line = wp.verdict(stalled, 1e-6, 10.0)
+    assert "no linear run reaches e (smallest error 2e-05, lin-d at 16 cells)" in line
+    assert ">= 0.03 s (lin-d at 16 cells)" in line and "> 15.00x (a lower bound)" in line
+    assert line.endswith("MET") and "NOT" not in line
+    assert wp.verdict(stalled, 1e-6, 20.0).endswith("NOT met")
     table = wp.reach_table(records, 1e-6)
     assert "| high-b | not reached |  | 2e-06 |" in table
     assert "| high-a | 0.002 | 8-16 | 1e-07 |" in table
