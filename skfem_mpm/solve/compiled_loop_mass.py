@@ -13,8 +13,11 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
     cover           with a reconstruction (and the guard on) the particles'
                     own sums K_k, M_kk, m_k of the fast-dof guard
                     (Kernels.particle_coverage: kernels.mpm.particle_coverage
-                    and reduce_coverage); without one the assembly's K, the
-                    stencil's diagonal and the lumped mass are those sums
+                    and reduce_coverage), kept from the last pass while
+                    kernels.coverage_skip.coverage_holds shows that they
+                    give the lumping of new ones; without one the
+                    assembly's K, the stencil's diagonal and the lumped
+                    mass are those sums
     prepare         the fast-row lumping fractions theta_k of
                     :func:`skfem_mpm.solve.timestep.lumping_fraction` of the
                     guard's stiffness
