@@ -70,10 +70,12 @@ def coverage_holds(x, m, x0, m0, coverage, reach, bound, weights, mass_ratios, m
     positions ``x0`` with masses ``m0``; ``reach`` its W_k of
     :func:`coverage_reach` with delta = bound[0]) give, on the particles now
     at ``x`` with masses ``m``, the same lumping fractions as a new pass: no
-    dof that particles can reach is lumped by either. ``bound`` = (delta, L_N, L_D, L_K, R_N, R_D,
-    R_K) of :func:`skfem_mpm.solve.timestep.coverage_bound`, ``limit`` the
-    guard's limit now, the rest the guard's arguments (:func:`skfem_mpm.kernels.mpm.covered_stiffness`). False (a
-    pass is needed) when the particles differ in count or mass.
+    dof that particles can reach is lumped by either. ``bound`` = (delta,
+    L_N, L_D, L_K, R_N, R_D, R_K) of
+    :func:`skfem_mpm.solve.timestep.coverage_bound`, ``limit`` the guard's
+    limit now, the rest the guard's arguments
+    (:func:`skfem_mpm.kernels.mpm.covered_stiffness`). False (a pass is
+    needed) when the particles differ in count or mass.
 
     Bound. Let d = max_p |x_p - x0_p| <= delta. A particle changes its term
     of K_k by at most min(L_K d, R_K) m_p, L_K a Lipschitz constant and R_K

@@ -67,8 +67,8 @@ import numpy as np
 from numba.core.typing.typeof import Purpose
 
 from ..kernels import (band_factor, bbar, by_symbol, cell_integrals, cholesky, constitutive,
-                       coverage_skip, fringe, gauss_rule, grid_modifiers, kronecker, merged_mass, mls, mpm,
-                       scatter, spline_1d, spline_2d, staging, step_size, tiny_mass, tls,
+                       coverage_skip, fringe, gauss_rule, grid_modifiers, kronecker, merged_mass,
+                       mls, mpm, scatter, spline_1d, spline_2d, staging, step_size, tiny_mass, tls,
                        traction, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel

@@ -321,7 +321,12 @@ def covered_stiffness(stiffness, diagonal, lumped, weights, mass_ratios, moving,
     with the Gauss sums the tail weight left them unlumped and a particle
     left the grid at step 1034). A dof that has mass but that no particle
     sees (the Gauss rule of a 1D body reaches the sliver of a cell beyond
-    its last particle) is the limit l -> 0 of a tail, r -> inf.
+    its last particle) is the limit l -> 0 of a tail, r -> inf. The
+    compiled executor and loop keep the sums of their last pass while
+    :func:`skfem_mpm.kernels.coverage_skip.coverage_holds` shows that new
+    ones would give the same lumping (no reachable row can reach the
+    threshold: the bound of :func:`coverage_bound`); this reference always
+    sums anew.
 
     Cut cells. The tail weight holds where the body ends at a knot (the
     restricted space is an open-knot space). A body whose surface cuts a
