@@ -3,7 +3,9 @@
 kernels.coverage_skip.coverage_holds keeps the sums of the last pass when
 a bound shows that no row can reach the lumping threshold; the guard's
 lumping fractions of the kept sums must then be those of a new pass, bit
-for bit (all zero), on particles moved by up to the bound's delta.
+for bit (all zero), on particles moved by up to the bound's delta. The
+limits put the pass's largest ratio from 1e-9 to 0.4999 of the threshold,
+and the body's end from 1e-3 delta to 2 delta short of a cell face.
 """
 from types import SimpleNamespace
 
