@@ -22,6 +22,7 @@ from numba import get_num_threads, njit, prange, types
 from numba.extending import overload
 
 from .band_factor import apply_band_factor
+from .coverage_skip import coverage_holds, coverage_reach
 from .fringe import apply_corrected
 from .kronecker import apply_kronecker, apply_kronecker_axes
 from .scatter import holders, node_hull
@@ -958,19 +959,36 @@ class Kernels:
                        *self.stencil_geometry, stencil, K)
         return stencil, K
 
-    def particle_coverage(self, particles):
+    def particle_coverage(self, particles, guard=None):
         """The fast-dof guard's coverage sums of ``particles`` (3, dofs):
-        rows K, D, m of :func:`particle_coverage`; reused by the next call."""
+        rows K, D, m of :func:`particle_coverage`; reused by the next call.
+        With ``guard`` = (bound, w, mu, moving, lo, hi, t, F, limit) (the
+        arguments of :func:`skfem_mpm.kernels.coverage_skip.coverage_holds`
+        after the sums), the last pass's sums
+        are returned unchanged where coverage_holds says they give the
+        guard's lumping of new ones (each pass keeps the particles'
+        positions, masses and the reach W_k of
+        :func:`skfem_mpm.kernels.coverage_skip.coverage_reach` for it)."""
         if self._coverage is None:
             self._coverage = (np.zeros((self.nthreads, 3, self.ndofs)),
                               np.zeros((self.nthreads, 2), dtype=np.int64),
-                              np.zeros((3, self.ndofs)))
-        copies, touched, out = self._coverage
+                              np.zeros((3, self.ndofs)), np.zeros(self.ndofs), [None, None])
+        copies, touched, out, reach, kept = self._coverage
+        x, m = particles.x, particles.m
+        if guard is not None and kept[0] is not None and self.kernel(coverage_holds)(
+                x, m, kept[0], kept[1], out, reach, *guard):
+            return out
         axes = list(self.args) + [self.args[0]] * (3 - self.dim)
         nby = self.grid.basis_per_axis[1] if self.dim > 1 else 1
-        self.kernel(particle_coverage)(particles.x, particles.m, *axes[0], *axes[1], *axes[2],
+        self.kernel(particle_coverage)(x, m, *axes[0], *axes[1], *axes[2],
                                        self.p, self.nbx, nby, copies, touched)
         self.kernel(reduce_coverage)(copies, touched, out)
+        if guard is None:
+            kept[0] = kept[1] = None
+        else:
+            self.kernel(coverage_reach)(x, m, *axes[0], *axes[1], *axes[2], self.p, self.nbx,
+                                        nby, float(guard[0][0]), reach)
+            kept[0], kept[1] = np.array(x, dtype=np.float64), np.array(m, dtype=np.float64)
         return out
 
     @property

@@ -20,7 +20,9 @@ this executor fuses them into few kernels:
 
 Consistent mass: a kernel assembles M into a fixed stencil pattern (and the
 per-dof stiffness weights of the fast-dof guard; with a reconstruction the
-guard's sums are the particles', Kernels.particle_coverage); :class:`StencilSystem`
+guard's sums are the particles', Kernels.particle_coverage, whose pass is
+skipped while :func:`skfem_mpm.kernels.coverage_skip.coverage_holds` shows it
+cannot change the lumping); :class:`StencilSystem`
 solves it by conjugate gradients, or the grid system of
 :mod:`skfem_mpm.solve.grid_system` by sparse LU. Hybrid mass: the same
 system solves the velocities (no fast-dof guard), the lumped solve the
@@ -61,7 +63,7 @@ from .compiled_modifiers import CompiledModifiers
 from .compiled_runge_kutta import CompiledRungeKutta
 from .grid_system import GridSystem
 from .stencil_system import StencilSystem
-from .timestep import covered_parameters, fast_dof_limit, lumping_fraction
+from .timestep import covered_parameters, coverage_bound, fast_dof_limit, lumping_fraction
 
 __all__ = ["compiled_executor_applies", "CompiledExecutor", "side_traction"]
 
@@ -162,6 +164,7 @@ class CompiledExecutor(CompiledRungeKutta):
         self._owned = set()
         self._acc = None
         self._guard_arrays = None  # the fast-dof guard's (w, mu, moving, rule scalars)
+        self._coverage_bound = None  # timestep.coverage_bound of the grid (the guard's skip)
         nd, dim = state.grid.ndofs, state.grid.dim
         self._v_old = np.empty((nd, dim))
         # the grid velocity and acceleration: the one-pass USL grid step
@@ -339,6 +342,21 @@ class CompiledExecutor(CompiledRungeKutta):
             self._L = np.empty((p.n, p.dim, p.dim)) if not self.fused else np.empty((1, 1, 1))
         return self._acc, self._L
 
+    def _guard_limit(self, state):
+        """The fast-dof guard's limit of this step (None: no guard; hybrid
+        mass has none, it guards a consistent-mass acceleration); makes the
+        run's guard arrays (w, mu, moving as 1.0 / 0.0, the rule's scalars)
+        at the first call."""
+        guard = 0.0 if state.method.mass == "hybrid" else state.method.frequency_guard
+        if not guard > 0:
+            return None
+        if self._guard_arrays is None:
+            weights, ratios, moving = state.fast_dof_guard_arrays()
+            self._guard_arrays = (weights, ratios, moving.astype(np.float64),
+                                  *covered_parameters(state.grid, state.method.reconstruction))
+        return guard_limit(guard * fast_dof_limit(state.grid.degree, state.method.scheme),
+                           state.dt, state.wave_speed_now)
+
     def _consistent_system(self, state, mass, stencil, K, small, coverage=None):
         """The step's consistent-mass system: compiled stencil CG (with
         tiny-mass dofs, ``small`` > 0, on the merged system), or the general
@@ -349,17 +367,9 @@ class CompiledExecutor(CompiledRungeKutta):
         particles' (K, D, m): ``coverage`` (3, dofs) with a reconstruction
         (Kernels.particle_coverage), else ``K``, the stencil's diagonal and
         ``mass``, which are the particles' own."""
-        guard = 0.0 if state.method.mass == "hybrid" else state.method.frequency_guard
-        limit = None
-        if guard > 0:
-            limit = guard_limit(guard * fast_dof_limit(state.grid.degree, state.method.scheme),
-                                state.dt, state.wave_speed_now)
+        limit = self._guard_limit(state)
+        if limit is not None:
             guarded = self.kernels.scratch("guard_K", K.size)
-            if self._guard_arrays is None:  # (w, mu, moving as 1.0 / 0.0, the rule's
-                weights, ratios, moving = state.fast_dof_guard_arrays()  # scalars): the run's
-                self._guard_arrays = (weights, ratios, moving.astype(np.float64),
-                                      *covered_parameters(state.grid,
-                                                         state.method.reconstruction))
             if coverage is None:
                 diagonal = self.kernels.scratch("guard_diagonal", mass.size)
                 diagonal[:] = stencil[:, (stencil.shape[1] - 1) // 2]
@@ -441,10 +451,13 @@ class CompiledExecutor(CompiledRungeKutta):
                 grid_force = g if grid_force is None else grid_force + g
         mass, momentum, force, stencil, projection = self.recon.to_grid(state, p, volume)
         grid = CompiledGrid(mass, momentum, force, stencil, work_forces, grid_force)
-        if stencil is not None and state.method.mass != "hybrid" and \
-                state.method.frequency_guard > 0:  # the guard's coverage: the particles'
-            with state.timer("mass_matrix"):
-                grid.coverage = self.kernels.particle_coverage(p)
+        limit = None if stencil is None else self._guard_limit(state)
+        if limit is not None:  # the guard's coverage: the particles' (a pass when it may
+            with state.timer("mass_matrix"):  # change the lumping: coverage_holds)
+                if self._coverage_bound is None:
+                    self._coverage_bound = coverage_bound(state.grid)
+                grid.coverage = self.kernels.particle_coverage(
+                    p, (self._coverage_bound, *self._guard_arrays, limit))
         grid.side_loads = self._side_loads
         grid.projection = projection
         return grid

@@ -67,8 +67,8 @@ import numpy as np
 from numba.core.typing.typeof import Purpose
 
 from ..kernels import (band_factor, bbar, by_symbol, cell_integrals, cholesky, constitutive,
-                       fringe, gauss_rule, grid_modifiers, kronecker, merged_mass, mls, mpm,
-                       scatter, spline_1d, spline_2d, staging, step_size, tiny_mass, tls,
+                       coverage_skip, fringe, gauss_rule, grid_modifiers, kronecker, merged_mass,
+                       mls, mpm, scatter, spline_1d, spline_2d, staging, step_size, tiny_mass, tls,
                        traction, weights)
 from ..kernels.by_symbol import ARGUMENT_TYPES, native_address
 from ..kernels.gather import g2p_kernel, rates_kernel
@@ -83,8 +83,8 @@ from .compiled import side_traction
 from .compiled_loop_tables import ForceTable, PrescribedTable, TractionTable, reference_forces
 from ..kernels.fringe import NO_FACTOR, FringePattern
 from .stencil_system import StencilSystem, stencil_residual
-from .timestep import (RECONSTRUCTION_EVERY, STABILITY_LIMIT, covered_parameters,
-                       fast_dof_limit, stiffness_root)
+from .timestep import (RECONSTRUCTION_EVERY, STABILITY_LIMIT, coverage_bound,
+                       covered_parameters, fast_dof_limit, stiffness_root)
 
 __all__ = ["ENABLED", "StepLoop", "loop_applies", "precompile_mass"]
 
@@ -158,7 +158,9 @@ _GRID_KERNELS = {
     "FAST_ROW_FRACTIONS": mpm.fast_row_fractions,
     "COVERED_STIFFNESS": mpm.covered_stiffness,
     "PARTICLE_COVERAGE": mpm.particle_coverage,
+    "COVERAGE_REACH": coverage_skip.coverage_reach,
     "REDUCE_COVERAGE": mpm.reduce_coverage,
+    "COVERAGE_HOLDS": coverage_skip.coverage_holds,
     "COMPACT_PROBLEM": mpm.compact_problem,
     "EXPAND_PROBLEM": mpm.expand_problem,
     "ELL_PCG": mpm.ell_pcg,
@@ -357,6 +359,8 @@ def _prelude(dim, parallel, window, variant):
                 3: "(b0, u0, ih0, C0), (b1, u1, ih1, C1), (b2, u2, ih2, C2) = axes\n"
                    "    PARTICLE_COVERAGE(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, "
                    "p, nbx, nby, copies, touched)"}[dim]
+    reach = coverage.replace("PARTICLE_COVERAGE", "COVERAGE_REACH").replace(
+        "copies, touched)", "delta, out)")
     assemble_cells = ("(bx, ux, ihx, Cx), (by, uy, ihy, Cy) = axes\n"
                       "    CONSISTENT_CELLS_2D(x, m, cells, k, bx, by, ux, uy, ihx, ihy, Cx, Cy, p, "
                       "nbx, copies, stiff, touched)" if dim == 2 else
@@ -416,6 +420,13 @@ def COVERAGE(x, m, axes, p, nbx, nby, copies, touched):
     """Per-thread copies of the particles' guard sums (kernels.mpm.particle_coverage;
     the axes as Kernels.particle_coverage passes them)."""
     {coverage}
+
+
+@njit(cache=True)
+def REACH(x, m, axes, p, nbx, nby, delta, out):
+    """The reach W_k of the guard's skip (kernels.coverage_skip.coverage_reach;
+    the axes as COVERAGE passes them)."""
+    {reach}
 
 
 @njit(cache=True)
@@ -868,6 +879,8 @@ class StepLoop:
             by_particles=reconstructed and guard > 0,
             coverage_copies=zeros((nt if reconstructed and guard > 0 else 1, 3, nd)),
             coverage_touched=zeros((nt, 2), dtype=np.int64), coverage=zeros((3, nd)),
+            coverage_bound=coverage_bound(grid), coverage_x=zeros((1, dim)),
+            coverage_m=zeros(1), coverage_reach=zeros(nd), coverage_kept=False,
             reach=zeros(nd, dtype=np.bool_),
             group_comps=group_comps,
             group_size=np.array([len(c) for c in groups.values()], dtype=np.int64),

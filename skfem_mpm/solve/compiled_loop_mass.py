@@ -13,8 +13,11 @@ Kronecker preconditioner, so that a run gives the same bits on either path:
     cover           with a reconstruction (and the guard on) the particles'
                     own sums K_k, M_kk, m_k of the fast-dof guard
                     (Kernels.particle_coverage: kernels.mpm.particle_coverage
-                    and reduce_coverage); without one the assembly's K, the
-                    stencil's diagonal and the lumped mass are those sums
+                    and reduce_coverage), kept from the last pass while
+                    kernels.coverage_skip.coverage_holds shows that they
+                    give the lumping of new ones; without one the
+                    assembly's K, the stencil's diagonal and the lumped
+                    mass are those sums
     prepare         the fast-row lumping fractions theta_k of
                     :func:`skfem_mpm.solve.timestep.lumping_fraction` of the
                     guard's stiffness
@@ -93,9 +96,12 @@ MASS_FIELDS = (
     # (its M_kk without a reconstruction); with a reconstruction (by_particles)
     # the particles' sums (K, M_kk, m: Kernels.particle_coverage), their
     # per-thread copies and touched ranges; covered_stiffness' work (2, dofs);
-    # the rows the lumping changes (kernels.mpm.lumped_reach)
+    # the rows the lumping changes (kernels.mpm.lumped_reach); the skip of
+    # the particles' pass (kernels.coverage_skip): timestep.coverage_bound,
+    # the last pass's positions, masses and reach W_k, whether they are set
     "guard", "limit", "weights", "mass_ratios", "moving", "covered", "guarded", "fast", "near",
     "diagonal", "by_particles", "coverage", "coverage_copies", "coverage_touched", "reach",
+    "coverage_bound", "coverage_x", "coverage_m", "coverage_reach", "coverage_kept",
     # groups: their components, the free rows and dof -> row, the ELL rows
     "group_comps", "group_size", "rows", "n_rows", "index", "A", "cols", "F", "fcols",
     "inv_diag",
@@ -364,9 +370,24 @@ def assemble_mass(cm, x, m, p, nbx, nby, dim):
 
 @njit(cache=True)
 def cover_particles(cm, x, m, p, nbx, nby):
-    """The particles' own sums of the fast-dof guard (Kernels.particle_coverage)."""
+    """The particles' own sums of the fast-dof guard (Kernels.particle_coverage),
+    kept from the last pass while kernels.coverage_skip.coverage_holds shows
+    that they give the lumping of new ones."""
+    if cm.coverage_kept and COVERAGE_HOLDS(x, m, cm.coverage_x, cm.coverage_m, cm.coverage,
+                                           cm.coverage_reach, cm.coverage_bound, cm.weights,
+                                           cm.mass_ratios, cm.moving, cm.covered[0],
+                                           cm.covered[1], cm.covered[2], cm.covered[3],
+                                           cm.limit):
+        return
     COVERAGE(x, m, cm.axes, p, nbx, nby, cm.coverage_copies, cm.coverage_touched)
     REDUCE_COVERAGE(cm.coverage_copies, cm.coverage_touched, cm.coverage)
+    REACH(x, m, cm.axes, p, nbx, nby, cm.coverage_bound[0], cm.coverage_reach)
+    if cm.coverage_x.shape[0] != x.shape[0]:
+        cm.coverage_x = np.empty((x.shape[0], x.shape[1]))
+        cm.coverage_m = np.empty(x.shape[0])
+    copy_into(cm.coverage_x, x)
+    copy_into(cm.coverage_m, m)
+    cm.coverage_kept = True
 
 
 @njit(cache=True)

@@ -131,7 +131,7 @@ def particle_coverage(transfer, m):
     consistent diagonal) and m_i = sum_p m_p N_i(x_p) (the lumped mass):
     what the fast-dof guard measures a dof's coverage and frequency with
     (:func:`skfem_mpm.solve.timestep.covered_stiffness`; compiled twin
-    :func:`skfem_mpm.kernels.coverage.particle_coverage`)."""
+    :func:`skfem_mpm.kernels.mpm.particle_coverage`)."""
     K = sum(G.multiply(G).T @ m for G in transfer.grad_N)
     return K, transfer.N.multiply(transfer.N).T @ m, transfer.to_grid(m)
 

@@ -46,6 +46,7 @@ __all__ = ["spectral_radius", "interior_rayleigh_quotient", "critical_time_step"
            "stable_time_step", "stiffness_root",
            "fast_dof_limit", "full_grid_quotients", "full_grid_mass_ratios", "fast_dof_weights",
            "covered_stiffness", "near_maximum", "tail_weight", "covered_parameters", "lumping_fraction",
+           "COVERAGE_REACH", "coverage_bound",
            "ReconstructedOperator", "power_iteration", "compiled_twin", "reconstruction_factor"]
 
 
@@ -210,6 +211,53 @@ def covered_parameters(grid, reconstruction):
     return (COVERED[0], COVERED[1], tail_weight(grid.degree), floor)
 
 
+COVERAGE_REACH = 0.125
+"""delta / h_min of :func:`coverage_bound`: how far the particles may move
+from the guard's last coverage pass before it is redone anyway."""
+
+
+def coverage_bound(grid):
+    """(delta, L_N, L_D, L_K, R_N, R_D, R_K): the displacement up to which
+    the guard's coverage pass may be skipped (``COVERAGE_REACH`` times the
+    smallest cell of the grid) and the Lipschitz constants L and ranges R
+    (largest minus smallest value) of N_k, N_k^2 and |grad N_k|^2 over the
+    grid's B-splines, in the Euclidean norm; the bound of
+    :func:`skfem_mpm.kernels.coverage_skip.coverage_holds`.
+
+    Derivation. N_k = prod_d B_d(x_d), B_d a B-spline of degree p on axis
+    d's knots, 0 <= B_d <= 1. From B'_(i,p) = p B_(i,p-1) / (t_(i+p) - t_i)
+    - p B_(i+1,p-1) / (t_(i+p+1) - t_(i+1)) (the derivative of a B-spline:
+    de Boor, "A Practical Guide to Splines", 2001), a difference of two non-negative terms, each
+    at most p / h_d (a non-empty knot span holds a cell, h_d the smallest
+    cell of axis d; an empty one's term is absent), |B'| <= A1_d = p / h_d;
+    applying it once more, |B''| <= A2_d = 2 p (p - 1) / h_d^2 inside a
+    cell. Then |grad N|^2 = sum_d B_d'^2 prod_(e != d) B_e^2 <= G =
+    sum_d A1_d^2, and
+
+        L_N = sqrt(G),  L_D = 2 sqrt(G)  (|grad N^2| = 2 N |grad N|),
+        d/dx_c |grad N|^2 = 2 B_c' B_c'' prod_(e != c) B_e^2
+            + sum_(d != c) 2 B_d'^2 B_c B_c' prod_(e != c, d) B_e^2,
+        L_K = sqrt(sum_c (2 A1_c A2_c + 2 A1_c sum_(d != c) A1_d^2)^2),
+
+    R_N = R_D = 1, R_K = G. These are Lipschitz constants across the
+    cells too where the function is continuous: N and N^2 for p >= 1,
+    |grad N|^2 for p >= 2 (B' continuous); for p = 1 L_K = inf (|grad N|^2
+    jumps at the knots; its variation is then bounded by R_K only)."""
+    p = int(grid.degree)
+    h = np.array([float(np.min(np.diff(np.asarray(b, dtype=np.float64))))
+                  for b in grid.breakpoints])
+    a1 = p / h
+    a2 = 2.0 * p * (p - 1) / h ** 2
+    g = float(np.sum(a1 ** 2))
+    if p >= 2:
+        per_axis = 2.0 * a1 * a2 + 2.0 * a1 * (g - a1 ** 2)
+        lk = float(np.sqrt(np.sum(per_axis ** 2)))
+    else:
+        lk = np.inf
+    return np.array([COVERAGE_REACH * float(h.min()), np.sqrt(g), 2.0 * np.sqrt(g), lk,
+                     1.0, 1.0, g])
+
+
 def covered_stiffness(stiffness, diagonal, lumped, weights, mass_ratios, moving, tail, floor,
                       limit, degree, shape):
     """The fast-dof guard's stiffness k_i = (K_i c_i + a_i) moving_i, which
@@ -273,7 +321,12 @@ def covered_stiffness(stiffness, diagonal, lumped, weights, mass_ratios, moving,
     with the Gauss sums the tail weight left them unlumped and a particle
     left the grid at step 1034). A dof that has mass but that no particle
     sees (the Gauss rule of a 1D body reaches the sliver of a cell beyond
-    its last particle) is the limit l -> 0 of a tail, r -> inf.
+    its last particle) is the limit l -> 0 of a tail, r -> inf. The
+    compiled executor and loop keep the sums of their last pass while
+    :func:`skfem_mpm.kernels.coverage_skip.coverage_holds` shows that new
+    ones would give the same lumping (no reachable row can reach the
+    threshold: the bound of :func:`coverage_bound`); this reference always
+    sums anew.
 
     Cut cells. The tail weight holds where the body ends at a knot (the
     restricted space is an open-knot space). A body whose surface cuts a
