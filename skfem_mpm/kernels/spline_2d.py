@@ -16,7 +16,9 @@ the second differences (c_j - 2 c_(j+1) + c_(j+2) along either axis) that
 touch a weak dof; P = 0 when no dof is weak. The fit at the Gauss points is
 f_h(x_g) = sum_i N_i(x_g) c_i.
 
-:func:`spline_ls_system` assembles A + P as a stencil array (ndofs, 49):
+:func:`spline_ls_system` assembles A + P as a stencil array (ndofs, 49)
+from the particles' cubic B-spline values of :func:`spline_basis` (made
+once per set of positions, kept for every fit on them):
 entry s = (dy + 3) 7 + (dx + 3) of row i is the coupling with the dof at
 offset (dx, dy); A is bitwise symmetric (each particle adds the same
 products to (i, j) and (j, i)). The sparse factorisation is the caller's
@@ -27,53 +29,74 @@ from numba import njit
 
 from .stencil import closed_axis_functions, extracted_axis_functions
 
-__all__ = ["WIDTH", "band_solve", "spline_band", "spline_evaluate", "spline_ls_system"]
+__all__ = ["WIDTH", "band_solve", "spline_band", "spline_basis", "spline_evaluate",
+           "spline_ls_system"]
 
 P = 3  # cubic
 WIDTH = 2 * P + 1  # stencil offsets -3..3 per axis
 CENTRE = P * WIDTH + P
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _point_basis(x, y, ax, ay, wx, wy):
+    """(ex, ey): the cell of (x, y) along each axis of the cubic grid, and
+    wx, wy its four cubic B-splines' values along each (the closed form of
+    scalars, else the extraction, not inlined)."""
+    bx, ux, ihx, Cx = ax
+    by, uy, ihy, Cy = ay
+    closed, ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = closed_axis_functions(
+        x, bx[0], bx.shape[0] - 1, ux, ihx, P)
+    if not closed:
+        ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = extracted_axis_functions(
+            x, bx, ux, ihx, Cx, P)
+    closed, ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = closed_axis_functions(
+        y, by[0], by.shape[0] - 1, uy, ihy, P)
+    if not closed:
+        ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = extracted_axis_functions(
+            y, by, uy, ihy, Cy, P)
+    return ex, ey
+
+
 @njit(cache=True, error_model="numpy")
-def spline_ls_system(x, V, values, ax, ay, nbx, nby, penalty, with_matrix, A, rhs):
+def spline_basis(x, ax, ay, cells, W):
+    """cells[i] = (ex, ey), the cell of x[i] along each axis of the cubic
+    grid (axes ``ax``, ``ay``: breakpoints, uniform, 1/h, extraction), and
+    W[i] = the values of its cubic B-splines there, the four along x, then
+    the four along y: what :func:`spline_ls_system` sums (kept for the
+    other fits on the same particles)."""
+    for i in range(x.shape[0]):
+        cells[i, 0], cells[i, 1] = _point_basis(x[i, 0], x[i, 1], ax, ay, W[i, :4], W[i, 4:])
+
+
+@njit(cache=True, error_model="numpy")
+def spline_ls_system(V, values, cells, W, nbx, nby, penalty, with_matrix, A, rhs):
     """rhs (ndofs, k) = B^T W f and, ``with_matrix``, A (ndofs, 49) = the
-    stencil of A + P (see the module docstring); ``ax``, ``ay`` the cubic
-    grid's axes (breakpoints, uniform, 1/h, extraction)."""
+    stencil of A + P (see the module docstring) of the particles' volumes
+    V and :func:`spline_basis` (cells, W)."""
     k = values.shape[1]
     if with_matrix:
         A[:] = 0.0
     rhs[:] = 0.0
-    bx, ux, ihx, Cx = ax
-    by, uy, ihy, Cy = ay
-    x0, ncx = bx[0], bx.shape[0] - 1
-    y0, ncy = by[0], by.shape[0] - 1
-    wx = np.empty(4)
-    wy = np.empty(4)
-    for i in range(x.shape[0]):
-        # the closed form of scalars, else the extraction (not inlined)
-        closed, ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = closed_axis_functions(
-            x[i, 0], x0, ncx, ux, ihx, P)
-        if not closed:
-            ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = extracted_axis_functions(
-                x[i, 0], bx, ux, ihx, Cx, P)
-        closed, ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = closed_axis_functions(
-            x[i, 1], y0, ncy, uy, ihy, P)
-        if not closed:
-            ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = extracted_axis_functions(
-                x[i, 1], by, uy, ihy, Cy, P)
+    for i in range(V.shape[0]):
+        ex, ey = cells[i, 0], cells[i, 1]
         for b in range(4):
             for a in range(4):
                 row = (ey + b) * nbx + ex + a
-                wr = V[i] * wx[a] * wy[b]
+                wr = V[i] * W[i, a] * W[i, 4 + b]
                 for col in range(k):
                     rhs[row, col] += wr * values[i, col]
                 if not with_matrix:
                     continue
                 for d in range(4):
                     for c in range(4):
-                        A[row, (d - b + P) * WIDTH + (c - a + P)] += wr * (wx[c] * wy[d])
-    if not with_matrix:
-        return
+                        A[row, (d - b + P) * WIDTH + (c - a + P)] += wr * (W[i, c] * W[i, 4 + d])
+    if with_matrix:
+        _penalty(A, nbx, nby, penalty)
+
+
+@njit(cache=True, error_model="numpy")
+def _penalty(A, nbx, nby, penalty):
+    """A += P (see the module docstring)."""
     ndofs = nbx * nby
     npos = 0
     diag = np.empty(ndofs)
@@ -122,24 +145,10 @@ def spline_ls_system(x, V, values, ax, ay, nbx, nby, penalty, with_matrix, A, rh
 def spline_evaluate(xg, coef, ax, ay, nbx, out):
     """out[g] (ng, k) = sum_i N_i(xg[g]) coef[i] for the cubic grid's axes."""
     k = coef.shape[1]
-    bx, ux, ihx, Cx = ax
-    by, uy, ihy, Cy = ay
-    x0, ncx = bx[0], bx.shape[0] - 1
-    y0, ncy = by[0], by.shape[0] - 1
     wx = np.empty(4)
     wy = np.empty(4)
     for g in range(xg.shape[0]):
-        # the closed form of scalars, else the extraction (not inlined)
-        closed, ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = closed_axis_functions(
-            xg[g, 0], x0, ncx, ux, ihx, P)
-        if not closed:
-            ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = extracted_axis_functions(
-                xg[g, 0], bx, ux, ihx, Cx, P)
-        closed, ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = closed_axis_functions(
-            xg[g, 1], y0, ncy, uy, ihy, P)
-        if not closed:
-            ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = extracted_axis_functions(
-                xg[g, 1], by, uy, ihy, Cy, P)
+        ex, ey = _point_basis(xg[g, 0], xg[g, 1], ax, ay, wx, wy)
         for col in range(k):
             out[g, col] = 0.0
         for b in range(4):

@@ -47,12 +47,11 @@ from ..kernels.mls import empty_mls_store, mls_fit, mls_store
 from ..kernels.mpm import ell_pcg
 from ..kernels.spline_1d import not_a_knot_spline
 from ..kernels.spline_2d import (WIDTH, band_solve, spline_band, spline_evaluate,
-                                 spline_ls_system)
+                                 spline_basis, spline_ls_system)
 from ..kernels.serial import SERIAL_BELOW, for_threads
 from ..kernels.tls import slot_cells, tls_apply, tls_coefficients, tls_factor
 from ..kernels.cell_integrals import (axis_tables, cell_mass, cell_momentum, cell_p2g,
-                                      spline_axis_tables, spline_cell_mass,
-                                      spline_cell_momentum, spline_cell_p2g)
+                                      spline_axis_tables)
 
 TLS_DEFAULTS = {"degree": 2, "neighbour_weight": 0.0}
 
@@ -213,6 +212,7 @@ class SplineLeastSquares:
         self.indptr = np.concatenate(([0], np.cumsum(valid.sum(axis=1)))).astype(np.int32)
         self.A = np.zeros((nd, WIDTH * WIDTH))
         self.ndofs = nd
+        self._basis = None  # (the last factorisation, its particles' basis values)
         self.iterative = nd >= DIRECT_DOFS if iterative is None else bool(iterative)
         self.rtol = 1e-13
         if self.iterative:
@@ -225,39 +225,59 @@ class SplineLeastSquares:
             self.warm = {}
             self._kron = None
 
+    def _system(self, x, V, values, with_matrix, basis):
+        """B^T W f (and, ``with_matrix``, A + P into self.A) on the cubic
+        B-spline values ``basis`` (cells, W) of kernels.spline_2d.spline_basis,
+        made here when None; returns (rhs, basis)."""
+        if basis is None:
+            basis = (np.empty((x.shape[0], 2), dtype=np.int64), np.empty((x.shape[0], 8)))
+            spline_basis(x, *self.axes, *basis)
+        rhs = np.empty((self.ndofs, values.shape[1]))
+        spline_ls_system(V, values, *basis, self.nbx, self.nby, self.penalty, with_matrix,
+                         self.A, rhs)
+        return rhs, basis
+
     def factor(self, x, V, values):
-        """(LU of A + P, B^T W f) for the particles (x, V)."""
+        """(LU of A + P, B^T W f) for the particles (x, V); the particles'
+        basis values are kept with it (self._basis) for
+        :meth:`coefficients` of other values on them."""
         import scipy.sparse as sp
         import scipy.sparse.linalg as spla
 
-        rhs = np.empty((self.ndofs, values.shape[1]))
-        spline_ls_system(x, V, values, *self.axes, self.nbx, self.nby, self.penalty, True,
-                         self.A, rhs)
+        rhs, basis = self._system(x, V, values, True, None)
+        solver = self._factor()
+        self._basis = (solver, basis)
+        return solver, rhs
+
+    def _factor(self):
+        """A factorisation of self.A (see the class)."""
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as spla
+
         if self.iterative:
             solver = KroneckerCG(self, self.A, self._kron, self.rtol)
             self._kron = solver.kron
-            return solver, rhs
+            return solver
         solver = BandedCholesky(self.A, self.nbx)
         if solver is not None:
-            return solver, rhs
+            return solver
         # A + P is symmetric: its CSR arrays are those of its CSC form
         matrix = sp.csc_matrix((self.A.ravel()[self.slots], self.cols, self.indptr),
                                shape=(self.ndofs, self.ndofs))
         # minimum degree on A^T + A (the matrix is symmetric): 16 x 16 quadratic
         # cells (361 cubic dofs) 1.9 ms against 12.5 ms with splu's default
         # COLAMD; 128 x 128 (17,161 dofs) 1.6 s against 8.2 s
-        return spla.splu(matrix, permc_spec="MMD_AT_PLUS_A"), rhs
+        return spla.splu(matrix, permc_spec="MMD_AT_PLUS_A")
 
     def coefficients(self, x, V, values, lu=None):
         """(the fit's cubic coefficients c (ndofs, k), the factorisation):
-        ``lu`` a factorisation of the same particles (x, V) to reuse, or
-        None."""
+        ``lu`` a factorisation of the same particles (x, V) to reuse (with
+        their basis values when it is the last made here), or None."""
         if lu is None:
             lu, rhs = self.factor(x, V, values)
         else:
-            rhs = np.empty((self.ndofs, values.shape[1]))
-            spline_ls_system(x, V, values, *self.axes, self.nbx, self.nby, self.penalty,
-                             False, self.A, rhs)
+            kept = self._basis[1] if self._basis is not None and self._basis[0] is lu else None
+            rhs = self._system(x, V, values, False, kept)[0]
         return np.ascontiguousarray(lu.solve(rhs)), lu
 
     def __call__(self, x, V, values, xg, out, lu=None):
@@ -316,13 +336,12 @@ class CompiledReconstruction:
                 self.cell_tables = tuple(
                     axis_tables(self.axes[a], self.uniform[a], grid.extraction[a], self.degree,
                                 self.ref, self.wref) for a in range(2))
-                self.cell_kernels = (cell_p2g, cell_momentum, cell_mass)
             else:  # over the cubic space's functions (SplineLeastSquares' axes)
                 self.cell_tables = tuple(
                     spline_axis_tables(self.axes[a], self.uniform[a], grid.extraction[a],
                                        self.degree, self.spline_ls.axes[a][3], self.ref,
                                        self.wref) for a in range(2))
-                self.cell_kernels = (spline_cell_p2g, spline_cell_momentum, spline_cell_mass)
+            self.cell_kernels = (cell_p2g, cell_momentum, cell_mass)
         if self.name == "mls":  # the reference's kernel radius: radius cells of the smallest
             self.radius = float(options.get("radius", 1.5)) * min(grid.h)
             # the pairs of the last rule fitted with coefficients (kernels.mls.mls_fit)
