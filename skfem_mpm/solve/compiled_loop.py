@@ -133,11 +133,8 @@ _GRID_KERNELS = {
     "CELL_MASS": cell_integrals.cell_mass,
     "MLS_FIT": mls.mls_fit,
     "MLS_STORE": mls.mls_store,
-    "SPLINE_BASIS": spline_2d.spline_basis,
     "SPLINE_LS_SYSTEM": spline_2d.spline_ls_system,
-    "SPLINE_BAND": spline_2d.spline_band,
-    "BANDED_CHOLESKY_INTO": kronecker.banded_cholesky_into,
-    "BAND_SOLVE": spline_2d.band_solve,
+    "APPLY_BAND_FACTOR": band_factor.apply_band_factor,
     "SPLINE_EVALUATE": spline_2d.spline_evaluate,
     # a side traction (compiled_loop_traction)
     "SIDE_FACES": traction.side_faces,
@@ -770,9 +767,9 @@ class StepLoop:
                 fields.update(radius=float(recon.radius), alpha=empty((0, dim + 1)))
             else:  # SplineLeastSquares' data, BandedCholesky's arrays
                 ls = recon.spline_ls
-                band = np.zeros((ls.ndofs, 3 * ls.nbx + 4))
+                factor = np.zeros((ls.ndofs, band_factor.factor_columns(3 * ls.nbx + 3)))
                 fields["spline"] = (ls.axes, int(ls.nbx), int(ls.nby), float(ls.penalty),
-                                    np.zeros_like(ls.A), band, np.zeros_like(band))
+                                    np.zeros_like(ls.A), ls.ell_cols, factor)
                 if recon.cell_tables is not None:  # closed-form integrals of its cubic fit
                     fields.update(tables=recon.cell_tables,
                                   cell_shape=(recon.ncx, recon.nbx, recon.degree),

@@ -45,9 +45,9 @@ project):
                          positions alone (tls: kernels.tls.tls_factor, then
                          tls_apply; mls: M_g^-1 e_0 and the weighted
                          particles of each point in kernels.mls.mls_fit;
-                         the 2D spline: kernels.spline_2d's system, band and
-                         banded Cholesky factor, then band_solve and
-                         spline_evaluate); the points as quadrature
+                         the 2D spline: kernels.spline_2d's system and
+                         kernels.band_factor's banded Cholesky factor, then
+                         its solves and spline_evaluate); the points as quadrature
                          particles, as above
     rule_project         MUSL: the fit of rho v^new at the Gauss points on
                          what the step's fit kept, the particles' own
@@ -255,10 +255,11 @@ RULED_FIELDS = (
     # half of its fits (kernels.tls.tls_factor); mls the kernel radius and
     # the points' M_g^-1 e_0 (kernels.mls.mls_fit); the 2D spline the cubic
     # space's axes and sizes, its penalty and the stencil, band and banded
-    # Cholesky factor of A + P (SplineLeastSquares, BandedCholesky)
+    # the stencil's ELL columns and banded Cholesky factor of A + P
+    # (SplineLeastSquares, BandedCholesky)
     "factor", "radius", "alpha", "spline",
     # the 2D spline: the particles' cubic B-spline values of the step's
-    # positions (kernels.spline_2d.spline_basis: cells, values)
+    # positions (kernels.spline_2d.spline_ls_system's cells, W)
     "spline_cells", "spline_basis",
     # the 2D TLS with its grid sums in closed form per cell
     # (CompiledReconstruction.cell_tables: kernels.cell_integrals), else None:
@@ -378,24 +379,19 @@ def _spline_coefficients(rc, x, V, values, fresh):
     rc.spline_basis) as SplineLeastSquares.coefficients and BandedCholesky; done
     False when a pivot is not positive (the executor then factorises by
     SuperLU)."""
-    axes, nbx, nby, penalty, A, band, L = rc.spline
+    axes, nbx, nby, penalty, A, cols, C = rc.spline
     rhs = np.empty((nbx * nby, values.shape[1]))
-    if fresh:  # the particles' cubic B-spline values, kept for the other fits on them
-        if rc.spline_cells.shape[0] != x.shape[0]:
-            rc.spline_cells = np.empty((x.shape[0], 2), dtype=np.int64)
-            rc.spline_basis = np.empty((x.shape[0], 8))
-        SPLINE_BASIS(x, axes[0], axes[1], rc.spline_cells, rc.spline_basis)
-    SPLINE_LS_SYSTEM(V, values, rc.spline_cells, rc.spline_basis, nbx, nby, penalty, fresh, A,
-                     rhs)
+    if fresh and rc.spline_cells.shape[0] != x.shape[0]:  # the particles' basis values
+        rc.spline_cells = np.empty((x.shape[0], 2), dtype=np.int64)
+        rc.spline_basis = np.empty((x.shape[0], 8))
+    SPLINE_LS_SYSTEM(x, V, values, axes[0], axes[1], nbx, nby, penalty, fresh, fresh,
+                     rc.spline_cells, rc.spline_basis, A, rhs)
     if fresh:
-        SPLINE_BAND(A, nbx, band)
-        L[:] = 0.0
-        BANDED_CHOLESKY_INTO(band, 0, A.shape[0], L)
-        for i in range(L.shape[0]):
-            if not L[i, 0] > 0.0:
-                return False, rhs
-    BAND_SOLVE(L, rhs)
-    return True, rhs
+        if not FIT_BAND_FACTOR(A, cols, C):
+            return False, rhs
+    coef = np.empty_like(rhs)
+    APPLY_BAND_FACTOR(C, rhs, coef)
+    return True, coef
 
 
 @njit(cache=True)
