@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from skfem_mpm.kernels import tls as tls_kernel
-from skfem_mpm.kernels.cell_integrals import spline_axis_tables
+from skfem_mpm.kernels.cell_integrals import cell_momentum, spline_axis_tables
 from skfem_mpm.kernels.gauss_rule import locate_cells
 from skfem_mpm.kernels.mpm import Kernels
 from skfem_mpm.kernels.serial import serial
@@ -129,3 +129,21 @@ def test_the_spline_tables_are_exact_with_the_cells_rule(name, grid, p):
                                     grid.degree, cubic[a][3], 0.5 * (ref + 1), 0.5 * wref)
         for table, exact in zip(recon.cell_tables[a], longer):
             assert np.abs(table - exact).max() <= 1e-14 * np.abs(exact).max()
+
+
+def test_the_cell_kernels_refuse_tables_of_the_other_fit():
+    """One set of kernels serves both fits, the kind taken from coef's
+    shape (TLS (ns, 6, k), 3 y terms; the spline (nbf nby, k), 4): tables
+    of the other kind are refused with an error naming tx and ty, not
+    summed with the wrong number of terms."""
+    ncx, p, nbx = 2, 2, 4
+    tls_tables = tuple(np.zeros((ncx, 3, 4)) for _ in range(2))
+    spline_tables = tuple(np.zeros((ncx, 4, 4)) for _ in range(2))
+    cells = np.array([0, 3])
+    copies = np.zeros((1, nbx * nbx, 2))
+    touched = np.array([[nbx * nbx, -1]])
+    for coef, tables in ((np.zeros((2, 6, 2)), spline_tables),
+                         (np.zeros(((ncx + 3) ** 2, 2)), tls_tables)):
+        with pytest.raises(ValueError, match="tx, ty"):
+            cell_momentum(coef, cells, ncx, (tables[0],) * 4, (tables[1],) * 4, p, nbx,
+                          copies, touched)

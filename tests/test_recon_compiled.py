@@ -16,7 +16,7 @@ from skfem_mpm.kernels import tls as tls_kernel
 from skfem_mpm.kernels.gauss_rule import (body_boxes, gauss_rule_1d, gauss_rule_cells,
                                          locate_cells, stable_order)
 from skfem_mpm.kernels import mls as mls_kernel
-from skfem_mpm.kernels.spline_2d import WIDTH
+from skfem_mpm.kernels.spline_2d import WIDTH, spline_ls_system
 from skfem_mpm.kernels.spline_1d import not_a_knot_spline
 from skfem_mpm.kernels.serial import serial
 from skfem_mpm.reconstruct import (integration_rule, reconstruct_mls, reconstruct_spline,
@@ -506,6 +506,42 @@ def test_compiled_fits_fall_back_where_particles_are_nearly_on_a_line():
     out = np.empty_like(expected)
     mls_reconstruct(p.x, values, rule.x, 1.5 * min(grid.h), out)
     assert np.abs(out - expected).max() <= 1e-12 * np.abs(expected).max()
+
+
+def test_the_2d_spline_system_is_the_particle_sum_and_bitwise_symmetric():
+    """spline_ls_system sums the lower half of A = sum_p V_p N(x_p) N(x_p)^T
+    and copies the upper half from it: A equals the dense product
+    B^T diag(V) B of the particles' cubic B-spline values (kept in cells,
+    W) to rounding, bitwise symmetric; B^T W f likewise (no weak dof here:
+    no penalty), and bitwise again from the kept values (other positions
+    passed: not read)."""
+    grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (5, 4), 2)
+    p = Particles.seed(grid, 3, 1.0)
+    fit = SplineLeastSquares(grid, iterative=False)
+    cells = np.empty((p.n, 2), dtype=np.int64)
+    W = np.empty((p.n, 8))
+    values = np.random.default_rng(5).normal(size=(p.n, 3))
+    A = np.full_like(fit.A, np.nan)
+    rhs = np.empty((fit.ndofs, 3))
+    spline_ls_system(p.x, p.V, values, *fit.axes, fit.nbx, fit.nby, 1e-6, True, True, cells, W,
+                     A, rhs)
+    again = np.empty_like(rhs)  # from the kept basis values
+    spline_ls_system(p.x + 0.1, p.V, values, *fit.axes, fit.nbx, fit.nby, 1e-6, False, False,
+                     cells, W, A, again)
+    assert np.array_equal(again, rhs)
+    B = np.zeros((p.n, fit.ndofs))
+    for a in range(4):
+        for b in range(4):
+            dof = (cells[:, 1] + b) * fit.nbx + cells[:, 0] + a
+            B[np.arange(p.n), dof] = W[:, a] * W[:, 4 + b]
+    dense = B.T @ (p.V[:, None] * B)
+    rows = np.repeat(np.arange(fit.ndofs), np.diff(fit.indptr))
+    stencil = A.ravel()[fit.slots]
+    assert np.abs(stencil - dense[rows, fit.cols]).max() <= 1e-14 * np.abs(dense).max()
+    assert np.abs(rhs - B.T @ (p.V[:, None] * values)).max() <= 1e-14 * np.abs(rhs).max()
+    matrix = np.zeros((fit.ndofs, fit.ndofs))
+    matrix[rows, fit.cols] = stencil
+    assert np.array_equal(matrix, matrix.T)
 
 
 def test_the_banded_cholesky_of_the_2d_spline_solves_and_refuses_an_indefinite_matrix():

@@ -42,12 +42,12 @@ into one block per copy and each block widens its copy's touched range.
 """
 import numpy as np
 from numba import njit, prange
+from numba.extending import overload
 
 from .stencil import axis_functions
 from .weights import FAST
 
-__all__ = ["axis_tables", "cell_mass", "cell_momentum", "cell_p2g", "spline_axis_tables",
-           "spline_cell_mass", "spline_cell_momentum", "spline_cell_p2g"]
+__all__ = ["axis_tables", "cell_mass", "cell_momentum", "cell_p2g", "spline_axis_tables"]
 
 # IDX[q, p]: the index in phi of xi^p eta^q (-1: not a monomial of degree <= 2)
 IDX = np.array([[0, 1, 3], [2, 4, -1], [5, -1, -1]], dtype=np.int64)
@@ -125,34 +125,116 @@ def _tables(breaks, uniform, C, p, ref, wref, cubic, splines):
     return P, D, Q, R
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _x_sums(coef, s, col, T, ix, p, scale, U):
-    """U[q, a] = scale sum_p c_(p, q) T[ix, p, a] of column ``col`` of cell
-    slot s (U (3, 4))."""
-    for q in range(3):
-        for a in range(p + 1):
-            acc = 0.0
-            for e in range(3 - q):
-                acc += coef[s, IDX[q, e], col] * T[ix, e, a]
-            U[q, a] = scale * acc
+# ------------------------------------------------------------ the 2D spline
+# The spline reconstruction's fit (kernels.spline_2d) is a cubic tensor
+# B-spline on the grid's own breakpoints: in cell (ix, iy)
+#     f_h = sum_(e, q = 0..3) c_(iy + q, ix + e) N^3_(ix + e)(x) N^3_(iy + q)(y)
+# (c the fit's coefficients, row (iy + q) nbf + ix + e, nbf = ncx + 3 the
+# cubic functions along x: SplineGrid's n_x + p), so the sums above hold
+# with the cell's cubic B-splines for the powers (spline_axis_tables) and
+# the x sums U_q[a] = sum_e c_(iy + q, ix + e) T^x[ix, e, a], q = 0..3.
+#
+# One set of kernels serves both fits: they differ only in where a cell's
+# coefficients of x term e in y term q stand (_cell_coefficients, chosen
+# by the type of coef: TLS (ns, 6, k) per slot, the spline (nbf nby, k)
+# per cubic function) and in how many there are (TLS: e < 3 - q, q < 3;
+# the spline: e < 4, q < 4); the sums over them are the same.
+
+
+def _cell_coefficients(coef, s, cell, ncx, c0, c1, C):
+    """C[q, e] = 0.5 (c_(q, e) of column c0 + that of column c1) of the fit
+    of slot s (cell ``cell``), each q's first :func:`_terms` e (c0 = c1:
+    one column's, without the mean)."""
+
+
+@overload(_cell_coefficients, inline="always", jit_options={"fastmath": FAST})
+def _cell_coefficients_impl(coef, s, cell, ncx, c0, c1, C):
+    if coef.ndim == 3:  # TLS: coef[s, IDX[q, e], column], e < 3 - q
+        def tls(coef, s, cell, ncx, c0, c1, C):
+            for q in range(3):
+                for e in range(3 - q):
+                    r = IDX[q, e]
+                    if c0 == c1:
+                        C[q, e] = coef[s, r, c0]
+                    else:
+                        C[q, e] = 0.5 * (coef[s, r, c0] + coef[s, r, c1])
+        return tls
+
+    def spline(coef, s, cell, ncx, c0, c1, C):  # coef[(iy + q) nbf + ix + e, column]
+        nbf = ncx + 3
+        row = (cell // ncx) * nbf + cell % ncx
+        for q in range(4):
+            first = row + q * nbf
+            for e in range(4):
+                if c0 == c1:
+                    C[q, e] = coef[first + e, c0]
+                else:
+                    C[q, e] = 0.5 * (coef[first + e, c0] + coef[first + e, c1])
+    return spline
+
+
+@njit(cache=True, inline="always")
+def _rows(coef):
+    """How many y terms a cell's fit has (TLS: 3, total degree 2; the
+    spline: 4, tensor cubic), from the type of coef."""
+    return 3 if coef.ndim == 3 else 4
+
+
+@njit(cache=True, inline="always")
+def _terms(coef, q):
+    """How many x terms y term q of a cell's fit has (TLS: 3 - q; the
+    spline: 4)."""
+    return 3 - q if coef.ndim == 3 else 4
+
+
+@njit(cache=True, inline="always")
+def _rows_of(coef, tx, ty):
+    """_rows(coef), checked against the tables' rows."""
+    nq = _rows(coef)
+    if tx[0].shape[1] != nq or ty[0].shape[1] != nq:
+        raise ValueError("cell_integrals: tx, ty must be axis_tables (3 rows) with TLS "
+                         "coefficients coef (ns, 6, k), spline_axis_tables (4 rows) with "
+                         "the spline's coef (nbf nby, k)")
+    return nq
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _sym_x_sums(coef, s, c0, c1, T, ix, p, U):
-    """:func:`_x_sums` of the mean of columns c0 and c1 (sym(sigma)_01)."""
-    for q in range(3):
+def _x_sums(coef, C, T, ix, p, U):
+    """U[q, a] = sum_e C[q, e] T[ix, e, a] (U (nq, 4), C a cell's
+    :func:`_cell_coefficients`)."""
+    for q in range(_rows(coef)):
         for a in range(p + 1):
             acc = 0.0
-            for e in range(3 - q):
-                r = IDX[q, e]
-                acc += 0.5 * (coef[s, r, c0] + coef[s, r, c1]) * T[ix, e, a]
+            for e in range(_terms(coef, q)):
+                acc += C[q, e] * T[ix, e, a]
             U[q, a] = acc
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _y_sum(U, T, iy, a, b):
-    """sum_q U[q, a] T[iy, q, b]."""
-    return U[0, a] * T[iy, 0, b] + U[1, a] * T[iy, 1, b] + U[2, a] * T[iy, 2, b]
+def _column_x_sums(coef, s, cell, ncx, c0, c1, C, T, ix, p, U):
+    """:func:`_x_sums` of the mean of columns c0 and c1 (c0 = c1: of one
+    column) of slot s."""
+    _cell_coefficients(coef, s, cell, ncx, c0, c1, C)
+    _x_sums(coef, C, T, ix, p, U)
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _y_sum(nq, U, T, iy, a, b):
+    """sum_q U[q, a] T[iy, q, b], q < nq (3 or 4)."""
+    acc = U[0, a] * T[iy, 0, b] + U[1, a] * T[iy, 1, b] + U[2, a] * T[iy, 2, b]
+    if nq == 4:
+        acc += U[3, a] * T[iy, 3, b]
+    return acc
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _mass_sum(nq, Q, iy, b, b2, T, a, a2):
+    """sum_q Q[iy, q, b, b2] T[q, a, a2], q < nq (3 or 4)."""
+    acc = Q[iy, 0, b, b2] * T[0, a, a2] + Q[iy, 1, b, b2] * T[1, a, a2] \
+        + Q[iy, 2, b, b2] * T[2, a, a2]
+    if nq == 4:
+        acc += Q[iy, 3, b, b2] * T[3, a, a2]
+    return acc
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -164,51 +246,58 @@ def _cell_nodes(first, last, ix, iy, p, nbx):
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def cell_p2g(coef, cell, ncx, tx, ty, p, nbx, has_fext, copies, touched):
     """Add p2g's fields (m, P, f) of the cells' fitted [rho, rho v,
-    sigma (row by row), rho b (with ``has_fext``)] (coef (ns, 6, k):
-    cell[s]'s coefficients) into the per-thread copies (nt, dofs, 5) after
-    the point kernel (see the module). ``tx``, ``ty``: :func:`axis_tables`
-    of the axes; ``ncx`` cells along x; ``nbx`` functions along x."""
-    ns = coef.shape[0]
+    sigma (row by row), rho b (with ``has_fext``)] into the per-thread
+    copies (nt, dofs, 5) after the point kernel (see the module). ``coef``:
+    the TLS fit's (ns, 6, k), cell[s]'s coefficients, with ``tx``, ``ty``
+    the :func:`axis_tables` of the axes; or the spline fit's (nbf nby, k),
+    its cubic coefficients (see above), with :func:`spline_axis_tables`;
+    ``cell`` the cells integrated, ``ncx`` cells along x, ``nbx`` functions
+    along x."""
+    ns = cell.shape[0]
     nt, nk, nf = copies.shape
+    nq = _rows_of(coef, tx, ty)
     Px, Dx = tx[0], tx[1]
     Py, Dy = ty[0], ty[1]
     for t in prange(nt):
         g = copies[t].reshape(nk * nf)
         first = touched[t, 0]
         last = touched[t, 1]
-        Um = np.empty((3, 4))
-        U0 = np.empty((3, 4))
-        U1 = np.empty((3, 4))
-        A00 = np.empty((3, 4))  # sigma_00 with D^x
-        A01 = np.empty((3, 4))  # sym sigma_01 with P^x
-        B01 = np.empty((3, 4))  # sym sigma_01 with D^x
-        A11 = np.empty((3, 4))  # sigma_11 with P^x
-        E0 = np.zeros((3, 4))
-        E1 = np.zeros((3, 4))
+        C = np.empty((nq, nq))
+        Um = np.empty((nq, 4))
+        U0 = np.empty((nq, 4))
+        U1 = np.empty((nq, 4))
+        A00 = np.empty((nq, 4))  # sigma_00 with D^x
+        A01 = np.empty((nq, 4))  # sym sigma_01 with P^x
+        B01 = np.empty((nq, 4))  # sym sigma_01 with D^x
+        A11 = np.empty((nq, 4))  # sigma_11 with P^x
+        E0 = np.zeros((nq, 4))
+        E1 = np.zeros((nq, 4))
         for s in range(t * ns // nt, (t + 1) * ns // nt):
-            ix = cell[s] % ncx
-            iy = cell[s] // ncx
-            _x_sums(coef, s, 0, Px, ix, p, 1.0, Um)
-            _x_sums(coef, s, 1, Px, ix, p, 1.0, U0)
-            _x_sums(coef, s, 2, Px, ix, p, 1.0, U1)
-            _x_sums(coef, s, 3, Dx, ix, p, 1.0, A00)
-            _sym_x_sums(coef, s, 4, 5, Px, ix, p, A01)
-            _sym_x_sums(coef, s, 4, 5, Dx, ix, p, B01)
-            _x_sums(coef, s, 6, Px, ix, p, 1.0, A11)
+            c = cell[s]
+            ix = c % ncx
+            iy = c // ncx
+            _column_x_sums(coef, s, c, ncx, 0, 0, C, Px, ix, p, Um)
+            _column_x_sums(coef, s, c, ncx, 1, 1, C, Px, ix, p, U0)
+            _column_x_sums(coef, s, c, ncx, 2, 2, C, Px, ix, p, U1)
+            _column_x_sums(coef, s, c, ncx, 3, 3, C, Dx, ix, p, A00)
+            _cell_coefficients(coef, s, c, ncx, 4, 5, C)
+            _x_sums(coef, C, Px, ix, p, A01)
+            _x_sums(coef, C, Dx, ix, p, B01)
+            _column_x_sums(coef, s, c, ncx, 6, 6, C, Px, ix, p, A11)
             if has_fext:
-                _x_sums(coef, s, 7, Px, ix, p, 1.0, E0)
-                _x_sums(coef, s, 8, Px, ix, p, 1.0, E1)
+                _column_x_sums(coef, s, c, ncx, 7, 7, C, Px, ix, p, E0)
+                _column_x_sums(coef, s, c, ncx, 8, 8, C, Px, ix, p, E1)
             for b in range(p + 1):
                 for a in range(p + 1):
                     k = ((iy + b) * nbx + ix + a) * nf
-                    g[k] += _y_sum(Um, Py, iy, a, b)
-                    g[k + 1] += _y_sum(U0, Py, iy, a, b)
-                    g[k + 2] += _y_sum(U1, Py, iy, a, b)
-                    f0 = -(_y_sum(A00, Py, iy, a, b) + _y_sum(A01, Dy, iy, a, b))
-                    f1 = -(_y_sum(B01, Py, iy, a, b) + _y_sum(A11, Dy, iy, a, b))
+                    g[k] += _y_sum(nq, Um, Py, iy, a, b)
+                    g[k + 1] += _y_sum(nq, U0, Py, iy, a, b)
+                    g[k + 2] += _y_sum(nq, U1, Py, iy, a, b)
+                    f0 = -(_y_sum(nq, A00, Py, iy, a, b) + _y_sum(nq, A01, Dy, iy, a, b))
+                    f1 = -(_y_sum(nq, B01, Py, iy, a, b) + _y_sum(nq, A11, Dy, iy, a, b))
                     if has_fext:
-                        f0 += _y_sum(E0, Py, iy, a, b)
-                        f1 += _y_sum(E1, Py, iy, a, b)
+                        f0 += _y_sum(nq, E0, Py, iy, a, b)
+                        f1 += _y_sum(nq, E1, Py, iy, a, b)
                     g[k + 3] += f0
                     g[k + 4] += f1
             first, last = _cell_nodes(first, last, ix, iy, p, nbx)
@@ -219,28 +308,31 @@ def cell_p2g(coef, cell, ncx, tx, ty, p, nbx, has_fext, copies, touched):
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def cell_momentum(coef, cell, ncx, tx, ty, p, nbx, copies, touched):
     """Add int (rho v)_h N_k of the cells' fitted momentum density (coef
-    (ns, 6, 2)) into g2p2g's per-thread copies (nt, dofs, 2) after the
-    point kernel (see :func:`cell_p2g`)."""
-    ns = coef.shape[0]
+    the fit's coefficients of its two columns, see :func:`cell_p2g`) into
+    g2p2g's per-thread copies (nt, dofs, 2) after the point kernel."""
+    ns = cell.shape[0]
     nt, nk, nf = copies.shape
+    nq = _rows_of(coef, tx, ty)
     Px = tx[0]
     Py = ty[0]
     for t in prange(nt):
         g = copies[t].reshape(nk * nf)
         first = touched[t, 0]
         last = touched[t, 1]
-        U0 = np.empty((3, 4))
-        U1 = np.empty((3, 4))
+        C = np.empty((nq, nq))
+        U0 = np.empty((nq, 4))
+        U1 = np.empty((nq, 4))
         for s in range(t * ns // nt, (t + 1) * ns // nt):
-            ix = cell[s] % ncx
-            iy = cell[s] // ncx
-            _x_sums(coef, s, 0, Px, ix, p, 1.0, U0)
-            _x_sums(coef, s, 1, Px, ix, p, 1.0, U1)
+            c = cell[s]
+            ix = c % ncx
+            iy = c // ncx
+            _column_x_sums(coef, s, c, ncx, 0, 0, C, Px, ix, p, U0)
+            _column_x_sums(coef, s, c, ncx, 1, 1, C, Px, ix, p, U1)
             for b in range(p + 1):
                 for a in range(p + 1):
                     k = ((iy + b) * nbx + ix + a) * nf
-                    g[k] += _y_sum(U0, Py, iy, a, b)
-                    g[k + 1] += _y_sum(U1, Py, iy, a, b)
+                    g[k] += _y_sum(nq, U0, Py, iy, a, b)
+                    g[k + 1] += _y_sum(nq, U1, Py, iy, a, b)
             first, last = _cell_nodes(first, last, ix, iy, p, nbx)
         touched[t, 0] = first
         touched[t, 1] = last
@@ -250,11 +342,12 @@ def cell_momentum(coef, cell, ncx, tx, ty, p, nbx, copies, touched):
 def cell_mass(coef, cell, ncx, tx, ty, p, nbx, mass_copies, stiff_copies, touched):
     """Add the consistent mass int rho_h N_k N_l (upper half of the
     stencil, the slots of kernels.mpm.consistent_cells_2d) and
-    int rho_h |grad N_k|^2 of the cells' fitted density (column 0 of coef)
-    into the consistent mass kernels' per-thread copies, after the point
-    kernel (see the module)."""
-    ns = coef.shape[0]
+    int rho_h |grad N_k|^2 of the cells' fitted density (column 0 of coef,
+    see :func:`cell_p2g`) into the consistent mass kernels' per-thread
+    copies, after the point kernel (see the module)."""
+    ns = cell.shape[0]
     nt = mass_copies.shape[0]
+    nq = _rows_of(coef, tx, ty)
     width = 2 * p + 1
     Qx, Rx = tx[2], tx[3]
     Qy, Ry = ty[2], ty[3]
@@ -263,211 +356,43 @@ def cell_mass(coef, cell, ncx, tx, ty, p, nbx, mass_copies, stiff_copies, touche
         K = stiff_copies[t]
         first = touched[t, 0]
         last = touched[t, 1]
-        T = np.empty((3, 4, 4))  # T[q, a, a2] = sum_p c_(p, q) Q^x[ix, p, a, a2]
-        UR = np.empty((3, 4))
+        C = np.empty((nq, nq))
+        T = np.empty((nq, 4, 4))  # T[q, a, a2] = sum_e c_(q, e) Q^x[ix, e, a, a2]
+        UR = np.empty((nq, 4))
         for s in range(t * ns // nt, (t + 1) * ns // nt):
-            ix = cell[s] % ncx
-            iy = cell[s] // ncx
-            _x_sums(coef, s, 0, Rx, ix, p, 1.0, UR)
-            for q in range(3):
+            c = cell[s]
+            ix = c % ncx
+            iy = c // ncx
+            _column_x_sums(coef, s, c, ncx, 0, 0, C, Rx, ix, p, UR)
+            for q in range(nq):
                 for a in range(p + 1):
                     for a2 in range(a, p + 1):
                         acc = 0.0
-                        for e in range(3 - q):
-                            acc += coef[s, IDX[q, e], 0] * Qx[ix, e, a, a2]
+                        for e in range(_terms(coef, q)):
+                            acc += C[q, e] * Qx[ix, e, a, a2]
                         T[q, a, a2] = acc
                         T[q, a2, a] = acc
             for b in range(p + 1):
                 for a in range(p + 1):
                     kd = (iy + b) * nbx + ix + a
-                    K[kd] += (UR[0, a] * Qy[iy, 0, b, b] + UR[1, a] * Qy[iy, 1, b, b]
-                              + UR[2, a] * Qy[iy, 2, b, b] + T[0, a, a] * Ry[iy, 0, b]
-                              + T[1, a, a] * Ry[iy, 1, b] + T[2, a, a] * Ry[iy, 2, b])
+                    # sum_q UR[q, a] Q^y[iy, q, b, b] + sum_q T[q, a, a] R^y[iy, q, b],
+                    # added term by term in that order
+                    stiff = UR[0, a] * Qy[iy, 0, b, b] + UR[1, a] * Qy[iy, 1, b, b]
+                    stiff += UR[2, a] * Qy[iy, 2, b, b]
+                    if nq == 4:
+                        stiff += UR[3, a] * Qy[iy, 3, b, b]
+                    stiff += T[0, a, a] * Ry[iy, 0, b]
+                    stiff += T[1, a, a] * Ry[iy, 1, b]
+                    stiff += T[2, a, a] * Ry[iy, 2, b]
+                    if nq == 4:
+                        stiff += T[3, a, a] * Ry[iy, 3, b]
+                    K[kd] += stiff
                     for a2 in range(a, p + 1):
-                        M[kd, a2 - a] += (Qy[iy, 0, b, b] * T[0, a, a2]
-                                          + Qy[iy, 1, b, b] * T[1, a, a2]
-                                          + Qy[iy, 2, b, b] * T[2, a, a2])
+                        M[kd, a2 - a] += _mass_sum(nq, Qy, iy, b, b, T, a, a2)
                     for b2 in range(b + 1, p + 1):
                         base = (b2 - b) * width - a
                         for a2 in range(p + 1):
-                            M[kd, base + a2] += (Qy[iy, 0, b, b2] * T[0, a, a2]
-                                                 + Qy[iy, 1, b, b2] * T[1, a, a2]
-                                                 + Qy[iy, 2, b, b2] * T[2, a, a2])
-            first, last = _cell_nodes(first, last, ix, iy, p, nbx)
-        touched[t, 0] = first
-        touched[t, 1] = last
-
-
-# ------------------------------------------------------------ the 2D spline
-# The spline reconstruction's fit (kernels.spline_2d) is a cubic tensor
-# B-spline on the grid's own breakpoints: in cell (ix, iy)
-#     f_h = sum_(e, q = 0..3) c_(iy + q, ix + e) N^3_(ix + e)(x) N^3_(iy + q)(y)
-# (c the fit's coefficients, row (iy + q) nbf + ix + e, nbf = ncx + 3 the
-# cubic functions along x: SplineGrid's n_x + p), so the sums above hold
-# with the cell's cubic B-splines for the powers (spline_axis_tables) and
-# the x sums U_q[a] = sum_e c_(iy + q, ix + e) T^x[ix, e, a], q = 0..3.
-
-
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _spline_x_sums(coef, row, nbf, c0, c1, T, ix, p, U):
-    """U[q, a] = sum_e 0.5 (c_(row + q nbf + e, c0) + c_(..., c1)) T[ix, e, a]
-    (c0 = c1: one column's sums, U (4, 4))."""
-    for q in range(4):
-        first = row + q * nbf
-        for a in range(p + 1):
-            acc = 0.0
-            for e in range(4):
-                if c0 == c1:
-                    acc += coef[first + e, c0] * T[ix, e, a]
-                else:
-                    acc += 0.5 * (coef[first + e, c0] + coef[first + e, c1]) * T[ix, e, a]
-            U[q, a] = acc
-
-
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _spline_y_sum(U, T, iy, a, b):
-    """sum_q U[q, a] T[iy, q, b], q = 0..3."""
-    return (U[0, a] * T[iy, 0, b] + U[1, a] * T[iy, 1, b] + U[2, a] * T[iy, 2, b]
-            + U[3, a] * T[iy, 3, b])
-
-
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def spline_cell_p2g(coef, cell, ncx, tx, ty, p, nbx, has_fext, copies, touched):
-    """:func:`cell_p2g` of the spline's fit: coef (nbf nby, k) its cubic
-    coefficients of [rho, rho v, sigma (row by row), rho b (with
-    ``has_fext``)], ``cell`` the cells integrated, ``tx``, ``ty``
-    :func:`spline_axis_tables` of the axes (see above)."""
-    ns = cell.shape[0]
-    nt, nk, nf = copies.shape
-    nbf = ncx + 3
-    Px, Dx = tx[0], tx[1]
-    Py, Dy = ty[0], ty[1]
-    for t in prange(nt):
-        g = copies[t].reshape(nk * nf)
-        first = touched[t, 0]
-        last = touched[t, 1]
-        Um = np.empty((4, 4))
-        U0 = np.empty((4, 4))
-        U1 = np.empty((4, 4))
-        A00 = np.empty((4, 4))  # sigma_00 with D^x
-        A01 = np.empty((4, 4))  # sym sigma_01 with P^x
-        B01 = np.empty((4, 4))  # sym sigma_01 with D^x
-        A11 = np.empty((4, 4))  # sigma_11 with P^x
-        E0 = np.zeros((4, 4))
-        E1 = np.zeros((4, 4))
-        for s in range(t * ns // nt, (t + 1) * ns // nt):
-            ix = cell[s] % ncx
-            iy = cell[s] // ncx
-            row = iy * nbf + ix
-            _spline_x_sums(coef, row, nbf, 0, 0, Px, ix, p, Um)
-            _spline_x_sums(coef, row, nbf, 1, 1, Px, ix, p, U0)
-            _spline_x_sums(coef, row, nbf, 2, 2, Px, ix, p, U1)
-            _spline_x_sums(coef, row, nbf, 3, 3, Dx, ix, p, A00)
-            _spline_x_sums(coef, row, nbf, 4, 5, Px, ix, p, A01)
-            _spline_x_sums(coef, row, nbf, 4, 5, Dx, ix, p, B01)
-            _spline_x_sums(coef, row, nbf, 6, 6, Px, ix, p, A11)
-            if has_fext:
-                _spline_x_sums(coef, row, nbf, 7, 7, Px, ix, p, E0)
-                _spline_x_sums(coef, row, nbf, 8, 8, Px, ix, p, E1)
-            for b in range(p + 1):
-                for a in range(p + 1):
-                    k = ((iy + b) * nbx + ix + a) * nf
-                    g[k] += _spline_y_sum(Um, Py, iy, a, b)
-                    g[k + 1] += _spline_y_sum(U0, Py, iy, a, b)
-                    g[k + 2] += _spline_y_sum(U1, Py, iy, a, b)
-                    f0 = -(_spline_y_sum(A00, Py, iy, a, b) + _spline_y_sum(A01, Dy, iy, a, b))
-                    f1 = -(_spline_y_sum(B01, Py, iy, a, b) + _spline_y_sum(A11, Dy, iy, a, b))
-                    if has_fext:
-                        f0 += _spline_y_sum(E0, Py, iy, a, b)
-                        f1 += _spline_y_sum(E1, Py, iy, a, b)
-                    g[k + 3] += f0
-                    g[k + 4] += f1
-            first, last = _cell_nodes(first, last, ix, iy, p, nbx)
-        touched[t, 0] = first
-        touched[t, 1] = last
-
-
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def spline_cell_momentum(coef, cell, ncx, tx, ty, p, nbx, copies, touched):
-    """:func:`cell_momentum` of the spline's fitted momentum density (coef
-    (nbf nby, 2) its cubic coefficients; see :func:`spline_cell_p2g`)."""
-    ns = cell.shape[0]
-    nt, nk, nf = copies.shape
-    nbf = ncx + 3
-    Px = tx[0]
-    Py = ty[0]
-    for t in prange(nt):
-        g = copies[t].reshape(nk * nf)
-        first = touched[t, 0]
-        last = touched[t, 1]
-        U0 = np.empty((4, 4))
-        U1 = np.empty((4, 4))
-        for s in range(t * ns // nt, (t + 1) * ns // nt):
-            ix = cell[s] % ncx
-            iy = cell[s] // ncx
-            row = iy * nbf + ix
-            _spline_x_sums(coef, row, nbf, 0, 0, Px, ix, p, U0)
-            _spline_x_sums(coef, row, nbf, 1, 1, Px, ix, p, U1)
-            for b in range(p + 1):
-                for a in range(p + 1):
-                    k = ((iy + b) * nbx + ix + a) * nf
-                    g[k] += _spline_y_sum(U0, Py, iy, a, b)
-                    g[k + 1] += _spline_y_sum(U1, Py, iy, a, b)
-            first, last = _cell_nodes(first, last, ix, iy, p, nbx)
-        touched[t, 0] = first
-        touched[t, 1] = last
-
-
-@njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def spline_cell_mass(coef, cell, ncx, tx, ty, p, nbx, mass_copies, stiff_copies, touched):
-    """:func:`cell_mass` of the spline's fitted density (column 0 of coef,
-    its cubic coefficients; see :func:`spline_cell_p2g`)."""
-    ns = cell.shape[0]
-    nt = mass_copies.shape[0]
-    width = 2 * p + 1
-    nbf = ncx + 3
-    Qx, Rx = tx[2], tx[3]
-    Qy, Ry = ty[2], ty[3]
-    for t in prange(nt):
-        M = mass_copies[t]
-        K = stiff_copies[t]
-        first = touched[t, 0]
-        last = touched[t, 1]
-        T = np.empty((4, 4, 4))  # T[q, a, a2] = sum_e c_(iy + q, ix + e) Q^x[ix, e, a, a2]
-        UR = np.empty((4, 4))
-        for s in range(t * ns // nt, (t + 1) * ns // nt):
-            ix = cell[s] % ncx
-            iy = cell[s] // ncx
-            row = iy * nbf + ix
-            _spline_x_sums(coef, row, nbf, 0, 0, Rx, ix, p, UR)
-            for q in range(4):
-                c = row + q * nbf
-                for a in range(p + 1):
-                    for a2 in range(a, p + 1):
-                        acc = 0.0
-                        for e in range(4):
-                            acc += coef[c + e, 0] * Qx[ix, e, a, a2]
-                        T[q, a, a2] = acc
-                        T[q, a2, a] = acc
-            for b in range(p + 1):
-                for a in range(p + 1):
-                    kd = (iy + b) * nbx + ix + a
-                    K[kd] += (UR[0, a] * Qy[iy, 0, b, b] + UR[1, a] * Qy[iy, 1, b, b]
-                              + UR[2, a] * Qy[iy, 2, b, b] + UR[3, a] * Qy[iy, 3, b, b]
-                              + T[0, a, a] * Ry[iy, 0, b] + T[1, a, a] * Ry[iy, 1, b]
-                              + T[2, a, a] * Ry[iy, 2, b] + T[3, a, a] * Ry[iy, 3, b])
-                    for a2 in range(a, p + 1):
-                        M[kd, a2 - a] += (Qy[iy, 0, b, b] * T[0, a, a2]
-                                          + Qy[iy, 1, b, b] * T[1, a, a2]
-                                          + Qy[iy, 2, b, b] * T[2, a, a2]
-                                          + Qy[iy, 3, b, b] * T[3, a, a2])
-                    for b2 in range(b + 1, p + 1):
-                        base = (b2 - b) * width - a
-                        for a2 in range(p + 1):
-                            M[kd, base + a2] += (Qy[iy, 0, b, b2] * T[0, a, a2]
-                                                 + Qy[iy, 1, b, b2] * T[1, a, a2]
-                                                 + Qy[iy, 2, b, b2] * T[2, a, a2]
-                                                 + Qy[iy, 3, b, b2] * T[3, a, a2])
+                            M[kd, base + a2] += _mass_sum(nq, Qy, iy, b, b2, T, a, a2)
             first, last = _cell_nodes(first, last, ix, iy, p, nbx)
         touched[t, 0] = first
         touched[t, 1] = last

@@ -16,18 +16,21 @@ the second differences (c_j - 2 c_(j+1) + c_(j+2) along either axis) that
 touch a weak dof; P = 0 when no dof is weak. The fit at the Gauss points is
 f_h(x_g) = sum_i N_i(x_g) c_i.
 
-:func:`spline_ls_system` assembles A + P as a stencil array (ndofs, 49):
-entry s = (dy + 3) 7 + (dx + 3) of row i is the coupling with the dof at
-offset (dx, dy); A is bitwise symmetric (each particle adds the same
-products to (i, j) and (j, i)). The sparse factorisation is the caller's
-(:mod:`skfem_mpm.solve.compiled_reconstruct`).
+:func:`spline_ls_system` assembles A + P as a stencil array (ndofs, 49),
+keeping the particles' cubic B-spline values for the other fits on the
+same positions: entry s = (dy + 3) 7 + (dx + 3) of row i is the coupling
+with the dof at offset (dx, dy). Its lower half (the dofs j <= i) is
+summed, the upper half copied from it: A is bitwise symmetric. The
+factorisation is the caller's (:mod:`skfem_mpm.solve.compiled_reconstruct`:
+the banded Cholesky factor of :mod:`skfem_mpm.kernels.band_factor`, which
+reads the lower half).
 """
 import numpy as np
 from numba import njit
 
 from .stencil import closed_axis_functions, extracted_axis_functions
 
-__all__ = ["WIDTH", "band_solve", "spline_band", "spline_evaluate", "spline_ls_system"]
+__all__ = ["WIDTH", "spline_ell_columns", "spline_evaluate", "spline_ls_system"]
 
 P = 3  # cubic
 WIDTH = 2 * P + 1  # stencil offsets -3..3 per axis
@@ -35,10 +38,15 @@ CENTRE = P * WIDTH + P
 
 
 @njit(cache=True, error_model="numpy")
-def spline_ls_system(x, V, values, ax, ay, nbx, nby, penalty, with_matrix, A, rhs):
+def spline_ls_system(x, V, values, ax, ay, nbx, nby, penalty, fresh, with_matrix, cells, W, A,
+                     rhs):
     """rhs (ndofs, k) = B^T W f and, ``with_matrix``, A (ndofs, 49) = the
     stencil of A + P (see the module docstring); ``ax``, ``ay`` the cubic
-    grid's axes (breakpoints, uniform, 1/h, extraction)."""
+    grid's axes (breakpoints, uniform, 1/h, extraction). The particles'
+    cubic B-spline values: with ``fresh`` computed and kept, cells[i] =
+    (ex, ey) the cell of x[i] along each axis and W[i] its four functions'
+    values along x, then the four along y; else read from cells, W (kept by
+    an earlier call on the same positions)."""
     k = values.shape[1]
     if with_matrix:
         A[:] = 0.0
@@ -49,18 +57,30 @@ def spline_ls_system(x, V, values, ax, ay, nbx, nby, penalty, with_matrix, A, rh
     y0, ncy = by[0], by.shape[0] - 1
     wx = np.empty(4)
     wy = np.empty(4)
-    for i in range(x.shape[0]):
-        # the closed form of scalars, else the extraction (not inlined)
-        closed, ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = closed_axis_functions(
-            x[i, 0], x0, ncx, ux, ihx, P)
-        if not closed:
-            ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = extracted_axis_functions(
-                x[i, 0], bx, ux, ihx, Cx, P)
-        closed, ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = closed_axis_functions(
-            x[i, 1], y0, ncy, uy, ihy, P)
-        if not closed:
-            ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = extracted_axis_functions(
-                x[i, 1], by, uy, ihy, Cy, P)
+    for i in range(V.shape[0]):
+        if fresh:
+            # the closed form of scalars, else the extraction (not inlined)
+            closed, ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = closed_axis_functions(
+                x[i, 0], x0, ncx, ux, ihx, P)
+            if not closed:
+                ex, wx[0], wx[1], wx[2], wx[3], _, _, _, _ = extracted_axis_functions(
+                    x[i, 0], bx, ux, ihx, Cx, P)
+            closed, ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = closed_axis_functions(
+                x[i, 1], y0, ncy, uy, ihy, P)
+            if not closed:
+                ey, wy[0], wy[1], wy[2], wy[3], _, _, _, _ = extracted_axis_functions(
+                    x[i, 1], by, uy, ihy, Cy, P)
+            cells[i, 0] = ex
+            cells[i, 1] = ey
+            for a in range(4):
+                W[i, a] = wx[a]
+                W[i, 4 + a] = wy[a]
+        else:
+            ex = cells[i, 0]
+            ey = cells[i, 1]
+            for a in range(4):
+                wx[a] = W[i, a]
+                wy[a] = W[i, 4 + a]
         for b in range(4):
             for a in range(4):
                 row = (ey + b) * nbx + ex + a
@@ -69,11 +89,34 @@ def spline_ls_system(x, V, values, ax, ay, nbx, nby, penalty, with_matrix, A, rh
                     rhs[row, col] += wr * values[i, col]
                 if not with_matrix:
                     continue
-                for d in range(4):
-                    for c in range(4):
+                for d in range(b + 1):  # the lower half: dof (c, d) not after (a, b)
+                    for c in range(4 if d < b else a + 1):
                         A[row, (d - b + P) * WIDTH + (c - a + P)] += wr * (wx[c] * wy[d])
-    if not with_matrix:
-        return
+    if with_matrix:
+        _mirror(A, nbx, nby)
+        _penalty(A, nbx, nby, penalty)
+
+
+@njit(cache=True, error_model="numpy")
+def _mirror(A, nbx, nby):
+    """The upper half of the stencil array A from its lower half:
+    A[i, s] = A[j, 48 - s] (s the offset (dx, dy) to dof j, 48 - s the
+    offset back) where j comes after i."""
+    for i in range(nbx * nby):
+        ix = i % nbx
+        iy = i // nbx
+        for dy in range(0, P + 1):
+            if iy + dy >= nby:
+                break
+            for dx in range(-P if dy > 0 else 1, P + 1):
+                if 0 <= ix + dx < nbx:
+                    s = (dy + P) * WIDTH + dx + P
+                    A[i, s] = A[i + dy * nbx + dx, WIDTH * WIDTH - 1 - s]
+
+
+@njit(cache=True, error_model="numpy")
+def _penalty(A, nbx, nby, penalty):
+    """A += P (see the module docstring)."""
     ndofs = nbx * nby
     npos = 0
     diag = np.empty(ndofs)
@@ -150,40 +193,14 @@ def spline_evaluate(xg, coef, ax, ay, nbx, out):
                     out[g, col] += w * coef[row, col]
 
 
-@njit(cache=True, error_model="numpy")
-def spline_band(A, nbx, band):
-    """band (ndofs, 3 nbx + 4): the lower band of the stencil array A of
-    :func:`spline_ls_system`, band[i, d] = (A + P)_(i, i - d) (the storage
-    of :func:`~skfem_mpm.kernels.kronecker.banded_cholesky_into`)."""
-    band[:] = 0.0
-    for i in range(A.shape[0]):
-        ix = i % nbx
-        iy = i // nbx
-        for dy in range(-P, 1):
-            if iy + dy < 0:
-                continue
-            for dx in range(-P, P + 1):
-                if (dy == 0 and dx > 0) or ix + dx < 0 or ix + dx >= nbx:
-                    continue
-                band[i, -(dy * nbx + dx)] = A[i, (dy + P) * WIDTH + dx + P]
-
-
-@njit(cache=True, error_model="numpy")
-def band_solve(L, b):
-    """b (n, k) := (L L^T)^-1 b for the banded lower Cholesky factor L,
-    L[i, d] = L_(i, i - d): forward, then backward substitution."""
-    n = L.shape[0]
-    p = L.shape[1] - 1
-    k = b.shape[1]
-    for i in range(n):
-        for d in range(1, min(p, i) + 1):
-            for c in range(k):
-                b[i, c] -= L[i, d] * b[i - d, c]
-        for c in range(k):
-            b[i, c] /= L[i, 0]
-    for i in range(n - 1, -1, -1):
-        for d in range(1, min(p, n - 1 - i) + 1):
-            for c in range(k):
-                b[i, c] -= L[i + d, d] * b[i + d, c]
-        for c in range(k):
-            b[i, c] /= L[i, 0]
+def spline_ell_columns(nbx, nby):
+    """cols (ndofs, 49): the dof of stencil entry s of each row of
+    :func:`spline_ls_system`'s A (its ELL columns; an offset outside the
+    grid: the row's own dof, where A holds 0)."""
+    dof = np.arange(nbx * nby)
+    a, b = dof % nbx, dof // nbx
+    offsets = np.arange(WIDTH) - P
+    aa = a[:, None] + np.tile(offsets, WIDTH)[None, :]
+    bb = b[:, None] + np.repeat(offsets, WIDTH)[None, :]
+    valid = (aa >= 0) & (aa < nbx) & (bb >= 0) & (bb < nby)
+    return np.where(valid, bb * nbx + aa, dof[:, None]).astype(np.int64)

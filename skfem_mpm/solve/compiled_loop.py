@@ -131,15 +131,10 @@ _GRID_KERNELS = {
     "CELL_P2G": cell_integrals.cell_p2g,
     "CELL_MOMENTUM": cell_integrals.cell_momentum,
     "CELL_MASS": cell_integrals.cell_mass,
-    "SPLINE_CELL_P2G": cell_integrals.spline_cell_p2g,
-    "SPLINE_CELL_MOMENTUM": cell_integrals.spline_cell_momentum,
-    "SPLINE_CELL_MASS": cell_integrals.spline_cell_mass,
     "MLS_FIT": mls.mls_fit,
     "MLS_STORE": mls.mls_store,
     "SPLINE_LS_SYSTEM": spline_2d.spline_ls_system,
-    "SPLINE_BAND": spline_2d.spline_band,
-    "BANDED_CHOLESKY_INTO": kronecker.banded_cholesky_into,
-    "BAND_SOLVE": spline_2d.band_solve,
+    "APPLY_BAND_FACTOR": band_factor.apply_band_factor,
     "SPLINE_EVALUATE": spline_2d.spline_evaluate,
     # a side traction (compiled_loop_traction)
     "SIDE_FACES": traction.side_faces,
@@ -766,6 +761,7 @@ class StepLoop:
                 rho=empty(n), pcell=empty(0, dtype=np.int64), xg=empty((0, dim)), wg=empty(0),
                 gcell=empty(0, dtype=np.int64), own=empty(0, dtype=np.int64),
                 factor=None, radius=0.0, alpha=None, spline=None, tables=None,
+                spline_cells=empty((0, 2), dtype=np.int64), spline_basis=empty((0, 8)),
                 cell_shape=(0, 0, 0), coef=empty((0, 6, k)), slot_cell=empty(0, dtype=np.int64),
                 momentum_coef=empty((0, 6, dim)),
                 mls_store=mls.empty_mls_store(), mls_most=0,
@@ -782,9 +778,9 @@ class StepLoop:
                 fields.update(radius=float(recon.radius), alpha=empty((0, dim + 1)))
             else:  # SplineLeastSquares' data, BandedCholesky's arrays
                 ls = recon.spline_ls
-                band = np.zeros((ls.ndofs, 3 * ls.nbx + 4))
+                factor = np.zeros((ls.ndofs, band_factor.factor_columns(3 * ls.nbx + 3)))
                 fields["spline"] = (ls.axes, int(ls.nbx), int(ls.nby), float(ls.penalty),
-                                    np.zeros_like(ls.A), band, np.zeros_like(band))
+                                    np.zeros_like(ls.A), ls.ell_cols, factor)
                 if recon.cell_tables is not None:  # closed-form integrals of its cubic fit
                     fields.update(tables=recon.cell_tables,
                                   cell_shape=(recon.ncx, recon.nbx, recon.degree),

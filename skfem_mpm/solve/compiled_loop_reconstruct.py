@@ -45,9 +45,9 @@ project):
                          positions alone (tls: kernels.tls.tls_factor, then
                          tls_apply; mls: M_g^-1 e_0 and the weighted
                          particles of each point in kernels.mls.mls_fit;
-                         the 2D spline: kernels.spline_2d's system, band and
-                         banded Cholesky factor, then band_solve and
-                         spline_evaluate); the points as quadrature
+                         the 2D spline: kernels.spline_2d's system and
+                         kernels.band_factor's banded Cholesky factor, then
+                         its solves and spline_evaluate); the points as quadrature
                          particles, as above
     rule_project         MUSL: the fit of rho v^new at the Gauss points on
                          what the step's fit kept, the particles' own
@@ -255,8 +255,12 @@ RULED_FIELDS = (
     # half of its fits (kernels.tls.tls_factor); mls the kernel radius and
     # the points' M_g^-1 e_0 (kernels.mls.mls_fit); the 2D spline the cubic
     # space's axes and sizes, its penalty and the stencil, band and banded
-    # Cholesky factor of A + P (SplineLeastSquares, BandedCholesky)
+    # the stencil's ELL columns and banded Cholesky factor of A + P
+    # (SplineLeastSquares, BandedCholesky)
     "factor", "radius", "alpha", "spline",
+    # the 2D spline: the particles' cubic B-spline values of the step's
+    # positions (kernels.spline_2d.spline_ls_system's cells, W)
+    "spline_cells", "spline_basis",
     # the 2D TLS with its grid sums in closed form per cell
     # (CompiledReconstruction.cell_tables: kernels.cell_integrals), else None:
     # the axes' tables, (cells along x, functions along x, degree), the
@@ -371,21 +375,23 @@ def _spline_coefficients(rc, x, V, values, fresh):
     """(done, the 2D spline's cubic coefficients (ndofs, k) of ``values``):
     its least-squares system (kernels.spline_2d) solved by the banded
     Cholesky factor of A + P, which ``fresh`` first makes (and keeps in
-    rc.spline) as SplineLeastSquares.coefficients and BandedCholesky; done
+    rc.spline; the particles' basis values in rc.spline_cells and
+    rc.spline_basis) as SplineLeastSquares.coefficients and BandedCholesky; done
     False when a pivot is not positive (the executor then factorises by
     SuperLU)."""
-    axes, nbx, nby, penalty, A, band, L = rc.spline
+    axes, nbx, nby, penalty, A, cols, C = rc.spline
     rhs = np.empty((nbx * nby, values.shape[1]))
-    SPLINE_LS_SYSTEM(x, V, values, axes[0], axes[1], nbx, nby, penalty, fresh, A, rhs)
+    if fresh and rc.spline_cells.shape[0] != x.shape[0]:  # the particles' basis values
+        rc.spline_cells = np.empty((x.shape[0], 2), dtype=np.int64)
+        rc.spline_basis = np.empty((x.shape[0], 8))
+    SPLINE_LS_SYSTEM(x, V, values, axes[0], axes[1], nbx, nby, penalty, fresh, fresh,
+                     rc.spline_cells, rc.spline_basis, A, rhs)
     if fresh:
-        SPLINE_BAND(A, nbx, band)
-        L[:] = 0.0
-        BANDED_CHOLESKY_INTO(band, 0, A.shape[0], L)
-        for i in range(L.shape[0]):
-            if not L[i, 0] > 0.0:
-                return False, rhs
-    BAND_SOLVE(L, rhs)
-    return True, rhs
+        if not FIT_BAND_FACTOR(A, cols, C):
+            return False, rhs
+    coef = np.empty_like(rhs)
+    APPLY_BAND_FACTOR(C, rhs, coef)
+    return True, coef
 
 
 @njit(cache=True)
@@ -473,14 +479,6 @@ def _refit_cells(rc, x, V, values):
     return tls
 
 
-def _cell_kernels(rc):
-    """The fit's kernels.cell_integrals kernels (p2g, momentum, mass), from
-    the type of the RuleReconstruction ``rc``."""
-    if _spline_type(rc):
-        return SPLINE_CELL_P2G, SPLINE_CELL_MOMENTUM, SPLINE_CELL_MASS
-    return CELL_P2G, CELL_MOMENTUM, CELL_MASS
-
-
 @njit(cache=True)
 def cell_rule_points(rc, x, v, m, V, stress, forces):
     """The 2D TLS or spline with closed-form cell integrals
@@ -510,73 +508,33 @@ def cell_rule_project(rc, x, V, v_new):
             rc.momentum_fit[j, c] = rc.momentum_values[own[j], c]
 
 
-def _add_cell_p2g(rc, has_fext, copies, touched):
-    """Add p2g's fields of the fitted cells into the copies."""
-
-
-@overload(_add_cell_p2g)
-def _add_cell_p2g_impl(rc, has_fext, copies, touched):
-    kernel = _cell_kernels(rc)[0]
-
-    def impl(rc, has_fext, copies, touched):
-        ncx, nbx, p = rc.cell_shape
-        tx, ty = rc.tables
-        kernel(rc.coef, rc.slot_cell, ncx, tx, ty, p, nbx, has_fext, copies, touched)
-    return impl
-
-
 @njit(cache=True)
 def cell_p2g(rc, has_fext, copies, touched):
     """Add p2g's fields of the fitted cells into the copies (kernels.cell_integrals)."""
-    _add_cell_p2g(rc, has_fext, copies, touched)
-
-
-def _add_cell_momentum(rc, copies, touched):
-    """Add the fitted cells' projected momentum into the copies."""
-
-
-@overload(_add_cell_momentum)
-def _add_cell_momentum_impl(rc, copies, touched):
-    kernel = _cell_kernels(rc)[1]
-
-    def impl(rc, copies, touched):
-        ncx, nbx, p = rc.cell_shape
-        tx, ty = rc.tables
-        kernel(rc.momentum_coef, rc.slot_cell, ncx, tx, ty, p, nbx, copies, touched)
-    return impl
+    ncx, nbx, p = rc.cell_shape
+    tx, ty = rc.tables
+    CELL_P2G(rc.coef, rc.slot_cell, ncx, tx, ty, p, nbx, has_fext, copies, touched)
 
 
 @njit(cache=True)
 def cell_momentum(rc, copies, touched):
     """Add the fitted cells' projected momentum into the copies."""
-    _add_cell_momentum(rc, copies, touched)
-
-
-def _add_cell_mass(cm, rc, p, nbx):
-    """Add the fitted cells' consistent mass and K into cm's copies."""
-
-
-@overload(_add_cell_mass)
-def _add_cell_mass_impl(cm, rc, p, nbx):
-    kernel = _cell_kernels(rc)[2]
-
-    def impl(cm, rc, p, nbx):
-        ncx = rc.cell_shape[0]
-        tx, ty = rc.tables
-        kernel(rc.coef, rc.slot_cell, ncx, tx, ty, p, nbx, cm.copies, cm.stiff_copies,
-               cm.touched)
-    return impl
+    ncx, nbx, p = rc.cell_shape
+    tx, ty = rc.tables
+    CELL_MOMENTUM(rc.momentum_coef, rc.slot_cell, ncx, tx, ty, p, nbx, copies, touched)
 
 
 @njit(cache=True)
 def assemble_mass_fitted_cells(cm, rc, x, m, k, nbx, nby):
     """2D: the consistent mass stencil and K of the rule's particle points
     (kernels.mpm.consistent_cells_2d with no cell blocks) plus the fitted
-    cells' closed-form integrals (kernels.cell_integrals.cell_mass or
-    spline_cell_mass), as Kernels.consistent_stencil with ``add``."""
+    cells' closed-form integrals (kernels.cell_integrals.cell_mass), as
+    Kernels.consistent_stencil with ``add``."""
     ncx, _, p = rc.cell_shape
     ASSEMBLE_CELLS(x, m, cm.axes, 0, k, p, nbx, cm.copies, cm.stiff_copies, cm.touched)
-    _add_cell_mass(cm, rc, p, nbx)
+    tx, ty = rc.tables
+    CELL_MASS(rc.coef, rc.slot_cell, ncx, tx, ty, p, nbx, cm.copies, cm.stiff_copies,
+              cm.touched)
     _reduce_mass(cm, p, nbx, nby, 2)
 
 

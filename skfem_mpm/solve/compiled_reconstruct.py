@@ -42,17 +42,16 @@ from numba import get_num_threads
 from ..errors import InvalidState
 from ..kernels.gauss_rule import (body_boxes, cut_cell_particles, gauss_rule_1d,
                                   gauss_rule_cells, locate_cells)
-from ..kernels.kronecker import KroneckerData, axis_mass_bands, banded_cholesky_into
+from ..kernels.band_factor import apply_band_factor, factor_columns, fit_band_factor
+from ..kernels.kronecker import KroneckerData, axis_mass_bands
 from ..kernels.mls import empty_mls_store, mls_fit, mls_store
 from ..kernels.mpm import ell_pcg
 from ..kernels.spline_1d import not_a_knot_spline
-from ..kernels.spline_2d import (WIDTH, band_solve, spline_band, spline_evaluate,
-                                 spline_ls_system)
+from ..kernels.spline_2d import WIDTH, spline_ell_columns, spline_evaluate, spline_ls_system
 from ..kernels.serial import SERIAL_BELOW, for_threads
 from ..kernels.tls import slot_cells, tls_apply, tls_coefficients, tls_factor
 from ..kernels.cell_integrals import (axis_tables, cell_mass, cell_momentum, cell_p2g,
-                                      spline_axis_tables, spline_cell_mass,
-                                      spline_cell_momentum, spline_cell_p2g)
+                                      spline_axis_tables)
 
 TLS_DEFAULTS = {"degree": 2, "neighbour_weight": 0.0}
 
@@ -121,29 +120,32 @@ Kronecker-preconditioned CG from the last solution above
 
 
 class BandedCholesky:
-    """(A + P)^-1 by its banded Cholesky factor (compiled:
-    :func:`~skfem_mpm.kernels.kronecker.banded_cholesky_into` on
-    :func:`~skfem_mpm.kernels.spline_2d.spline_band`): A + P is symmetric
+    """(A + P)^-1 by its banded Cholesky factor
+    (:func:`~skfem_mpm.kernels.band_factor.fit_band_factor` of the lower
+    half of the stencil array A, as ELL rows with the columns ``cols`` of
+    :func:`~skfem_mpm.kernels.spline_2d.spline_ell_columns`; applied by
+    :func:`~skfem_mpm.kernels.band_factor.apply_band_factor`, whose
+    triangular solves are axpys along contiguous runs): A + P is symmetric
     and, where every dof is seen by a particle or held by the penalty,
-    positive definite. On 16 x 16 quadratic cells (361 cubic dofs,
-    half-bandwidth 60) it takes a third of SuperLU's time. None when a
-    pivot is not positive (the caller then takes SuperLU)."""
+    positive definite; its band is w = 3 nbx + 3 (the cubic stencil's
+    reach). None when a pivot is not positive (the caller then takes
+    SuperLU)."""
 
-    def __new__(cls, A, nbx):
-        band = np.empty((A.shape[0], 3 * nbx + 4))
-        spline_band(A, nbx, band)
-        L = np.zeros_like(band)
-        banded_cholesky_into(band, 0, A.shape[0], L)
-        if not np.all(L[:, 0] > 0.0):  # NaN or 0: not positive definite
+    def __new__(cls, A, nbx, cols=None):
+        if cols is None:
+            cols = spline_ell_columns(nbx, A.shape[0] // nbx)
+        C = np.empty((A.shape[0], factor_columns(3 * nbx + 3)))
+        if not fit_band_factor(A, cols, C):  # NaN or 0: not positive definite
             return None
         self = super().__new__(cls)
-        self.L = L
+        self.C = C
         return self
 
     def solve(self, rhs):
-        x = np.array(rhs, dtype=np.float64, order="C")
-        band_solve(self.L, x)
-        return x
+        r = np.ascontiguousarray(rhs, dtype=np.float64)
+        z = np.empty_like(r)
+        apply_band_factor(self.C, r, z)
+        return z
 
 
 class KroneckerCG:
@@ -213,11 +215,11 @@ class SplineLeastSquares:
         self.indptr = np.concatenate(([0], np.cumsum(valid.sum(axis=1)))).astype(np.int32)
         self.A = np.zeros((nd, WIDTH * WIDTH))
         self.ndofs = nd
+        self._basis = None  # (the last factorisation, its particles' basis values)
         self.iterative = nd >= DIRECT_DOFS if iterative is None else bool(iterative)
         self.rtol = 1e-13
+        self.ell_cols = spline_ell_columns(self.nbx, self.nby)
         if self.iterative:
-            own = np.repeat(dof, WIDTH * WIDTH).reshape(nd, WIDTH * WIDTH)
-            self.ell_cols = np.where(valid, bb * self.nbx + aa, own).astype(np.int64)
             pairs = [axis_mass_bands(cubic, axis) for axis in range(2)]
             self.bands = [bnd for bnd, _ in pairs]
             self.row_sums = [rs for _, rs in pairs]
@@ -225,39 +227,60 @@ class SplineLeastSquares:
             self.warm = {}
             self._kron = None
 
+    def _system(self, x, V, values, with_matrix, basis):
+        """B^T W f (and, ``with_matrix``, A + P into self.A) with the
+        particles' cubic B-spline values ``basis`` (cells, W) of
+        kernels.spline_2d.spline_ls_system, made here when None; returns
+        (rhs, basis)."""
+        fresh = basis is None
+        if fresh:
+            basis = (np.empty((x.shape[0], 2), dtype=np.int64), np.empty((x.shape[0], 8)))
+        rhs = np.empty((self.ndofs, values.shape[1]))
+        spline_ls_system(x, V, values, *self.axes, self.nbx, self.nby, self.penalty, fresh,
+                         with_matrix, *basis, self.A, rhs)
+        return rhs, basis
+
     def factor(self, x, V, values):
-        """(LU of A + P, B^T W f) for the particles (x, V)."""
+        """(LU of A + P, B^T W f) for the particles (x, V); the particles'
+        basis values are kept with it (self._basis) for
+        :meth:`coefficients` of other values on them."""
         import scipy.sparse as sp
         import scipy.sparse.linalg as spla
 
-        rhs = np.empty((self.ndofs, values.shape[1]))
-        spline_ls_system(x, V, values, *self.axes, self.nbx, self.nby, self.penalty, True,
-                         self.A, rhs)
+        rhs, basis = self._system(x, V, values, True, None)
+        solver = self._factor()
+        self._basis = (solver, basis)
+        return solver, rhs
+
+    def _factor(self):
+        """A factorisation of self.A (see the class)."""
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as spla
+
         if self.iterative:
             solver = KroneckerCG(self, self.A, self._kron, self.rtol)
             self._kron = solver.kron
-            return solver, rhs
-        solver = BandedCholesky(self.A, self.nbx)
+            return solver
+        solver = BandedCholesky(self.A, self.nbx, self.ell_cols)
         if solver is not None:
-            return solver, rhs
+            return solver
         # A + P is symmetric: its CSR arrays are those of its CSC form
         matrix = sp.csc_matrix((self.A.ravel()[self.slots], self.cols, self.indptr),
                                shape=(self.ndofs, self.ndofs))
         # minimum degree on A^T + A (the matrix is symmetric): 16 x 16 quadratic
         # cells (361 cubic dofs) 1.9 ms against 12.5 ms with splu's default
         # COLAMD; 128 x 128 (17,161 dofs) 1.6 s against 8.2 s
-        return spla.splu(matrix, permc_spec="MMD_AT_PLUS_A"), rhs
+        return spla.splu(matrix, permc_spec="MMD_AT_PLUS_A")
 
     def coefficients(self, x, V, values, lu=None):
         """(the fit's cubic coefficients c (ndofs, k), the factorisation):
-        ``lu`` a factorisation of the same particles (x, V) to reuse, or
-        None."""
+        ``lu`` a factorisation of the same particles (x, V) to reuse (with
+        their basis values when it is the last made here), or None."""
         if lu is None:
             lu, rhs = self.factor(x, V, values)
         else:
-            rhs = np.empty((self.ndofs, values.shape[1]))
-            spline_ls_system(x, V, values, *self.axes, self.nbx, self.nby, self.penalty,
-                             False, self.A, rhs)
+            kept = self._basis[1] if self._basis is not None and self._basis[0] is lu else None
+            rhs = self._system(x, V, values, False, kept)[0]
         return np.ascontiguousarray(lu.solve(rhs)), lu
 
     def __call__(self, x, V, values, xg, out, lu=None):
@@ -316,13 +339,12 @@ class CompiledReconstruction:
                 self.cell_tables = tuple(
                     axis_tables(self.axes[a], self.uniform[a], grid.extraction[a], self.degree,
                                 self.ref, self.wref) for a in range(2))
-                self.cell_kernels = (cell_p2g, cell_momentum, cell_mass)
             else:  # over the cubic space's functions (SplineLeastSquares' axes)
                 self.cell_tables = tuple(
                     spline_axis_tables(self.axes[a], self.uniform[a], grid.extraction[a],
                                        self.degree, self.spline_ls.axes[a][3], self.ref,
                                        self.wref) for a in range(2))
-                self.cell_kernels = (spline_cell_p2g, spline_cell_momentum, spline_cell_mass)
+            self.cell_kernels = (cell_p2g, cell_momentum, cell_mass)
         if self.name == "mls":  # the reference's kernel radius: radius cells of the smallest
             self.radius = float(options.get("radius", 1.5)) * min(grid.h)
             # the pairs of the last rule fitted with coefficients (kernels.mls.mls_fit)
