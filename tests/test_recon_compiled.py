@@ -243,7 +243,7 @@ def test_compiled_mls_agrees_with_the_reference(name, grid, p, radius):
     expected = reconstruct_mls(grid, p, values, rule, radius=radius)
     r = radius * min(grid.h)
     out = np.empty((rule.x.shape[0], 4))
-    mls_reconstruct(p.x, values, rule.x, r, out)
+    mls_reconstruct(p.x, values, rule.x, rule.cell, r, out)
     cond = np.ones(rule.x.shape[0])
     for g, xg in enumerate(rule.x):  # the moment matrices, written out
         s = np.linalg.norm(p.x - xg, axis=1) / r
@@ -289,40 +289,76 @@ def test_the_cells_mass_summed_per_axis_is_the_point_sums(name, grid, p, paralle
 
 @pytest.mark.parametrize("name, grid, p", layouts_tls(),
                          ids=lambda v: v if isinstance(v, str) else "")
-def test_the_mls_pair_store_gives_the_searchs_bits(name, grid, p):
-    """A fit with coefficients keeps each point's weighted particles in the
-    store (kernels.mls.mls_store sizes it from the largest count in reach
-    of the last such fit): later fits on the same rule read them instead of
-    searching, with the same bits, also when some points' pairs did not fit
-    (those are searched again) and with the parallel kernel."""
+def test_the_mls_groups_give_each_points_own_bits(name, grid, p):
+    """mls_fit runs the points in groups (consecutive points of one cell, at
+    most LANES: the cubic cells' 25 points are split) over the particles in
+    reach of any of the group's points: each point's fit and alpha have the
+    bits of that point fitted alone (every point its own cell, groups of
+    one), serial and parallel; a fit without coefficients on the alpha of
+    an earlier fit (a step's MUSL projection) has the bits of a fit with
+    them."""
     rng = np.random.default_rng(4)
     rule = kernel_rule(grid, p)
     ng = rule.x.shape[0]
+    assert np.bincount(rule.cell).max() > 1  # groups of more than one point
     r = 1.5 * min(grid.h)
     values = rng.normal(size=(p.n, 5))
-    empty = mls_kernel.empty_mls_store()
-    alpha = np.empty((ng, p.dim + 1))
     fit = serial(mls_kernel.mls_fit)
-    first = np.empty((ng, 5))
-    most = fit(p.x, values, rule.x, r, alpha, first, True, empty)
-    assert most > 0
+    alone, alpha_alone = np.empty((ng, 5)), np.empty((ng, p.dim + 1))
+    fit(p.x, values, rule.x, np.arange(ng), r, alpha_alone, alone, True)
     for kernel in (fit, mls_kernel.mls_fit):
-        for slots in (most, max(most - 2, 1)):  # every point stored; some not
-            store = mls_kernel.mls_store(empty, ng, slots)
-            assert store[0].shape == (ng, slots)
-            out = np.empty((ng, 5))
-            assert kernel(p.x, values, rule.x, r, alpha, out, True, store) == most
-            assert np.array_equal(out, first)
-            assert (store[2] >= 0).all() if slots == most else (store[2] < 0).any()
-            for k in (2, 5):
-                later = rng.normal(size=(p.n, k))
-                searched = np.empty((ng, k))
-                kernel(p.x, later, rule.x, r, alpha, searched, False, empty)
-                stored = np.empty((ng, k))
-                assert kernel(p.x, later, rule.x, r, alpha, stored, False, store) == 0
-                assert np.array_equal(stored, searched)
-    # more slots than the budget: none
-    assert mls_kernel.mls_store(empty, ng, mls_kernel.MLS_PAIR_BYTES)[0].shape == (ng, 0)
+        out, alpha = np.empty((ng, 5)), np.empty((ng, p.dim + 1))
+        kernel(p.x, values, rule.x, rule.cell, r, alpha, out, True)
+        assert np.array_equal(out, alone) and np.array_equal(alpha, alpha_alone)
+        for k in (2, 5):
+            later = rng.normal(size=(p.n, k))
+            fresh, reused = np.empty((ng, k)), np.empty((ng, k))
+            kernel(p.x, later, rule.x, rule.cell, r, np.empty_like(alpha), fresh, True)
+            kernel(p.x, later, rule.x, rule.cell, r, alpha, reused, False)
+            assert np.array_equal(reused, fresh)
+
+
+def test_the_mls_2d_rows_of_a_group_are_the_scalar_solves_bits():
+    """kernels.mls._constant_rows_2d (a group's M_g^-1 e_0 at once, 2D) has
+    the bits of _constant_row point by point: well-posed moment matrices
+    (random, and scaled by 1e-8 and 1e8), nearly singular ones (smallest
+    eigenvalue over the mean diagonal between 0 and MLS_RANK_TOL: Shepard;
+    or above it: fitted) with the small pivot in each place, singular and
+    indefinite ones (Shepard, or 0 where M_00 <= 0) and M = 0 (alpha =
+    0)."""
+    rng = np.random.default_rng(8)
+    mats = []
+    for scale in (1.0, 1e-8, 1e8):
+        for _ in range(3):
+            B = rng.normal(size=(3, 6))
+            mats.append(scale * B @ B.T)
+    unit = np.eye(3) + np.tril(rng.uniform(0.3, 0.6, (3, 3)), -1)
+    for low in (3e-7, 1e-5, 0.0, -1e-3):  # pivot j of M = unit diag(d) unit^T is d_j = low
+        for j in range(3):
+            d = np.ones(3)
+            d[j] = low
+            mats.append(unit @ np.diag(d) @ unit.T)
+    mats.append(np.zeros((3, 3)))
+    lanes = mls_kernel.LANES
+    A = np.zeros((len(mats), 3))
+    for first in range(0, len(mats), lanes):
+        chunk = mats[first:first + lanes]
+        sums = np.zeros((10, lanes))
+        for g, M in enumerate(chunk):
+            sums[:6, g] = M[0, 0], M[1, 0], M[1, 1], M[2, 0], M[2, 1], M[2, 2]
+        rows = np.zeros((4, lanes))
+        mls_kernel._constant_rows_2d(sums, len(chunk), rows)
+        A[first:first + len(chunk)] = rows[:3, :len(chunk)].T
+    fitted = {}
+    for g, M in enumerate(mats):
+        expected = np.zeros(4)
+        if M[0, 0] > 0.0:
+            work = np.zeros((4, 4))
+            work[:3, :3] = np.tril(M)
+            mls_kernel._constant_row(work, 3, np.empty((4, 4)), np.empty((4, 4)), expected)
+        assert np.array_equal(A[g], expected[:3]), g
+        fitted[g] = expected[1] != 0.0  # (Shepard: e_0 / M_00)
+    assert [fitted[9 + g] for g in range(12)] == [False] * 3 + [True] * 3 + [False] * 6
 
 
 @pytest.mark.parametrize("iterative", (False, True), ids=("lu", "cg"))
@@ -504,7 +540,7 @@ def test_compiled_fits_fall_back_where_particles_are_nearly_on_a_line():
         expected).max()
     expected = reconstruct_mls(grid, p, values, rule)
     out = np.empty_like(expected)
-    mls_reconstruct(p.x, values, rule.x, 1.5 * min(grid.h), out)
+    mls_reconstruct(p.x, values, rule.x, rule.cell, 1.5 * min(grid.h), out)
     assert np.abs(out - expected).max() <= 1e-12 * np.abs(expected).max()
 
 

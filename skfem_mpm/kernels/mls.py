@@ -37,25 +37,30 @@ rounding times the condition number of M (test_recon_compiled).
 
 Neighbours: the particles are binned (counting sort, stable) into a
 uniform box grid of side r / 2 over their bounding box (x fastest), so the
-particles within r of x_g lie in the 5^d boxes around the box of x_g; of
-those, each row of boxes along x (contiguous in the box order) is cut to
-the boxes that the ball of radius r reaches, given the row's distance from
-x_g on the other axes.
+particles within r of x_g lie in the 5^d boxes around the box of x_g. The
+points are fitted in groups (consecutive points of one cell, at most
+LANES: the Gauss points of a cell see nearly the same particles): the
+group's candidates are gathered once, from the rows of boxes (contiguous
+in the box order along x) within reach of the group's bounding box, each
+row cut to the boxes the reach covers, then those particles within reach
+of the box; for each candidate the work on all the group's points is one
+loop (vectorised), a point's pairs out of reach weighing 0. Each point's
+particles in reach come in the order of a search of its own, so a point
+has the same sums in any group (test_recon_compiled).
 """
 import numpy as np
 from numba import njit, prange
 
 from .cholesky import cholesky
 
-__all__ = ["MLS_RANK_TOL", "empty_mls_store", "mls_fit", "mls_reconstruct", "mls_store"]
+__all__ = ["MLS_RANK_TOL", "mls_fit", "mls_reconstruct"]
 
 MLS_RANK_TOL = 1e-6  # the reference's threshold (eigvalsh(M / scale)[0] > 1e-6; a test checks)
 MAX_DIM = 3
-POINTS_PER_BLOCK = 64
-"""Gauss points per block of :func:`mls_fit` (each block its own work arrays)."""
-MLS_PAIR_BYTES = 32 << 20
-"""The most memory a pair store (:func:`mls_store`) takes; above it the
-fits without coefficients search the particles again."""
+LANES = 16
+"""The most points of one group of :func:`mls_fit` (its inner loop)."""
+GROUPS_PER_BLOCK = 4
+"""Groups per block of :func:`mls_fit` (each block its own work arrays)."""
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -127,6 +132,103 @@ def _neighbours(x, r):
 
 
 @njit(cache=True, error_model="numpy")
+def _groups(cell):
+    """The starts of the point groups (ngroups + 1): runs of consecutive
+    points of one cell, at most LANES points each."""
+    ng = cell.shape[0]
+    starts = np.empty(ng + 1, dtype=np.int64)
+    count = 0
+    g = 0
+    while g < ng:
+        starts[count] = g
+        count += 1
+        e = g + 1
+        while e < ng and e - g < LANES and cell[e] == cell[g]:
+            e += 1
+        g = e
+    starts[count] = ng
+    return starts[:count + 1].copy()
+
+
+@njit(cache=True, error_model="numpy")
+def _group_ranges(xg, s, e, lower, nbox, start, side, reach2, ranges):
+    """(rows, candidates): the ranges order[b:e] of the particles that may
+    lie within reach of any of the points xg[s:e] (the rows of boxes of
+    :func:`_neighbours` that the ball of radius reach around the points'
+    bounding box meets, each cut to the boxes it reaches along axis 0),
+    written to ranges[j] = (b, e) for j < rows while ranges has room, in
+    box order (rows along axes 2, 1 ascending). Each point's own ranges
+    (the per-point search this replaces) lie inside these, in the same
+    order."""
+    dim = xg.shape[1]
+    ylo0 = ylo1 = ylo2 = np.inf
+    yhi0 = yhi1 = yhi2 = -np.inf
+    for g in range(s, e):
+        ylo0 = min(ylo0, xg[g, 0])
+        yhi0 = max(yhi0, xg[g, 0])
+        if dim > 1:
+            ylo1 = min(ylo1, xg[g, 1])
+            yhi1 = max(yhi1, xg[g, 1])
+        if dim > 2:
+            ylo2 = min(ylo2, xg[g, 2])
+            yhi2 = max(yhi2, xg[g, 2])
+    lower0 = lower[0]
+    lower1 = lower[1] if dim > 1 else 0.0
+    lower2 = lower[2] if dim > 2 else 0.0
+    nbox0 = nbox[0]
+    nbox1 = nbox[1] if dim > 1 else 1
+    nbox2 = nbox[2] if dim > 2 else 1
+    lo1 = hi1 = lo2 = hi2 = 0  # two boxes either side of the points' boxes on axes 1, 2
+    if dim > 1:
+        lo1 = max(int(np.floor((ylo1 - lower1) / side)) - 2, 0)
+        hi1 = min(int(np.floor((yhi1 - lower1) / side)) + 2, nbox1 - 1)
+    if dim > 2:
+        lo2 = max(int(np.floor((ylo2 - lower2) / side)) - 2, 0)
+        hi2 = min(int(np.floor((yhi2 - lower2) / side)) + 2, nbox2 - 1)
+    rows = 0
+    total = 0
+    for j2 in range(lo2, hi2 + 1):
+        e2 = max(lower2 + j2 * side - yhi2, ylo2 - (lower2 + (j2 + 1) * side), 0.0) \
+            if dim > 2 else 0.0
+        for j1 in range(lo1, hi1 + 1):
+            e1 = max(lower1 + j1 * side - yhi1, ylo1 - (lower1 + (j1 + 1) * side), 0.0) \
+                if dim > 1 else 0.0
+            gap2 = e1 * e1 + e2 * e2  # the row's distance from the points' box
+            if gap2 > reach2:
+                continue
+            half = np.sqrt(reach2 - gap2)  # the ball's extent along axis 0
+            first = max(int(np.floor((ylo0 - half - lower0) / side)), 0)
+            last = min(int(np.floor((yhi0 + half - lower0) / side)), nbox0 - 1)
+            if last < first:
+                continue
+            row = (j2 * nbox1 + j1) * nbox0
+            b = start[row + first]
+            f = start[row + last + 1]
+            if f > b:
+                if rows < ranges.shape[0]:
+                    ranges[rows, 0] = b
+                    ranges[rows, 1] = f
+                rows += 1
+                total += f - b
+    return rows, total
+
+
+@njit(cache=True, error_model="numpy")
+def _plan(xg, groups, lower, nbox, start, side, reach2):
+    """(most rows, most candidates) of a group of points (:func:`_groups`,
+    :func:`_group_ranges`): the sizes of a block's work arrays."""
+    ranges = np.empty((0, 2), dtype=np.int64)
+    most_rows = 0
+    most = 0
+    for j in range(groups.shape[0] - 1):
+        rows, total = _group_ranges(xg, groups[j], groups[j + 1], lower, nbox, start, side,
+                                    reach2, ranges)
+        most_rows = max(most_rows, rows)
+        most = max(most, total)
+    return most_rows, most
+
+
+@njit(cache=True, error_model="numpy")
 def _constant_row(M, m, L, scaled, a):
     """a[:m] = M^-1 e_0 for the moment matrix M (its lower triangle set),
     or e_0 / M_00 where M is not well posed (see the module docstring)."""
@@ -157,224 +259,252 @@ def _constant_row(M, m, L, scaled, a):
 
 
 @njit(cache=True, error_model="numpy")
-def mls_store(store, ng, most):
-    """The pair store for the next fit with coefficients on ``ng`` points
-    (see :func:`mls_fit`): ``store`` (coef, hit, kept) itself when it has
-    ng rows and at least ``most`` slots (the last such fit's largest count
-    of particles in reach of a point), else new arrays of ng rows and max
-    (most, slots) slots, or none (0 slots) where they would exceed
-    MLS_PAIR_BYTES."""
-    coef, hit, kept = store
-    slots = max(most, coef.shape[1])
-    if coef.shape[0] == ng and coef.shape[1] == slots:
-        return store
-    if ng * slots * 12 > MLS_PAIR_BYTES:
-        slots = 0
-    return np.empty((ng, slots)), np.empty((ng, slots), dtype=np.int32), \
-        np.full(ng, -1, dtype=np.int64)
-
-
-def empty_mls_store():
-    """A pair store of no slots (:func:`mls_store` sizes it)."""
-    return np.empty((0, 0)), np.empty((0, 0), dtype=np.int32), np.empty(0, dtype=np.int64)
-
-
-@njit(cache=True, error_model="numpy")
-def _stored_sums(coef, hit, stored, values, out, lo, hi):
-    """out[g] = sum_j coef[g, j] values[hit[g, j]] for the points lo <= g < hi
-    whose pairs are stored (stored[g] >= 0; see :func:`mls_fit`): a call
-    per block of points, not inlined (arrays, see mls_fit)."""
-    k = values.shape[1]
-    for g in range(lo, hi):
-        if stored[g] < 0:
-            continue
-        for col in range(k):
-            out[g, col] = 0.0
-        for j in range(stored[g]):
-            c = coef[g, j]
-            q = hit[g, j]
-            for col in range(k):
-                out[g, col] += c * values[q, col]
+def _constant_rows_2d(sums, lanes, A):
+    """A[:3, g] = M_g^-1 e_0 for the points g < lanes of a group in 2D, M_g's
+    lower triangle in sums[:6, g] (see :func:`mls_fit`):
+    :func:`_constant_row`'s arithmetic, operation for operation (the same
+    bits: both Cholesky factorisations, the well-posedness test, the two
+    triangular solves; e_0 / M_00 where it fails, 0 where M_00 = 0), on
+    all the points at once (no branch: each failed pivot's NaN is
+    discarded by the selection)."""
+    tol = MLS_RANK_TOL
+    for g in range(lanes):
+        m00 = sums[0, g]
+        m10 = sums[1, g]
+        m11 = sums[2, g]
+        m20 = sums[3, g]
+        m21 = sums[4, g]
+        m22 = sums[5, g]
+        scale = max(((0.0 + m00) + m11 + m22) / 3, 1e-300)
+        s00 = m00 / scale
+        s10 = m10 / scale
+        s11 = m11 / scale
+        s20 = m20 / scale
+        s21 = m21 / scale
+        s22 = m22 / scale
+        q0 = s00 - tol  # cholesky(M / scale, 3, tol): the smallest eigenvalue > tol
+        r0 = np.sqrt(q0)
+        t10 = s10 / r0
+        t20 = s20 / r0
+        q1 = s11 - tol - t10 * t10
+        r1 = np.sqrt(q1)
+        t21 = (s21 - t20 * t10) / r1
+        q2 = s22 - tol - t20 * t20 - t21 * t21
+        p0 = m00 - 0.0  # cholesky(M, 3, 0)
+        l00 = np.sqrt(p0)
+        l10 = m10 / l00
+        l20 = m20 / l00
+        p1 = m11 - 0.0 - l10 * l10
+        l11 = np.sqrt(p1)
+        l21 = (m21 - l20 * l10) / l11
+        p2 = m22 - 0.0 - l20 * l20 - l21 * l21
+        l22 = np.sqrt(p2)
+        a0 = 1.0 / l00  # L L^T a = e_0
+        a1 = (0.0 - l10 * a0) / l11
+        a2 = (0.0 - l20 * a0 - l21 * a1) / l22
+        a2 = a2 / l22
+        a1 = (a1 - l21 * a2) / l11
+        a0 = (a0 - l10 * a1 - l20 * a2) / l00
+        good = q0 > 0.0 and q1 > 0.0 and q2 > 0.0 and p0 > 0.0 and p1 > 0.0 and p2 > 0.0
+        held = m00 > 0.0
+        A[0, g] = a0 if good and held else (1.0 / m00 if held else 0.0)
+        A[1, g] = a1 if good and held else 0.0
+        A[2, g] = a2 if good and held else 0.0
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def mls_fit(x, values, xg, r, alpha, out, with_coefficients, store):
+def mls_fit(x, values, xg, cell, r, alpha, out, with_coefficients):
     """out[g] (ng, k) = the linear MLS fit of the particle ``values`` (n, k)
     at the point xg[g] (see the module docstring), ``x`` (n, d) particle
-    positions, ``r`` the kernel radius: with ``with_coefficients`` it
-    computes alpha[g] (ng, d + 1) = M_g^-1 e_0 first, else it takes them
-    from an earlier call on the same particles and points.
+    positions, ``cell`` (ng,) the points' cells, ``r`` the kernel radius:
+    with ``with_coefficients`` it computes alpha[g] (ng, d + 1) =
+    M_g^-1 e_0 first, else it takes them from an earlier call on the same
+    particles and points (a step's MUSL projection).
 
-    ``store`` (coef, hit, kept), arrays of ng rows (:func:`mls_store`):
-    a call with coefficients writes there each point's weights
-    c_p = w_p (alpha . phi_p) and particles p, in the order of the sum
-    (kept[g] = their count, or -1 where they exceed the slots); a call
-    without takes a point's stored pairs where it has them (the same
-    products in the same order: the same bits) and searches the particles
-    only for the others. Returns the largest count of particles in reach
-    of a point (0 without coefficients).
-
-    Per point, the particles in reach (sqrt(|x_q - x_g|^2) < r, the
-    reference's test) are gathered row of boxes by row (box order within a
-    row, index order within a box) without a branch on the distance (a
-    branch that fails at random costs more than the test), then tested;
-    the loops are written out here rather than in helpers, which would
-    take the arrays (see :mod:`skfem_mpm.kernels.stencil`: counted
-    references per call). The values are read in box order (a copy, made
-    once), as the positions: the particles of a row of boxes are adjacent
-    in memory. The points run in blocks of POINTS_PER_BLOCK (prange in the
-    parallel kernel; each point's sums are the same in any block)."""
+    The points run in groups (:func:`_groups`: consecutive points of one
+    cell, at most LANES), each with the particles that may be in reach of
+    any of its points, gathered once for the group: those of the rows of
+    boxes of :func:`_group_ranges` within reach of the points' bounding
+    box (a test without a branch). Per particle, the group's points are
+    the inner loop (the same operations on all of them: vectorised), a
+    pair out of reach (sqrt(|x_q - x_g|^2) >= r, the reference's test)
+    weighing 0. A point's particles in reach come in the order of a
+    search of its own (rows of boxes, box order, index order), so each sum
+    adds the same products in the same order as a point-by-point fit,
+    and zeros. The values are read in box order (a copy, made once), as
+    the positions. The groups run in blocks of GROUPS_PER_BLOCK (prange in
+    the parallel kernel; each point's sums are the same in any block)."""
     dim = x.shape[1]
     k = values.shape[1]
     m = dim + 1
-    ng = xg.shape[0]
-    coef, hit, stored = store
-    slots = coef.shape[1]
-    nblocks = (ng + POINTS_PER_BLOCK - 1) // POINTS_PER_BLOCK
-    if not with_coefficients and slots > 0 and stored.shape[0] == ng:
-        search = False
-        for g in range(ng):
-            if stored[g] < 0:
-                search = True
-        if not search:  # every point's pairs stored
-            for block in prange(nblocks):
-                _stored_sums(coef, hit, stored, values, out, block * POINTS_PER_BLOCK,
-                             min(ng, (block + 1) * POINTS_PER_BLOCK))
-            return 0
-    use_store = slots > 0 and stored.shape[0] == ng
+    groups = _groups(cell)
+    ngroups = groups.shape[0] - 1
+    nblocks = (ngroups + GROUPS_PER_BLOCK - 1) // GROUPS_PER_BLOCK
     side = 0.5 * r
     inv_r = 1.0 / r
     reach = r * (1.0 + 1e-9)  # the candidates: a margin over rounding
     reach2 = reach * reach
-    lower, nbox, order, start, xb, most = _neighbours(x, r)
-    lower1 = lower[1] if dim > 1 else 0.0
-    lower2 = lower[2] if dim > 2 else 0.0
-    nbox0 = nbox[0]
-    nbox1 = nbox[1] if dim > 1 else 1
-    nbox2 = nbox[2] if dim > 2 else 1
+    lower, nbox, order, start, xb, _ = _neighbours(x, r)
+    most_rows, most = _plan(xg, groups, lower, nbox, start, side, reach2)
     n = x.shape[0]
     vb = np.empty((n, k))  # the values in box order
     for i in range(n):
         for col in range(k):
             vb[i, col] = values[order[i], col]
-    largest = np.zeros(nblocks, dtype=np.int64)
     for block in prange(nblocks):
+        ranges = np.empty((most_rows, 2), dtype=np.int64)
         cand = np.empty(most, dtype=np.int64)
-        hits = np.empty(most, dtype=np.int64)
-        phi = np.empty((most, 4))  # (x_q - x_g) / r per axis (0 beyond dim), W
+        pair = np.empty((most, 4, LANES))  # per particle and point: w, (x_q - x_g) / r per axis
+        weight = np.empty((most, LANES))  # w (alpha . phi)
+        sums = np.zeros((10, LANES))  # the lower triangle of M per point
+        acc = np.empty((k, LANES))
+        A = np.zeros((4, LANES))
+        Y = np.zeros((3, LANES))
         M = np.zeros((MAX_DIM + 1, MAX_DIM + 1))
         L = np.empty((MAX_DIM + 1, MAX_DIM + 1))
         scaled = np.empty((MAX_DIM + 1, MAX_DIM + 1))
         a = np.zeros(MAX_DIM + 1)
-        lo_g = block * POINTS_PER_BLOCK
-        hi_g = min(ng, (block + 1) * POINTS_PER_BLOCK)
-        if use_store and not with_coefficients:  # the points stored (not all were)
-            _stored_sums(coef, hit, stored, values, out, lo_g, hi_g)
-        for g in range(lo_g, hi_g):
-            if use_store and not with_coefficients and stored[g] >= 0:
-                continue
-            y0 = xg[g, 0]
-            y1 = xg[g, 1] if dim > 1 else 0.0
-            y2 = xg[g, 2] if dim > 2 else 0.0
-            lo1 = hi1 = lo2 = hi2 = 0  # the rows: two boxes either side on axes 1, 2
-            if dim > 1:
-                c = int(np.floor((y1 - lower1) / side))
-                lo1, hi1 = max(c - 2, 0), min(c + 2, nbox1 - 1)
-            if dim > 2:
-                c = int(np.floor((y2 - lower2) / side))
-                lo2, hi2 = max(c - 2, 0), min(c + 2, nbox2 - 1)
-            count = 0
-            for j2 in range(lo2, hi2 + 1):
-                e2 = max(lower2 + j2 * side - y2, y2 - (lower2 + (j2 + 1) * side), 0.0) \
-                    if dim > 2 else 0.0
-                for j1 in range(lo1, hi1 + 1):
-                    e1 = max(lower1 + j1 * side - y1, y1 - (lower1 + (j1 + 1) * side), 0.0) \
-                        if dim > 1 else 0.0
-                    gap2 = e1 * e1 + e2 * e2  # the row's distance from x_g
-                    if gap2 > reach2:
-                        continue
-                    half = np.sqrt(reach2 - gap2)  # the ball's extent along axis 0
-                    first = max(int(np.floor((y0 - half - lower[0]) / side)), 0)
-                    last = min(int(np.floor((y0 + half - lower[0]) / side)), nbox0 - 1)
-                    row = (j2 * nbox1 + j1) * nbox0
-                    for i in range(start[row + first], start[row + last + 1] if last >= first
-                                   else start[row + first]):
-                        d0 = xb[i, 0] - y0
-                        d1 = xb[i, 1] - y1
-                        d2 = xb[i, 2] - y2
-                        cand[count] = i
-                        count += 1 if d0 * d0 + d1 * d1 + d2 * d2 <= reach2 else 0
-            kept = 0
-            m00 = m10 = m11 = m20 = m21 = m22 = m30 = m31 = m32 = m33 = 0.0
-            for j in range(count):
-                i = cand[j]
-                d0 = xb[i, 0] - y0
-                d1 = xb[i, 1] - y1
-                d2 = xb[i, 2] - y2
-                dist = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-                if not dist < r:
-                    continue
-                w = _kernel(dist * inv_r)
-                p1 = d0 * inv_r
-                p2 = d1 * inv_r
-                p3 = d2 * inv_r
-                hits[kept] = i  # box order
-                phi[kept, 0] = p1
-                phi[kept, 1] = p2
-                phi[kept, 2] = p3
-                phi[kept, 3] = w
-                kept += 1
-                if with_coefficients:  # the lower triangle of M: sum_p (w_p phi_s) phi_t
-                    w1 = w * p1
-                    w2 = w * p2
-                    w3 = w * p3
-                    m00 += w
-                    m10 += w1
-                    m11 += w1 * p1
-                    m20 += w2
-                    m21 += w2 * p1
-                    m22 += w2 * p2
-                    m30 += w3
-                    m31 += w3 * p1
-                    m32 += w3 * p2
-                    m33 += w3 * p3
-            if with_coefficients:
-                if m00 > 0.0:
-                    M[0, 0], M[1, 0], M[1, 1] = m00, m10, m11
-                    M[2, 0], M[2, 1], M[2, 2] = m20, m21, m22
-                    M[3, 0], M[3, 1], M[3, 2], M[3, 3] = m30, m31, m32, m33
-                    _constant_row(M, m, L, scaled, a)
-                else:  # no particle in reach
-                    a[:] = 0.0
-                for q in range(m):
-                    alpha[g, q] = a[q]
-            a0 = alpha[g, 0]
-            a1 = alpha[g, 1]
-            a2 = alpha[g, 2] if dim > 1 else 0.0
-            a3 = alpha[g, 3] if dim > 2 else 0.0
+        for j in range(block * GROUPS_PER_BLOCK, min(ngroups, (block + 1) * GROUPS_PER_BLOCK)):
+            s = groups[j]
+            lanes = groups[j + 1] - s
+            lo0 = lo1 = lo2 = np.inf
+            hi0 = hi1 = hi2 = -np.inf
+            for g in range(lanes):
+                for c in range(dim):
+                    Y[c, g] = xg[s + g, c]
+                lo0 = min(lo0, Y[0, g])
+                hi0 = max(hi0, Y[0, g])
+                lo1 = min(lo1, Y[1, g])
+                hi1 = max(hi1, Y[1, g])
+                lo2 = min(lo2, Y[2, g])
+                hi2 = max(hi2, Y[2, g])
+            rows, _ = _group_ranges(xg, s, s + lanes, lower, nbox, start, side, reach2, ranges)
+            nc = 0  # the particles within reach of the points' box
+            for t in range(rows):
+                for i in range(ranges[t, 0], ranges[t, 1]):
+                    e0 = max(lo0 - xb[i, 0], xb[i, 0] - hi0, 0.0)
+                    e1 = max(lo1 - xb[i, 1], xb[i, 1] - hi1, 0.0)
+                    e2 = max(lo2 - xb[i, 2], xb[i, 2] - hi2, 0.0)
+                    cand[nc] = i
+                    nc += 1 if e0 * e0 + e1 * e1 + e2 * e2 <= reach2 else 0
+            for t in range(10):
+                for g in range(lanes):
+                    sums[t, g] = 0.0
+            if dim == 2:  # the particles' weights and scaled offsets (and M's sums)
+                for q in range(nc):
+                    i = cand[q]
+                    x0 = xb[i, 0]
+                    x1 = xb[i, 1]
+                    if with_coefficients:
+                        for g in range(lanes):
+                            d0 = x0 - Y[0, g]
+                            d1 = x1 - Y[1, g]
+                            dist = np.sqrt(d0 * d0 + d1 * d1)
+                            w = _kernel(dist * inv_r) if dist < r else 0.0
+                            p1 = d0 * inv_r
+                            p2 = d1 * inv_r
+                            pair[q, 0, g] = w
+                            pair[q, 1, g] = p1
+                            pair[q, 2, g] = p2
+                            w1 = w * p1
+                            w2 = w * p2
+                            sums[0, g] += w
+                            sums[1, g] += w1
+                            sums[2, g] += w1 * p1
+                            sums[3, g] += w2
+                            sums[4, g] += w2 * p1
+                            sums[5, g] += w2 * p2
+                    else:
+                        for g in range(lanes):
+                            d0 = x0 - Y[0, g]
+                            d1 = x1 - Y[1, g]
+                            dist = np.sqrt(d0 * d0 + d1 * d1)
+                            pair[q, 0, g] = _kernel(dist * inv_r) if dist < r else 0.0
+                            pair[q, 1, g] = d0 * inv_r
+                            pair[q, 2, g] = d1 * inv_r
+                if with_coefficients:
+                    _constant_rows_2d(sums, lanes, A)
+                    for g in range(lanes):
+                        for t in range(m):
+                            alpha[s + g, t] = A[t, g]
+            else:
+                for q in range(nc):
+                    i = cand[q]
+                    x0 = xb[i, 0]
+                    x1 = xb[i, 1]
+                    x2 = xb[i, 2]
+                    for g in range(lanes):
+                        d0 = x0 - Y[0, g]
+                        d1 = x1 - Y[1, g]
+                        d2 = x2 - Y[2, g]
+                        dist = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                        w = _kernel(dist * inv_r) if dist < r else 0.0
+                        p1 = d0 * inv_r
+                        p2 = d1 * inv_r
+                        p3 = d2 * inv_r
+                        pair[q, 0, g] = w
+                        pair[q, 1, g] = p1
+                        pair[q, 2, g] = p2
+                        pair[q, 3, g] = p3
+                        if with_coefficients:
+                            w1 = w * p1
+                            w2 = w * p2
+                            w3 = w * p3
+                            sums[0, g] += w
+                            sums[1, g] += w1
+                            sums[2, g] += w1 * p1
+                            sums[3, g] += w2
+                            sums[4, g] += w2 * p1
+                            sums[5, g] += w2 * p2
+                            sums[6, g] += w3
+                            sums[7, g] += w3 * p1
+                            sums[8, g] += w3 * p2
+                            sums[9, g] += w3 * p3
+                if with_coefficients:
+                    for g in range(lanes):
+                        if sums[0, g] > 0.0:
+                            M[0, 0], M[1, 0], M[1, 1] = sums[0, g], sums[1, g], sums[2, g]
+                            M[2, 0], M[2, 1], M[2, 2] = sums[3, g], sums[4, g], sums[5, g]
+                            M[3, 0], M[3, 1], M[3, 2], M[3, 3] = \
+                                sums[6, g], sums[7, g], sums[8, g], sums[9, g]
+                            _constant_row(M, m, L, scaled, a)
+                        else:  # no particle in reach
+                            a[:] = 0.0
+                        for t in range(m):
+                            alpha[s + g, t] = a[t]
+            if not (with_coefficients and dim == 2):  # the points' alpha (0 beyond dim)
+                for t in range(4):
+                    for g in range(lanes):
+                        A[t, g] = alpha[s + g, t] if t < m else 0.0
             for col in range(k):
-                out[g, col] = 0.0
-            keep = with_coefficients and use_store and kept <= slots
-            for j in range(kept):  # out = sum_p w_p (alpha . phi_p) f_p
-                c = phi[j, 3] * (a0 + a1 * phi[j, 0] + a2 * phi[j, 1] + a3 * phi[j, 2])
-                q = hits[j]
-                if keep:
-                    coef[g, j] = c
-                    hit[g, j] = order[q]
+                for g in range(lanes):
+                    acc[col, g] = 0.0
+            for q in range(nc):  # out = sum_p w_p (alpha . phi_p) f_p
+                if dim == 2:
+                    for g in range(lanes):
+                        weight[q, g] = pair[q, 0, g] * (A[0, g] + A[1, g] * pair[q, 1, g]
+                                                        + A[2, g] * pair[q, 2, g])
+                else:
+                    for g in range(lanes):
+                        weight[q, g] = pair[q, 0, g] * (A[0, g] + A[1, g] * pair[q, 1, g]
+                                                        + A[2, g] * pair[q, 2, g]
+                                                        + A[3, g] * pair[q, 3, g])
+                i = cand[q]
                 for col in range(k):
-                    out[g, col] += c * vb[q, col]
-            if with_coefficients:
-                largest[block] = max(largest[block], kept)
-                if use_store:
-                    stored[g] = kept if keep else -1
-    return largest.max() if nblocks > 0 else 0
+                    v = vb[i, col]
+                    for g in range(lanes):
+                        acc[col, g] += weight[q, g] * v
+            for g in range(lanes):
+                for col in range(k):
+                    out[s + g, col] = acc[col, g]
 
 
 @njit(cache=True, error_model="numpy")
-def mls_reconstruct(x, values, xg, r, out):
+def mls_reconstruct(x, values, xg, cell, r, out):
     """out[g] (ng, k) = the linear MLS fit of the particle ``values`` (n, k)
     at the point xg[g] (see the module docstring); ``x`` (n, d) particle
-    positions, ``r`` the kernel radius."""
+    positions, ``cell`` (ng,) the points' cells (consecutive points of a
+    cell are fitted together, see :func:`mls_fit`), ``r`` the kernel
+    radius."""
     alpha = np.empty((xg.shape[0], x.shape[1] + 1))
-    mls_fit(x, values, xg, r, alpha, out, True,
-            (np.empty((0, 0)), np.empty((0, 0), dtype=np.int32), np.empty(0, dtype=np.int64)))
+    mls_fit(x, values, xg, cell, r, alpha, out, True)

@@ -43,8 +43,7 @@ project):
                          the Gauss points (fit_points), which first computes
                          and keeps for the step what depends on the
                          positions alone (tls: kernels.tls.tls_factor, then
-                         tls_apply; mls: M_g^-1 e_0 and the weighted
-                         particles of each point in kernels.mls.mls_fit;
+                         tls_apply; mls: M_g^-1 e_0 in kernels.mls.mls_fit;
                          the 2D spline: kernels.spline_2d's system and
                          kernels.band_factor's banded Cholesky factor, then
                          its solves and spline_evaluate); the points as quadrature
@@ -267,9 +266,6 @@ RULED_FIELDS = (
     # step's fitted coefficients per cell slot, each slot's cell, and the
     # MUSL projection's coefficients
     "tables", "cell_shape", "coef", "slot_cell", "momentum_coef",
-    # mls: the pairs of the step's fit (kernels.mls.mls_fit's store, sized by
-    # kernels.mls.mls_store from the largest count in reach of the last fit)
-    "mls_store", "mls_most",
     # the points as quadrature particles (x, v, m, V, stress) and, with a
     # body force, their forces w_g (rho b)_h (else not set)
     "xq", "vq", "mq", "Vq", "sq", "fq",
@@ -352,12 +348,8 @@ def _fit_points(rc, x, V, values, out, fresh):
     if not isinstance(fields["alpha"], types.NoneType):
         def mls(rc, x, V, values, out, fresh):  # CompiledReconstruction._fit's mls
             if fresh:
-                ng = rc.xg.shape[0]
-                rc.alpha = np.empty((ng, x.shape[1] + 1))
-                rc.mls_store = MLS_STORE(rc.mls_store, ng, rc.mls_most)
-            most = MLS_FIT(x, values, rc.xg, rc.radius, rc.alpha, out, fresh, rc.mls_store)
-            if fresh:
-                rc.mls_most = most
+                rc.alpha = np.empty((rc.xg.shape[0], x.shape[1] + 1))
+            MLS_FIT(x, values, rc.xg, rc.gcell, rc.radius, rc.alpha, out, fresh)
             return True
         return mls
 

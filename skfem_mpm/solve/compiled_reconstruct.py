@@ -44,7 +44,7 @@ from ..kernels.gauss_rule import (body_boxes, cut_cell_particles, gauss_rule_1d,
                                   gauss_rule_cells, locate_cells)
 from ..kernels.band_factor import apply_band_factor, factor_columns, fit_band_factor
 from ..kernels.kronecker import KroneckerData, axis_mass_bands
-from ..kernels.mls import empty_mls_store, mls_fit, mls_store
+from ..kernels.mls import mls_fit
 from ..kernels.mpm import ell_pcg
 from ..kernels.spline_1d import not_a_knot_spline
 from ..kernels.spline_2d import WIDTH, spline_ell_columns, spline_evaluate, spline_ls_system
@@ -244,9 +244,6 @@ class SplineLeastSquares:
         """(LU of A + P, B^T W f) for the particles (x, V); the particles'
         basis values are kept with it (self._basis) for
         :meth:`coefficients` of other values on them."""
-        import scipy.sparse as sp
-        import scipy.sparse.linalg as spla
-
         rhs, basis = self._system(x, V, values, True, None)
         solver = self._factor()
         self._basis = (solver, basis)
@@ -347,8 +344,6 @@ class CompiledReconstruction:
             self.cell_kernels = (cell_p2g, cell_momentum, cell_mass)
         if self.name == "mls":  # the reference's kernel radius: radius cells of the smallest
             self.radius = float(options.get("radius", 1.5)) * min(grid.h)
-            # the pairs of the last rule fitted with coefficients (kernels.mls.mls_fit)
-            self._mls_store, self._mls_most, self._mls_rule = empty_mls_store(), 0, 0
 
     def rule(self, p):
         pcell = None
@@ -384,7 +379,7 @@ class CompiledReconstruction:
         gauss.x, gauss.w, gauss.cell = rule.x[:n], rule.w[:n], rule.cell[:n]
         gauss.particle_points = None
         out = np.concatenate((self._fit(p, values, gauss), values[own]))
-        for name in ("lu", "alpha", "mls_rule", "tls"):  # what the fit keeps (see _fit)
+        for name in ("lu", "alpha", "tls"):  # what the fit keeps (see _fit)
             if hasattr(gauss, name):
                 setattr(rule, name, getattr(gauss, name))
         return out
@@ -394,8 +389,7 @@ class CompiledReconstruction:
         alone; what depends only on the particles' positions is kept on the
         rule for the next fit on it (a step's MUSL projection, a power
         iteration's products): the 2D spline's factorisation (``lu``), the
-        mls points' M_g^-1 e_0 (``alpha``; their weighted particles, see
-        kernels.mls.mls_fit, in one store of the last rule fitted), the TLS cells' factorised
+        mls points' M_g^-1 e_0 (``alpha``, see kernels.mls.mls_fit), the TLS cells' factorised
         Lagrange systems (``tls``: kernels.tls.tls_factor)."""
         out = np.empty((rule.x.shape[0], values.shape[1]))
         parallel = self.kernels.parallel if self.kernels is not None else p.n >= SERIAL_BELOW
@@ -406,19 +400,12 @@ class CompiledReconstruction:
                     p.x, p.V, rule.pcell, rule.x, rule.w, rule.cell, self.ncells)
             for_threads(tls_apply, parallel)(p.x, p.V, values, rule.x, factor, out)
             return out
-        if self.name == "mls":  # M_g^-1 e_0 and the pairs once per rule (the positions)
+        if self.name == "mls":  # M_g^-1 e_0 once per rule (the positions)
             alpha = getattr(rule, "alpha", None)
             if alpha is None:
-                ng = rule.x.shape[0]
-                rule.alpha = np.empty((ng, self.dim + 1))
-                self._mls_store = mls_store(self._mls_store, ng, self._mls_most)
-                self._mls_rule += 1  # the store holds this rule's pairs
-                rule.mls_rule = self._mls_rule
-            store = self._mls_store if rule.mls_rule == self._mls_rule else empty_mls_store()
-            most = for_threads(mls_fit, parallel)(p.x, values, rule.x, self.radius, rule.alpha,
-                                                  out, alpha is None, store)
-            if alpha is None:
-                self._mls_most = most
+                rule.alpha = np.empty((rule.x.shape[0], self.dim + 1))
+            for_threads(mls_fit, parallel)(p.x, values, rule.x, rule.cell, self.radius,
+                                           rule.alpha, out, alpha is None)
             return out
         if self.dim == 2:  # spline: one factorisation per rule (the particles' positions)
             rule.lu = self.spline_ls(p.x, p.V, values, rule.x, out, getattr(rule, "lu", None))
