@@ -103,6 +103,45 @@ def test_the_particle_coverage_kernel_is_its_numpy_twin(dim, p):
     assert np.all(out[2] == 0.0) == np.all(twin[2] == 0.0) and np.any(out[2] == 0.0)
 
 
+
+def test_one_copy_reductions_are_the_held_copies_sums():
+    """reduce_coverage and reduce_stencil (their serial copies) of one
+    per-thread copy (a run on one thread: the one-copy path, which the
+    default tests' two threads do not take) give the bits of the same copy
+    beside a second, empty one (the holders' sums), on a touched range
+    inside the rows (the rows outside it, stale entries of the copy
+    included, 0), and that sum is the copy's entries there."""
+    from skfem_mpm.kernels.mpm import reduce_coverage, reduce_stencil
+    from skfem_mpm.kernels.serial import serial
+
+    rng = np.random.default_rng(11)
+    nd, p = 19, 3
+    t0, t1 = 4, 15
+    copies = rng.uniform(0.1, 1.0, (1, 3, nd))  # entries outside t0..t1 must not count
+    two = np.concatenate([copies, np.zeros_like(copies)])
+    one_out, two_out = np.empty((3, nd)), np.empty((3, nd))
+    serial(reduce_coverage)(copies, np.array([[t0, t1]]), one_out)
+    serial(reduce_coverage)(two, np.array([[t0, t1], [0, 0]]), two_out)
+    assert np.array_equal(one_out, two_out)
+    assert np.array_equal(one_out[:, t0:t1], copies[0, :, t0:t1])
+    assert not one_out[:, :t0].any() and not one_out[:, t1:].any()
+    mass = rng.uniform(0.1, 1.0, (1, nd, p + 1))
+    mass[0, 9, 0] = 0.0  # a zero row: its other entries 0
+    stiff = rng.uniform(0.1, 1.0, (1, nd))
+    out = []
+    for mc, sc, touched in ((mass, stiff, np.array([[t0, t1]])),
+                            (np.concatenate([mass, np.zeros_like(mass)]),
+                             np.concatenate([stiff, np.zeros_like(stiff)]),
+                             np.array([[t0, t1], [0, 0]]))):
+        M, K = np.zeros((nd, 2 * p + 1)), np.zeros(nd)  # (rows beyond lo..hi: 0)
+        serial(reduce_stencil)(mc, sc, touched, t0 - 2, t1 + 2, p, nd, 1, 1, M, K)
+        out.append((M[t0 - 2:t1 + 2], K[t0 - 2:t1 + 2]))
+    assert np.array_equal(out[0][0], out[1][0]) and np.array_equal(out[0][1], out[1][1])
+    M, K = out[0]
+    assert np.array_equal(K[2:-2], stiff[0, t0:t1]) and not K[:2].any() and not K[-2:].any()
+    assert np.array_equal(M[2:-2, p:], np.where(mass[0, t0:t1, :1] == 0.0, 0.0,
+                                                mass[0, t0:t1]))
+
 def test_the_guard_kernel_is_its_numpy_twin():
     """kernels.mpm.covered_stiffness (its serial copy, which other default
     tests compile) against timestep.covered_stiffness, bit for bit, on

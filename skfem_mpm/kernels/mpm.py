@@ -561,6 +561,28 @@ def consistent_axes(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p, 
         touched[t, 1] = last
 
 
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _copy_rows(mass_copies, stiff_copies, touched, lo, hi, M, K):
+    """:func:`reduce_stencil`'s sums of rows lo..hi-1 of the one copy 0:
+    its entries where its touched range holds the row (as the holders'
+    path copies them: 0 + x is x), else 0; a zero row's other entries 0."""
+    nh = mass_copies.shape[2]
+    centre = nh - 1
+    t0 = touched[0, 0]
+    t1 = touched[0, 1]
+    for k in range(lo, hi):
+        held = t0 <= k and k < t1
+        K[k] = stiff_copies[0, k] if held else 0.0
+        diagonal = mass_copies[0, k, 0] if held else 0.0
+        M[k, centre] = diagonal
+        if diagonal == 0.0:  # a zero row (see reduce_stencil)
+            for s in range(1, nh):
+                M[k, centre + s] = 0.0
+            continue
+        for s in range(1, nh):
+            M[k, centre + s] = mass_copies[0, k, s]
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim, M, K):
     """Rows lo..hi-1 (the union of the touched ranges; the caller keeps the
@@ -578,7 +600,9 @@ def reduce_stencil(mass_copies, stiff_copies, touched, lo, hi, p, nbx, nby, dim,
     nt, nk, nh = mass_copies.shape
     ns = 2 * nh - 1
     centre = nh - 1
-    for r in prange(nt):
+    if nt == 1:  # one copy (the serial kernels): without the holders' lists
+        _copy_rows(mass_copies, stiff_copies, touched, lo, hi, M, K)
+    for r in prange(nt if nt > 1 else 0):
         cuts, members, counts = holders(touched, lo + r * (hi - lo) // nt,
                                           lo + (r + 1) * (hi - lo) // nt)
         for j in range(cuts.shape[0] - 1):
@@ -1130,9 +1154,14 @@ def lumped_reach(fast, p, nbx, nby, dim, ns, near):
     symmetric: j is in k's iff k is in j's)."""
     nd = fast.shape[0]
     nbz = nd // (nbx * nby)
-    offsets = _slot_offsets(p, dim, ns)
     near[:] = False
-    for k in range(nd):
+    first = 0  # the first fast row (none: no offsets made)
+    while first < nd and fast[first] == 0.0:
+        first += 1
+    if first == nd:
+        return
+    offsets = _slot_offsets(p, dim, ns)
+    for k in range(first, nd):
         if fast[k] != 0.0:  # (a NaN fraction too)
             a, b, c = _row_indices(k, nbx, nby, dim)
             for s in range(ns):
@@ -1237,6 +1266,9 @@ def particle_coverage(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p
         last = 0
         w = np.zeros((3, 4))
         dw = np.zeros((3, 4))
+        # the axes' rows as views made once (a view made per particle counts
+        # a reference to w at each)
+        w_0, dw_0, w_1, dw_1 = w[0], dw[0], w[1], dw[1]
         lo = t * n // nt
         hi = (t + 1) * n // nt
         if dim == 1:  # interior cells in registers (closed_axis_functions), as consistent_1d
@@ -1246,9 +1278,9 @@ def particle_coverage(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p
                 closed, base, v0, v1, v2, v3, d0, d1, d2, d3 = closed_axis_functions(
                     x[i, 0], x0, ncx, u0, ih0, p)
                 if not closed:
-                    base = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
-                    v0, v1, v2, v3 = w[0, 0], w[0, 1], w[0, 2], w[0, 3]
-                    d0, d1, d2, d3 = dw[0, 0], dw[0, 1], dw[0, 2], dw[0, 3]
+                    base = _axis(x[i, 0], b0, u0, ih0, C0, p, w_0, dw_0)
+                    v0, v1, v2, v3 = w_0[0], w_0[1], w_0[2], w_0[3]
+                    d0, d1, d2, d3 = dw_0[0], dw_0[1], dw_0[2], dw_0[3]
                 mv = mi * v0
                 g[0, base] += mi * (d0 * d0)
                 g[1, base] += mv * v0
@@ -1276,15 +1308,15 @@ def particle_coverage(x, m, b0, u0, ih0, C0, b1, u1, ih1, C1, b2, u2, ih2, C2, p
                 closed, ex, w00, w01, w02, w03, g00, g01, g02, g03 = closed_axis_functions(
                     x[i, 0], x0, ncx, u0, ih0, p)
                 if not closed:
-                    ex = _axis(x[i, 0], b0, u0, ih0, C0, p, w[0], dw[0])
-                    w00, w01, w02, w03 = w[0, 0], w[0, 1], w[0, 2], w[0, 3]
-                    g00, g01, g02, g03 = dw[0, 0], dw[0, 1], dw[0, 2], dw[0, 3]
+                    ex = _axis(x[i, 0], b0, u0, ih0, C0, p, w_0, dw_0)
+                    w00, w01, w02, w03 = w_0[0], w_0[1], w_0[2], w_0[3]
+                    g00, g01, g02, g03 = dw_0[0], dw_0[1], dw_0[2], dw_0[3]
                 closed, ey, w10, w11, w12, w13, g10, g11, g12, g13 = closed_axis_functions(
                     x[i, 1], y0, ncy, u1, ih1, p)
                 if not closed:
-                    ey = _axis(x[i, 1], b1, u1, ih1, C1, p, w[1], dw[1])
-                    w10, w11, w12, w13 = w[1, 0], w[1, 1], w[1, 2], w[1, 3]
-                    g10, g11, g12, g13 = dw[1, 0], dw[1, 1], dw[1, 2], dw[1, 3]
+                    ey = _axis(x[i, 1], b1, u1, ih1, C1, p, w_1, dw_1)
+                    w10, w11, w12, w13 = w_1[0], w_1[1], w_1[2], w_1[3]
+                    g10, g11, g12, g13 = dw_1[0], dw_1[1], dw_1[2], dw_1[3]
                 base = ex + nbx * ey
                 for b in range(p + 1):
                     wy = w10 if b == 0 else w11 if b == 1 else w12 if b == 2 else w13
@@ -1325,6 +1357,17 @@ def reduce_coverage(copies, touched, out):
     """out (3, dofs) = the sum of :func:`particle_coverage`'s per-thread
     copies (zero outside every touched range)."""
     nt, nc, nk = copies.shape
+    if nt == 1:  # one copy (the serial kernels): the same sums without the holders' lists
+        t0 = touched[0, 0]
+        t1 = touched[0, 1]
+        for k in range(nk):
+            held = t0 <= k and k < t1
+            for c in range(nc):
+                s = 0.0
+                if held:
+                    s += copies[0, c, k]
+                out[c, k] = s
+        return
     for r in prange(nt):
         cuts, threads, counts = holders(touched, r * nk // nt, (r + 1) * nk // nt)
         for j in range(cuts.shape[0] - 1):
