@@ -48,15 +48,9 @@ _NO_RUNTIME = ("_axis", "_tensor_point", "_one_column_product_dot")
 # conjugate-gradient passes (they allocate nothing) that ell_pcg calls a
 # few times per iteration, each call counting a reference to every array
 # argument on entry and exit (atomic operations that cost more than a
-# pass over a small system); and the passes a small consistent-mass stage
-# calls once each (the fast-dof guard's stiffness and fractions, the
-# compact problem and its solution, the Kronecker solve, the Runge-Kutta
-# combination: none allocates). Not _precondition: its fringe correction
+# pass over a small system). Not _precondition: its fringe correction
 # needs the runtime.
-_NO_RUNTIME_COPIES = ("_ell_product_dot", "_cg_update", "_cg_direction", "_dots",
-                      "covered_stiffness", "fast_row_fractions", "compact_problem",
-                      "expand_problem", "apply_kronecker", "apply_kronecker_replaced",
-                      "_from_box", "combine_stages")
+_NO_RUNTIME_COPIES = ("_ell_product_dot", "_cg_update", "_cg_direction", "_dots")
 
 
 def _is_kernel(value):

@@ -36,7 +36,7 @@ from numba import njit
 __all__ = ["not_a_knot_spline", "not_a_knot_spline_into", "spline_work_size"]
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy")
 def _slopes(xm, ym, n, s, inv_h, work):
     """The slopes s[:n] of the not-a-knot spline through (xm, ym)[:n];
     inv_h[:n - 1] = 1 / h_i (written here); ``work`` (3, n) is work space."""
@@ -110,7 +110,7 @@ def spline_work_size(largest, k):
     return largest * (5 + 2 * k) + 3 * k
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy")
 def _largest_piece(piece_particles):
     largest = 0
     for j in range(piece_particles.shape[0] - 1):
@@ -128,12 +128,10 @@ def not_a_knot_spline(x, values, order, piece_particles, piece_points, xg, out):
     not_a_knot_spline_into(x, values, order, piece_particles, piece_points, xg, out, work)
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
+@njit(cache=True, error_model="numpy")
 def not_a_knot_spline_into(x, values, order, piece_particles, piece_points, xg, out, space):
     """:func:`not_a_knot_spline` in the work space ``space`` (at least
-    :func:`spline_work_size` floats; a compiled run keeps one). Compiled
-    without numba's runtime, as its helpers: it allocates nothing, and a
-    call then counts no reference to its array arguments."""
+    :func:`spline_work_size` floats; a compiled run keeps one)."""
     k = values.shape[1]
     npieces = piece_particles.shape[0] - 1
     largest = _largest_piece(piece_particles)
