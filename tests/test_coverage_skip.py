@@ -109,3 +109,44 @@ def test_the_bound_asks_for_a_pass_when_the_particles_change():
     assert not coverage_holds(x0, 2 * m, x0, m, kept, reach, bound, *guard)
     far = x0 + 1.01 * bound[0]
     assert not coverage_holds(far, m, x0, m, kept, reach, bound, *guard)
+
+
+@pytest.mark.parametrize("dim", [1, 2])
+def test_a_pass_that_fails_its_own_test_is_not_kept(dim):
+    """coverage_holds at zero displacement with reach = D (the question a
+    pass asks of its own sums before it stores the reach) fails only where
+    the bound of every later move fails too, and Kernels.particle_coverage
+    keeps nothing after such a pass."""
+    grid = (SplineGrid.line(0.0, 1.0, 8, 2) if dim == 1 else
+            SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), 8, 2))
+    k = Kernels(grid, parallel=False)
+    axes = list(k.args) + [k.args[0]] * (3 - dim)
+    nby = grid.basis_per_axis[1] if dim > 1 else 1
+    bound = coverage_bound(grid)
+    weights, ratios = fast_dof_weights(grid)
+    guard = (weights, ratios, np.ones(grid.ndofs), *covered_parameters(grid, "tls"))
+    x0, m = _block(grid, 2.0 * bound[0])
+    kept = k.particle_coverage(SimpleNamespace(x=x0, m=m)).copy()
+    reach = np.zeros(grid.ndofs)
+    coverage_reach(x0, m, *axes[0], *axes[1], *axes[2], grid.degree, grid.basis_per_axis[0],
+                   nby, bound[0], reach)
+    unit = covered_stiffness(*kept, *guard[:3], *guard[5:], np.inf, grid.degree,
+                             grid.basis_per_axis)
+    top = np.max(np.where(kept[1] > 0, unit / np.maximum(kept[1], 1e-300), 0.0))
+    rng = np.random.default_rng(2)
+    own_failed = later_held = 0
+    for share in (0.3, 0.49, 0.4999, 0.5001, 0.6, 2.0):
+        limit = top / share
+        own = coverage_holds(x0, m, x0, m, kept, kept[1], bound, *guard, limit)
+        own_failed += not own
+        for trial in range(40):
+            d = bound[0] * 10.0 ** rng.uniform(-7.0, 0.0)
+            x = x0 + rng.normal(size=x0.shape) * (d / np.sqrt(2 * dim))
+            holds = coverage_holds(x, m, x0, m, kept, reach, bound, *guard, limit)
+            assert own or not holds, (share, trial)
+            later_held += holds
+        # the executor stores the reach and the positions only after a pass
+        # that passes its own test
+        k.particle_coverage(SimpleNamespace(x=x0, m=m), (bound, *guard, limit))
+        assert (k._coverage[4][0] is not None) == own, share
+    assert own_failed >= 3 and later_held > 20, (own_failed, later_held)

@@ -11,7 +11,12 @@ last pass (at positions x^0) and the particles' largest displacement since,
 d = max_p |x_p - x^0_p|, whether every row is still certain to stay below
 the threshold; then the guard run on the kept sums gives the same theta as
 a fresh pass (all 0 where it matters: see there) and the pass is skipped.
-:func:`coverage_reach` stores, at each pass, what the bound needs.
+:func:`coverage_reach` stores, at each pass, what the bound needs, unless
+the pass's own sums already fail the test: coverage_holds called with
+x0 = x and reach = D (every bound term is 0 at zero displacement, and D_k = 0
+marks the rows no particle sees) asks whether r < 1/2 on every moving row;
+where not, the bound of any later step is r+ >= r and fails as well, so
+nothing is kept and the next step makes a pass.
 """
 import numpy as np
 from numba import njit

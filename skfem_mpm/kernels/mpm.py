@@ -1007,7 +1007,12 @@ class Kernels:
         self.kernel(particle_coverage)(x, m, *axes[0], *axes[1], *axes[2],
                                        self.p, self.nbx, nby, copies, touched)
         self.kernel(reduce_coverage)(copies, touched, out)
-        if guard is None:
+        # kept only when the new sums' own ratios stay below the threshold:
+        # coverage_holds at zero displacement with reach = D asks exactly that
+        # (every bound term is 0, and D_k = 0 marks the rows no particle
+        # sees); where it fails, the next step's bound r+ >= r fails too, so
+        # the reach and the copies would be wasted
+        if guard is None or not self.kernel(coverage_holds)(x, m, x, m, out, out[1], *guard):
             kept[0] = kept[1] = None
         else:
             self.kernel(coverage_reach)(x, m, *axes[0], *axes[1], *axes[2], self.p, self.nbx,

@@ -381,6 +381,13 @@ def cover_particles(cm, x, m, p, nbx, nby):
         return
     COVERAGE(x, m, cm.axes, p, nbx, nby, cm.coverage_copies, cm.coverage_touched)
     REDUCE_COVERAGE(cm.coverage_copies, cm.coverage_touched, cm.coverage)
+    # worth keeping only if the new sums' own ratios stay below the threshold
+    # (coverage_holds at zero displacement, reach = D: see Kernels.particle_coverage)
+    if not COVERAGE_HOLDS(x, m, x, m, cm.coverage, cm.coverage[1], cm.coverage_bound, cm.weights,
+                          cm.mass_ratios, cm.moving, cm.covered[0], cm.covered[1],
+                          cm.covered[2], cm.covered[3], cm.limit):
+        cm.coverage_kept = False
+        return
     REACH(x, m, cm.axes, p, nbx, nby, cm.coverage_bound[0], cm.coverage_reach)
     if cm.coverage_x.shape[0] != x.shape[0]:
         cm.coverage_x = np.empty((x.shape[0], x.shape[1]))
