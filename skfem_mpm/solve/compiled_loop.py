@@ -374,11 +374,13 @@ def _prelude(dim, parallel, window, variant):
                  "cm.box[:ny * nx * nc].reshape((ny, nx, nc)), max(1, min(nt, nx)), band, w >= 0)")
     pcg = ("return ELL_PCG(A, cols, inv_diag, KRONECKER_ARGS(cm, g, n, nc, nt), None, b, x, "
            "problem, cm.rtol, limit, nt, work)")
+    direct = ("raise ValueError('the direct Kronecker solve is 1D')" if dim != 1 else
+              "k = KRONECKER_ARGS(cm, g, n, nc, nt)\n"
+              "    APPLY_KRONECKER(k[0], k[1], k[2], k[3], k[4], k[5], b, x)\n"
+              "    return 1")
     if dim == 1:  # P = A: the solution at once (StencilSystem.solve_many)
         pcg = ("if not cm.merged[g]:\n"
-               "        k = KRONECKER_ARGS(cm, g, n, nc, nt)\n"
-               "        APPLY_KRONECKER(k[0], k[1], k[2], k[3], k[4], k[5], b, x)\n"
-               "        return 1\n    " + pcg)
+               "        return KRONECKER_DIRECT(cm, g, n, nc, nt, b, x)\n    " + pcg)
     if dim == 2:  # (the fringe correction is 2D's)
         pcg = ("if cm.fringe_used[g]:\n"
                "        return ELL_PCG(A, cols, inv_diag, KRONECKER_ARGS(cm, g, n, nc, nt), "
@@ -437,6 +439,14 @@ def KRONECKER_ARGS(cm, g, n, nc, nt):
     3D apply_kronecker_axes', its boxes' factors concatenated)."""
     nz, ny, nx = cm.box_shape[g, 0], cm.box_shape[g, 1], cm.box_shape[g, 2]
     {kronecker}
+
+
+@njit(cache=True)
+def KRONECKER_DIRECT(cm, g, n, nc, nt, b, x):
+    """1D, group g not merged: x = P^-1 b with its Kronecker factor, at once
+    (P = A there: see StencilSystem.solve_many); returns 1 (the iterations
+    the records count)."""
+    {direct}
 
 
 @njit(cache=True)
@@ -875,6 +885,7 @@ class StepLoop:
             coverage_touched=zeros((nt, 2), dtype=np.int64), coverage=zeros((3, nd)),
             coverage_bound=coverage_bound(grid), coverage_x=zeros((1, dim)),
             coverage_m=zeros(1), coverage_reach=zeros(nd), coverage_kept=False,
+            guarded_limit=np.nan,
             reach=zeros(nd, dtype=np.bool_),
             group_comps=group_comps,
             group_size=np.array([len(c) for c in groups.values()], dtype=np.int64),

@@ -98,10 +98,13 @@ MASS_FIELDS = (
     # per-thread copies and touched ranges; covered_stiffness' work (2, dofs);
     # the rows the lumping changes (kernels.mpm.lumped_reach); the skip of
     # the particles' pass (kernels.coverage_skip): timestep.coverage_bound,
-    # the last pass's positions, masses and reach W_k, whether they are set
+    # the last pass's positions, masses and reach W_k, whether they are set;
+    # the limit the guard's stiffness of those sums was computed at (NaN:
+    # not computed since the last pass)
     "guard", "limit", "weights", "mass_ratios", "moving", "covered", "guarded", "fast", "near",
     "diagonal", "by_particles", "coverage", "coverage_copies", "coverage_touched", "reach",
     "coverage_bound", "coverage_x", "coverage_m", "coverage_reach", "coverage_kept",
+    "guarded_limit",
     # groups: their components, the free rows and dof -> row, the ELL rows
     "group_comps", "group_size", "rows", "n_rows", "index", "A", "cols", "F", "fcols",
     "inv_diag",
@@ -395,6 +398,7 @@ def cover_particles(cm, x, m, p, nbx, nby):
     copy_into(cm.coverage_x, x)
     copy_into(cm.coverage_m, m)
     cm.coverage_kept = True
+    cm.guarded_limit = np.nan  # prepare_mass computes the guard's stiffness of the new sums
 
 
 @njit(cache=True)
@@ -489,10 +493,14 @@ def prepare_mass(cm, mass, mask, p, nbx, nby, dim, fixed_columns, small_tol):
     nd, ns = stencil.shape
     if cm.guard:  # the guard's stiffness (timestep.covered_stiffness), then theta
         if cm.by_particles:  # the particles' sums (cover_particles)
-            COVERED_STIFFNESS(cm.coverage[0], cm.coverage[1], cm.coverage[2], cm.weights,
-                              cm.mass_ratios, cm.moving, cm.covered[0], cm.covered[1],
-                              cm.covered[2], cm.covered[3], cm.limit, p, nbx, nby, cm.near,
-                              cm.guarded)
+            # a function of those sums and the limit alone: kept while the
+            # sums are (cover_particles' skip) at the same limit
+            if not cm.guarded_limit == cm.limit:
+                COVERED_STIFFNESS(cm.coverage[0], cm.coverage[1], cm.coverage[2], cm.weights,
+                                  cm.mass_ratios, cm.moving, cm.covered[0], cm.covered[1],
+                                  cm.covered[2], cm.covered[3], cm.limit, p, nbx, nby, cm.near,
+                                  cm.guarded)
+                cm.guarded_limit = cm.limit
             FAST_ROW_FRACTIONS(cm.guarded, cm.coverage[1], mass, cm.limit, cm.fast)
         else:  # K, the stencil's diagonal and the lumped mass are the particles' own
             centre = (ns - 1) // 2
@@ -740,13 +748,16 @@ def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x, kinds):
     of their names in FRESH_KINDS): False when it stopped above its
     tolerance; switches the band factor and the fringe correction as
     StencilSystem.solve_many does."""
-    problem = np.empty(nc, dtype=np.int64)
-    for j in range(nc):
-        problem[j] = j // ncomp
-    limit = cm.max_iterations if cm.max_iterations > 0 else 10 * n + 100
-    work = cm.work[:6 * n * nc].reshape((6, n, nc))
     fringe = cm.fringe_used[g]
-    its = KRONECKER_PCG(cm, g, n, nc, nt, A, cols, inv_diag, b, x, problem, limit, work)
+    if DIM == 1 and not cm.merged[g]:  # P = A: no CG, none of its work arrays
+        its = KRONECKER_DIRECT(cm, g, n, nc, nt, b, x)
+    else:
+        problem = np.empty(nc, dtype=np.int64)
+        for j in range(nc):
+            problem[j] = j // ncomp
+        limit = cm.max_iterations if cm.max_iterations > 0 else 10 * n + 100
+        work = cm.work[:6 * n * nc].reshape((6, n, nc))
+        its = KRONECKER_PCG(cm, g, n, nc, nt, A, cols, inv_diag, b, x, problem, limit, work)
     if its < 0:
         return False
     cm.iterations += its

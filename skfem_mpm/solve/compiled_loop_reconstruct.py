@@ -187,20 +187,21 @@ def reconstruct_points(rc, x, v, m, V, stress, forces):
     npieces, ng = GAUSS_RULE_1D_INTO(positions, V, rc.gap, rc.breaks, rc.ref, rc.wref, order,
                                      rc.rule_starts, rc.rule_lows, rc.rule_highs, rc.rule_first,
                                      rc.rule_points, rc.rule_xg, rc.rule_wg, rc.rule_cell)
-    pieces = rc.rule_starts[:npieces + 1]
-    points = rc.rule_points[:npieces + 1]
-    xg = rc.rule_xg[:ng]
-    wg = rc.rule_wg[:ng]
-    fit = rc.fit  # (the last step's while the count of points stays)
-    if fit.shape[0] != ng:
-        fit = np.empty((ng, values.shape[1]))
-    NOT_A_KNOT_SPLINE_INTO(positions, values, order, pieces, points, xg, fit, rc.spline_work)
-    rc.piece_particles = pieces
-    rc.piece_points = points
-    rc.xg = xg
-    rc.fit = fit
-    rc.xq = xg.reshape((ng, 1))
-    rc.Vq = wg
+    # the views of the rule's arrays the fit and the points use: the last
+    # step's while the counts of pieces and points stay (set anew only when
+    # they change: each set costs reference counts, the reshape a call)
+    if rc.piece_particles.shape[0] != npieces + 1:
+        rc.piece_particles = rc.rule_starts[:npieces + 1]
+        rc.piece_points = rc.rule_points[:npieces + 1]
+    if rc.xg.shape[0] != ng:
+        xg = rc.rule_xg[:ng]
+        rc.xg = xg
+        rc.xq = xg.reshape((ng, 1))
+        rc.Vq = rc.rule_wg[:ng]
+        rc.fit = np.empty((ng, values.shape[1]))
+    fit = rc.fit
+    NOT_A_KNOT_SPLINE_INTO(positions, values, order, rc.piece_particles, rc.piece_points, rc.xg,
+                           fit, rc.spline_work)
     return _quadrature_points(rc, fit)
 
 
