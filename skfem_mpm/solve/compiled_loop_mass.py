@@ -384,6 +384,7 @@ def cover_particles(cm, x, m, p, nbx, nby):
         return
     COVERAGE(x, m, cm.axes, p, nbx, nby, cm.coverage_copies, cm.coverage_touched)
     REDUCE_COVERAGE(cm.coverage_copies, cm.coverage_touched, cm.coverage)
+    cm.guarded_limit = np.nan  # prepare_mass computes the guard's stiffness of the new sums
     # worth keeping only if the new sums' own ratios stay below the threshold
     # (coverage_holds at zero displacement, reach = D: see Kernels.particle_coverage)
     if not COVERAGE_HOLDS(x, m, x, m, cm.coverage, cm.coverage[1], cm.coverage_bound, cm.weights,
@@ -398,7 +399,6 @@ def cover_particles(cm, x, m, p, nbx, nby):
     copy_into(cm.coverage_x, x)
     copy_into(cm.coverage_m, m)
     cm.coverage_kept = True
-    cm.guarded_limit = np.nan  # prepare_mass computes the guard's stiffness of the new sums
 
 
 @njit(cache=True)
