@@ -544,15 +544,19 @@ def test_compiled_fits_fall_back_where_particles_are_nearly_on_a_line():
     assert np.abs(out - expected).max() <= 1e-12 * np.abs(expected).max()
 
 
-def test_the_2d_spline_system_is_the_particle_sum_and_bitwise_symmetric():
+@pytest.mark.parametrize("order", ["seeded", "shuffled"])
+def test_the_2d_spline_system_is_the_particle_sum_and_bitwise_symmetric(order):
     """spline_ls_system sums the lower half of A = sum_p V_p N(x_p) N(x_p)^T
-    and copies the upper half from it: A equals the dense product
-    B^T diag(V) B of the particles' cubic B-spline values (kept in cells,
-    W) to rounding, bitwise symmetric; B^T W f likewise (no weak dof here:
-    no penalty), and bitwise again from the kept values (other positions
-    passed: not read)."""
+    (cell by cell, the particles sorted by cell: also when they come in no
+    order of cells) and copies the upper half from it: A equals the dense
+    product B^T diag(V) B of the particles' cubic B-spline values (kept in
+    cells, W) to rounding, bitwise symmetric; B^T W f likewise (no weak dof
+    here: no penalty), and bitwise again from the kept values (other
+    positions passed: not read)."""
     grid = SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), (5, 4), 2)
     p = Particles.seed(grid, 3, 1.0)
+    if order == "shuffled":
+        p = p.subset(np.random.default_rng(8).permutation(p.n))
     fit = SplineLeastSquares(grid, iterative=False)
     cells = np.empty((p.n, 2), dtype=np.int64)
     W = np.empty((p.n, 8))

@@ -87,14 +87,71 @@ def spline_ls_system(x, V, values, ax, ay, nbx, nby, penalty, fresh, with_matrix
                 wr = V[i] * wx[a] * wy[b]
                 for col in range(k):
                     rhs[row, col] += wr * values[i, col]
-                if not with_matrix:
-                    continue
-                for d in range(b + 1):  # the lower half: dof (c, d) not after (a, b)
-                    for c in range(4 if d < b else a + 1):
-                        A[row, (d - b + P) * WIDTH + (c - a + P)] += wr * (wx[c] * wy[d])
     if with_matrix:
+        _cell_blocks(V, nbx, nby, cells, W, A)
         _mirror(A, nbx, nby)
         _penalty(A, nbx, nby, penalty)
+
+
+# the 10 products wx_a wx_c (a >= c) of one axis's four functions
+# (_PAIRS[q] = (a, c)) and the pair index of any (a, c) (_PAIR_OF)
+_PAIRS = np.array([(a, c) for a in range(4) for c in range(a + 1)], dtype=np.int64)
+_PAIR_OF = np.zeros((4, 4), dtype=np.int64)
+for _q, (_a, _c) in enumerate(_PAIRS):
+    _PAIR_OF[_a, _c] = _PAIR_OF[_c, _a] = _q
+
+
+@njit(cache=True, error_model="numpy")
+def _cell_blocks(V, nbx, nby, cells, W, A):
+    """The lower half of A = sum_p V_p N(x_p) N(x_p)^T into the stencil
+    array A (zeroed) from the particles' cubic B-spline values (cells, W),
+    cell by cell. With N_ab = wx_a wy_b the entry of dofs (a, b), (c, d)
+    of a cell is sum_p V_p (wy_b wy_d)_p (wx_a wx_c)_p: the particles of a
+    cell are summed into the 10 x 10 block S_(bd),(ac) of the products of
+    each axis's pairs (a >= c, b >= d; 100 multiply-adds a particle where
+    the 136 lower-half entries took 136 scattered ones), whose entries are
+    added to A once per cell. The cells are taken in the order of a
+    counting sort of the particles by cell, each cell's particles in index
+    order."""
+    n = V.shape[0]
+    ncx, ncy = nbx - P, nby - P
+    start = np.zeros(ncx * ncy + 1, dtype=np.int64)
+    for i in range(n):
+        start[cells[i, 1] * ncx + cells[i, 0] + 1] += 1
+    for e in range(ncx * ncy):
+        start[e + 1] += start[e]
+    order = np.empty(n, dtype=np.int64)
+    fill = start[:-1].copy()
+    for i in range(n):
+        e = cells[i, 1] * ncx + cells[i, 0]
+        order[fill[e]] = i
+        fill[e] += 1
+    pairs, pair_of = _PAIRS, _PAIR_OF
+    S = np.empty((10, 10))
+    X = np.empty(10)
+    Y = np.empty(10)
+    for e in range(ncx * ncy):
+        if start[e] == start[e + 1]:
+            continue
+        S[:, :] = 0.0
+        for j in range(start[e], start[e + 1]):
+            i = order[j]
+            v = V[i]
+            for q in range(10):
+                X[q] = W[i, pairs[q, 0]] * W[i, pairs[q, 1]]
+                Y[q] = v * (W[i, 4 + pairs[q, 0]] * W[i, 4 + pairs[q, 1]])
+            for q in range(10):
+                yq = Y[q]
+                for r in range(10):
+                    S[q, r] += yq * X[r]
+        ex, ey = e % ncx, e // ncx
+        for b in range(4):
+            for a in range(4):
+                row = (ey + b) * nbx + ex + a
+                for d in range(b + 1):  # the lower half: dof (c, d) not after (a, b)
+                    sy = S[pair_of[b, d]]
+                    for c in range(4 if d < b else a + 1):
+                        A[row, (d - b + P) * WIDTH + (c - a + P)] += sy[pair_of[a, c]]
 
 
 @njit(cache=True, error_model="numpy")
