@@ -1,10 +1,11 @@
-"""The 2D TLS and 2D spline steps' grid sums in closed form per cell
-(skfem_mpm.kernels.cell_integrals, CompiledReconstruction's CELL_INTEGRALS)
-equal the sums over the cells' Gauss points as quadrature particles (the
-path test_recon_compiled and test_executors check against the NumPy
-reference) to rounding: the same quadrature summed in another order, and
-the p + 2 point rule is exact for both fits (TLS: total degree 2; the
-spline: cubic per axis) times the basis.
+"""The 2D TLS, 2D spline and 2D mls steps' grid sums per cell, factorised
+per axis (skfem_mpm.kernels.cell_integrals, CompiledReconstruction's
+CELL_INTEGRALS), equal the sums over the cells' Gauss points as quadrature
+particles (the path test_recon_compiled and test_executors check against
+the NumPy reference) to rounding: the same quadrature summed in another
+order (TLS and the spline in closed form: the p + 2 point rule is exact
+for both fits (TLS: total degree 2; the spline: cubic per axis) times the
+basis; mls: its values at the Gauss points, point_axis_tables).
 Quadratic and cubic, uniform and graded grids (closed-form B-splines and
 extraction), cells a free surface cuts (particle points), serial and
 parallel kernels. The loop's copy of the path gives the executor's bits
@@ -15,7 +16,9 @@ import numpy as np
 import pytest
 
 from skfem_mpm.kernels import tls as tls_kernel
-from skfem_mpm.kernels.cell_integrals import cell_momentum, spline_axis_tables
+from skfem_mpm.kernels.cell_integrals import (cell_momentum, point_axis_tables,
+                                              spline_axis_tables)
+from skfem_mpm.kernels.stencil import axis_functions
 from skfem_mpm.kernels.gauss_rule import locate_cells
 from skfem_mpm.kernels.mpm import Kernels
 from skfem_mpm.kernels.serial import serial
@@ -56,7 +59,7 @@ def _close(a, b, tol=1e-13):
     assert np.abs(a - b).max() <= tol * scale
 
 
-@pytest.mark.parametrize("fit", ("tls", "spline"))
+@pytest.mark.parametrize("fit", ("tls", "spline", "mls"))
 @pytest.mark.parametrize("parallel", (False, pytest.param(True, marks=pytest.mark.slow)),
                          ids=("serial", "parallel"))
 @pytest.mark.parametrize("name, grid, p", LAYOUTS_2D,
@@ -131,6 +134,34 @@ def test_the_spline_tables_are_exact_with_the_cells_rule(name, grid, p):
             assert np.abs(table - exact).max() <= 1e-14 * np.abs(exact).max()
 
 
+@pytest.mark.parametrize("name, grid, p", LAYOUTS_2D[-2:],
+                         ids=lambda v: v if isinstance(v, str) else "")
+def test_the_point_tables_are_the_rules_terms(name, grid, p):
+    """point_axis_tables' entries are the rule's terms of each Gauss point
+    of each cell, h_i w_j N_a(x_j) and so on (x_j = u_i + h_i r_j), from
+    the grid's own basis functions; rows of k = p + 2 points."""
+    recon = _reconstruction(grid, True, False, "mls")
+    k = grid.degree + 2
+    for a in range(2):
+        P, D, Q, R = recon.cell_tables[a]
+        u = recon.axes[a]
+        n = u.size - 1
+        assert P.shape == (n, k, 4) and Q.shape == (n, k, 4, 4)
+        for i in range(n):
+            h = u[i + 1] - u[i]
+            for j in range(k):
+                x = u[i] + h * recon.ref[j]
+                f = axis_functions(x, u, recon.uniform[a], n / (u[-1] - u[0]),
+                                   grid.extraction[a], grid.degree)
+                assert f[0] == i
+                w, g = np.array(f[1:5]), np.array(f[5:9])
+                weight = h * recon.wref[j]
+                assert np.allclose(P[i, j], weight * w, rtol=1e-14, atol=0)
+                assert np.allclose(D[i, j], weight * g, rtol=1e-14, atol=0)
+                assert np.allclose(R[i, j], weight * g * g, rtol=1e-14, atol=0)
+                assert np.allclose(Q[i, j], weight * np.outer(w, w), rtol=1e-14, atol=0)
+
+
 def test_the_cell_kernels_refuse_tables_of_the_other_fit():
     """One set of kernels serves both fits, the kind taken from coef's
     shape (TLS (ns, 6, k), 3 y terms; the spline (nbf nby, k), 4): tables
@@ -143,7 +174,8 @@ def test_the_cell_kernels_refuse_tables_of_the_other_fit():
     copies = np.zeros((1, nbx * nbx, 2))
     touched = np.array([[nbx * nbx, -1]])
     for coef, tables in ((np.zeros((2, 6, 2)), spline_tables),
-                         (np.zeros(((ncx + 3) ** 2, 2)), tls_tables)):
+                         (np.zeros(((ncx + 3) ** 2, 2)), tls_tables),
+                         (np.zeros((2, 4, 4, 2)), tls_tables)):
         with pytest.raises(ValueError, match="tx, ty"):
             cell_momentum(coef, cells, ncx, (tables[0],) * 4, (tables[1],) * 4, p, nbx,
                           copies, touched)

@@ -47,7 +47,8 @@ from numba.extending import overload
 from .stencil import axis_functions
 from .weights import FAST
 
-__all__ = ["axis_tables", "cell_mass", "cell_momentum", "cell_p2g", "spline_axis_tables"]
+__all__ = ["axis_tables", "cell_mass", "cell_momentum", "cell_p2g", "point_axis_tables",
+           "spline_axis_tables"]
 
 # IDX[q, p]: the index in phi of xi^p eta^q (-1: not a monomial of degree <= 2)
 IDX = np.array([[0, 1, 3], [2, 4, -1], [5, -1, -1]], dtype=np.int64)
@@ -73,17 +74,34 @@ def spline_axis_tables(breaks, uniform, C, p, cubic, ref, wref):
     extraction of the cubic space on the same breakpoints, whose functions
     on cell i are i..i+3; exact with the cell's p + 2 point Gauss rule,
     degree 3 + 2p <= 2p + 3). Entries beyond p are 0."""
-    return _tables(breaks, uniform, C, p, ref, wref, cubic, True)
+    return _tables(breaks, uniform, C, p, ref, wref, cubic, 1)
 
 
 @njit(cache=True, error_model="numpy")
-def _tables(breaks, uniform, C, p, ref, wref, cubic, splines):
-    """:func:`axis_tables` (``splines`` False: the frame's powers) or
-    :func:`spline_axis_tables` (True: the cubic B-splines of ``cubic``)."""
+def point_axis_tables(breaks, uniform, C, p, ref, wref):
+    """(P, D, Q, R) of one axis (see the module) over the k = p + 2 Gauss
+    points of each cell instead of the frame's powers, each (n, k, ...):
+    the rule's terms of point j, P[i, j, a] = h_i w_j N_a(x_j),
+    D[i, j, a] = h_i w_j N_a'(x_j), Q[i, j, a, b] = h_i w_j N_a(x_j) N_b(x_j),
+    R[i, j, a] = h_i w_j N_a'(x_j)^2 (x_j = u_i + h_i r_j, as
+    :func:`skfem_mpm.kernels.gauss_rule.gauss_rule_cells` on a whole
+    cell). With a fit given by its values at a cell's k x k Gauss points
+    (mls: coef (cells, k, k, columns), point (a, b) of the cell at
+    [b, a]) the sums of the module are the cell's Gauss sums, factorised
+    per axis. Entries beyond p are 0."""
+    return _tables(breaks, uniform, C, p, ref, wref, C, 2)
+
+
+@njit(cache=True, error_model="numpy")
+def _tables(breaks, uniform, C, p, ref, wref, cubic, kind):
+    """:func:`axis_tables` (``kind`` 0: the frame's powers),
+    :func:`spline_axis_tables` (1: the cubic B-splines of ``cubic``) or
+    :func:`point_axis_tables` (2: the Gauss points)."""
+    splines = kind == 1
     n = breaks.shape[0] - 1
     inv_h = n / (breaks[n] - breaks[0])
     k = ref.shape[0]
-    nq = 4 if splines else 3
+    nq = k if kind == 2 else (4 if splines else 3)
     P = np.zeros((n, nq, 4))
     D = np.zeros((n, nq, 4))
     Q = np.zeros((n, nq, 4, 4))
@@ -111,11 +129,18 @@ def _tables(breaks, uniform, C, p, ref, wref, cubic, splines):
                 if e != i:
                     raise ValueError("spline_axis_tables: a Gauss point outside its cell")
                 fit = (weight * f0, weight * f1, weight * f2, weight * f3)
+            elif kind == 2:  # point j alone: its own row
+                fit = (weight, 0.0, 0.0, 0.0)
             else:
                 xi = (x[j] - centre) / span
                 fit = (weight, weight * xi, weight * xi * xi, 0.0)
             for q in range(nq):
-                power = fit[q]
+                if kind == 2:
+                    if q != j:
+                        continue
+                    power = fit[0]
+                else:
+                    power = fit[q]
                 for a in range(p + 1):
                     P[i, q, a] += power * w[a]
                     D[i, q, a] += power * g[a]
@@ -149,6 +174,16 @@ def _cell_coefficients(coef, s, cell, ncx, c0, c1, C):
 
 @overload(_cell_coefficients, inline="always", jit_options={"fastmath": FAST})
 def _cell_coefficients_impl(coef, s, cell, ncx, c0, c1, C):
+    if coef.ndim == 4:  # values at the Gauss points: coef[s, q, e, column], point (e, q)
+        def points(coef, s, cell, ncx, c0, c1, C):
+            k = coef.shape[1]
+            for q in range(k):
+                for e in range(k):
+                    if c0 == c1:
+                        C[q, e] = coef[s, q, e, c0]
+                    else:
+                        C[q, e] = 0.5 * (coef[s, q, e, c0] + coef[s, q, e, c1])
+        return points
     if coef.ndim == 3:  # TLS: coef[s, IDX[q, e], column], e < 3 - q
         def tls(coef, s, cell, ncx, c0, c1, C):
             for q in range(3):
@@ -173,18 +208,33 @@ def _cell_coefficients_impl(coef, s, cell, ncx, c0, c1, C):
     return spline
 
 
-@njit(cache=True, inline="always")
 def _rows(coef):
     """How many y terms a cell's fit has (TLS: 3, total degree 2; the
-    spline: 4, tensor cubic), from the type of coef."""
-    return 3 if coef.ndim == 3 else 4
+    spline: 4, tensor cubic; values at k x k Gauss points: k), from the
+    type of coef."""
 
 
-@njit(cache=True, inline="always")
+@overload(_rows, inline="always")
+def _rows_impl(coef):
+    if coef.ndim == 4:
+        return lambda coef: coef.shape[1]
+    if coef.ndim == 3:
+        return lambda coef: 3
+    return lambda coef: 4
+
+
 def _terms(coef, q):
     """How many x terms y term q of a cell's fit has (TLS: 3 - q; the
-    spline: 4)."""
-    return 3 - q if coef.ndim == 3 else 4
+    spline: 4; Gauss points: k)."""
+
+
+@overload(_terms, inline="always")
+def _terms_impl(coef, q):
+    if coef.ndim == 4:
+        return lambda coef, q: coef.shape[2]
+    if coef.ndim == 3:
+        return lambda coef, q: 3 - q
+    return lambda coef, q: 4
 
 
 @njit(cache=True, inline="always")
@@ -194,7 +244,8 @@ def _rows_of(coef, tx, ty):
     if tx[0].shape[1] != nq or ty[0].shape[1] != nq:
         raise ValueError("cell_integrals: tx, ty must be axis_tables (3 rows) with TLS "
                          "coefficients coef (ns, 6, k), spline_axis_tables (4 rows) with "
-                         "the spline's coef (nbf nby, k)")
+                         "the spline's coef (nbf nby, k), point_axis_tables (k rows) with "
+                         "values at the Gauss points coef (ns, k, k, columns)")
     return nq
 
 
@@ -220,20 +271,20 @@ def _column_x_sums(coef, s, cell, ncx, c0, c1, C, T, ix, p, U):
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _y_sum(nq, U, T, iy, a, b):
-    """sum_q U[q, a] T[iy, q, b], q < nq (3 or 4)."""
+    """sum_q U[q, a] T[iy, q, b], q < nq (3 to 5)."""
     acc = U[0, a] * T[iy, 0, b] + U[1, a] * T[iy, 1, b] + U[2, a] * T[iy, 2, b]
-    if nq == 4:
-        acc += U[3, a] * T[iy, 3, b]
+    for q in range(3, nq):
+        acc += U[q, a] * T[iy, q, b]
     return acc
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _mass_sum(nq, Q, iy, b, b2, T, a, a2):
-    """sum_q Q[iy, q, b, b2] T[q, a, a2], q < nq (3 or 4)."""
+    """sum_q Q[iy, q, b, b2] T[q, a, a2], q < nq (3 to 5)."""
     acc = Q[iy, 0, b, b2] * T[0, a, a2] + Q[iy, 1, b, b2] * T[1, a, a2] \
         + Q[iy, 2, b, b2] * T[2, a, a2]
-    if nq == 4:
-        acc += Q[iy, 3, b, b2] * T[3, a, a2]
+    for q in range(3, nq):
+        acc += Q[iy, q, b, b2] * T[q, a, a2]
     return acc
 
 
@@ -379,13 +430,13 @@ def cell_mass(coef, cell, ncx, tx, ty, p, nbx, mass_copies, stiff_copies, touche
                     # added term by term in that order
                     stiff = UR[0, a] * Qy[iy, 0, b, b] + UR[1, a] * Qy[iy, 1, b, b]
                     stiff += UR[2, a] * Qy[iy, 2, b, b]
-                    if nq == 4:
-                        stiff += UR[3, a] * Qy[iy, 3, b, b]
+                    for q in range(3, nq):
+                        stiff += UR[q, a] * Qy[iy, q, b, b]
                     stiff += T[0, a, a] * Ry[iy, 0, b]
                     stiff += T[1, a, a] * Ry[iy, 1, b]
                     stiff += T[2, a, a] * Ry[iy, 2, b]
-                    if nq == 4:
-                        stiff += T[3, a, a] * Ry[iy, 3, b]
+                    for q in range(3, nq):
+                        stiff += T[q, a, a] * Ry[iy, q, b]
                     K[kd] += stiff
                     for a2 in range(a, p + 1):
                         M[kd, a2 - a] += _mass_sum(nq, Qy, iy, b, b, T, a, a2)

@@ -333,7 +333,10 @@ def mls_fit(x, values, xg, cell, r, alpha, out, with_coefficients):
     adds the same products in the same order as a point-by-point fit,
     and zeros. The values are read in box order (a copy, made once), as
     the positions. The groups run in blocks of GROUPS_PER_BLOCK (prange in
-    the parallel kernel; each point's sums are the same in any block)."""
+    the parallel kernel; each point's sums are the same in any block). In
+    2D without ``with_coefficients`` each pair's weight is made and summed
+    into the values at once (no pair or weight arrays; the same
+    operations, so the bits of the two-pass form)."""
     dim = x.shape[1]
     k = values.shape[1]
     m = dim + 1
@@ -390,6 +393,14 @@ def mls_fit(x, values, xg, cell, r, alpha, out, with_coefficients):
             for t in range(10):
                 for g in range(lanes):
                     sums[t, g] = 0.0
+            fused = dim == 2 and not with_coefficients
+            if fused:  # the points' kept alpha, the sums cleared (summed below)
+                for t in range(3):
+                    for g in range(lanes):
+                        A[t, g] = alpha[s + g, t]
+                for col in range(k):
+                    for g in range(lanes):
+                        acc[col, g] = 0.0
             if dim == 2:  # the particles' weights and scaled offsets (and M's sums)
                 for q in range(nc):
                     i = cand[q]
@@ -414,14 +425,18 @@ def mls_fit(x, values, xg, cell, r, alpha, out, with_coefficients):
                             sums[3, g] += w2
                             sums[4, g] += w2 * p1
                             sums[5, g] += w2 * p2
-                    else:
+                    else:  # alpha kept: each pair's weight and value sums at once
                         for g in range(lanes):
                             d0 = x0 - Y[0, g]
                             d1 = x1 - Y[1, g]
                             dist = np.sqrt(d0 * d0 + d1 * d1)
-                            pair[q, 0, g] = _kernel(dist * inv_r) if dist < r else 0.0
-                            pair[q, 1, g] = d0 * inv_r
-                            pair[q, 2, g] = d1 * inv_r
+                            w = _kernel(dist * inv_r) if dist < r else 0.0
+                            weight[0, g] = w * (A[0, g] + A[1, g] * (d0 * inv_r)
+                                                + A[2, g] * (d1 * inv_r))
+                        for col in range(k):
+                            v = vb[i, col]
+                            for g in range(lanes):
+                                acc[col, g] += weight[0, g] * v
                 if with_coefficients:
                     _constant_rows_2d(sums, lanes, A)
                     for g in range(lanes):
@@ -472,28 +487,29 @@ def mls_fit(x, values, xg, cell, r, alpha, out, with_coefficients):
                             a[:] = 0.0
                         for t in range(m):
                             alpha[s + g, t] = a[t]
-            if not (with_coefficients and dim == 2):  # the points' alpha (0 beyond dim)
+            if dim != 2:  # the points' alpha (0 beyond dim)
                 for t in range(4):
                     for g in range(lanes):
                         A[t, g] = alpha[s + g, t] if t < m else 0.0
-            for col in range(k):
-                for g in range(lanes):
-                    acc[col, g] = 0.0
-            for q in range(nc):  # out = sum_p w_p (alpha . phi_p) f_p
-                if dim == 2:
-                    for g in range(lanes):
-                        weight[q, g] = pair[q, 0, g] * (A[0, g] + A[1, g] * pair[q, 1, g]
-                                                        + A[2, g] * pair[q, 2, g])
-                else:
-                    for g in range(lanes):
-                        weight[q, g] = pair[q, 0, g] * (A[0, g] + A[1, g] * pair[q, 1, g]
-                                                        + A[2, g] * pair[q, 2, g]
-                                                        + A[3, g] * pair[q, 3, g])
-                i = cand[q]
+            if not fused:  # (fused: summed above)
                 for col in range(k):
-                    v = vb[i, col]
                     for g in range(lanes):
-                        acc[col, g] += weight[q, g] * v
+                        acc[col, g] = 0.0
+                for q in range(nc):  # out = sum_p w_p (alpha . phi_p) f_p
+                    if dim == 2:
+                        for g in range(lanes):
+                            weight[q, g] = pair[q, 0, g] * (A[0, g] + A[1, g] * pair[q, 1, g]
+                                                            + A[2, g] * pair[q, 2, g])
+                    else:
+                        for g in range(lanes):
+                            weight[q, g] = pair[q, 0, g] * (A[0, g] + A[1, g] * pair[q, 1, g]
+                                                            + A[2, g] * pair[q, 2, g]
+                                                            + A[3, g] * pair[q, 3, g])
+                    i = cand[q]
+                    for col in range(k):
+                        v = vb[i, col]
+                        for g in range(lanes):
+                            acc[col, g] += weight[q, g] * v
             for g in range(lanes):
                 for col in range(k):
                     out[s + g, col] = acc[col, g]

@@ -784,6 +784,11 @@ class StepLoop:
                                   cell_shape=(recon.ncx, recon.nbx, recon.degree))
             elif recon.name == "mls":
                 fields.update(radius=float(recon.radius), alpha=empty((0, dim + 1)))
+                if recon.cell_tables is not None:  # the cells' Gauss sums per axis
+                    kg = len(recon.ref)
+                    fields.update(tables=recon.cell_tables,
+                                  cell_shape=(recon.ncx, recon.nbx, recon.degree),
+                                  coef=empty((0, kg, kg, k)), momentum_coef=empty((0, kg, kg, dim)))
             else:  # SplineLeastSquares' data, BandedCholesky's arrays
                 ls = recon.spline_ls
                 factor = np.zeros((ls.ndofs, band_factor.factor_columns(3 * ls.nbx + 3)))

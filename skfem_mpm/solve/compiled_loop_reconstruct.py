@@ -421,6 +421,23 @@ def _spline_type(rc):
     return not isinstance(rc.field_dict["spline"], types.NoneType)
 
 
+def _mls_type(rc):
+    """Whether a RuleReconstruction (its numba type) is mls's."""
+    return not isinstance(rc.field_dict["alpha"], types.NoneType)
+
+
+@njit(cache=True)
+def _mls_cells(rc, x, values, coef, fresh):
+    """The mls fit of ``values`` at the rule's Gauss points into coef
+    (cells, k, k, columns; M_g^-1 e_0 first with ``fresh``, kept in
+    rc.alpha) as CompiledReconstruction._cell_fit's mls."""
+    ng = rc.xg.shape[0]
+    if fresh:
+        rc.alpha = np.empty((ng, x.shape[1] + 1))
+    MLS_FIT(x, values, rc.xg, rc.gcell, rc.radius, rc.alpha,
+            coef.reshape((ng, values.shape[1])), fresh)
+
+
 def fit_cells(rc, x, V, values):
     """The coefficients of the fit of ``values`` per fitted cell (rc.coef,
     rc.slot_cell), what depends on the positions alone first (kept in rc);
@@ -429,6 +446,21 @@ def fit_cells(rc, x, V, values):
 
 @overload(fit_cells)
 def _fit_cells(rc, x, V, values):
+    if _mls_type(rc):
+        def mls(rc, x, V, values):
+            k = rc.ref.shape[0]
+            block = k * k  # the Gauss blocks' cells
+            ncell = rc.wg.shape[0] // block
+            if rc.coef.shape[0] != ncell:
+                rc.coef = np.empty((ncell, k, k, values.shape[1]))
+                rc.momentum_coef = np.empty((ncell, k, k, x.shape[1]))
+            if rc.slot_cell.shape[0] != ncell:
+                rc.slot_cell = np.empty(ncell, dtype=np.int64)
+            for j in range(ncell):
+                rc.slot_cell[j] = rc.gcell[j * block]
+            _mls_cells(rc, x, values, rc.coef, True)
+            return True
+        return mls
     if _spline_type(rc):
         def spline(rc, x, V, values):  # CompiledReconstruction._cell_fit's spline
             done, coef = _spline_coefficients(rc, x, V, values, True)
@@ -462,6 +494,10 @@ def refit_cells(rc, x, V, values):
 
 @overload(refit_cells)
 def _refit_cells(rc, x, V, values):
+    if _mls_type(rc):
+        def mls(rc, x, V, values):
+            _mls_cells(rc, x, values, rc.momentum_coef, False)
+        return mls
     if _spline_type(rc):
         def spline(rc, x, V, values):
             rc.momentum_coef = _spline_coefficients(rc, x, V, values, False)[1]

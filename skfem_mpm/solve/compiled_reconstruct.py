@@ -23,7 +23,11 @@ axis from their coefficients instead (:mod:`skfem_mpm.kernels.cell_integrals`,
 the same quadrature summed in another order; the rule is exact for both
 fits times the basis): the fit is never evaluated at the points but for
 TLS's bound test, and p2g and the consistent mass run over the particle
-points of the rule alone (cells a free surface cuts).
+points of the rule alone (cells a free surface cuts). The 2D mls fit is
+not a polynomial per cell, but its Gauss points are fixed points of whole
+cells: its values there are summed per cell by the same kernels against
+per-axis tables of the rule's terms (point_axis_tables), with no basis
+evaluation and no scatter of the Gauss points.
 
 The rule: in 1D the body's pieces (:func:`skfem_mpm.kernels.gauss_rule.gauss_rule_1d`),
 in 2D and 3D the part of each cell holding particles that the body covers
@@ -51,14 +55,14 @@ from ..kernels.spline_2d import WIDTH, spline_ell_columns, spline_evaluate, spli
 from ..kernels.serial import SERIAL_BELOW, for_threads
 from ..kernels.tls import slot_cells, tls_apply, tls_coefficients, tls_factor
 from ..kernels.cell_integrals import (axis_tables, cell_mass, cell_momentum, cell_p2g,
-                                      spline_axis_tables)
+                                      point_axis_tables, spline_axis_tables)
 
 TLS_DEFAULTS = {"degree": 2, "neighbour_weight": 0.0}
 
 CELL_INTEGRALS = True
-"""2D TLS and 2D spline: the step's grid sums in closed form per cell (see
-the module); False: over the Gauss points as quadrature particles (tests
-compare the two). Read when a run is set up."""
+"""2D TLS, 2D spline and 2D mls: the step's grid sums per cell, factorised
+per axis (see the module); False: over the Gauss points as quadrature
+particles (tests compare the two). Read when a run is set up."""
 
 __all__ = ["CompiledReconstruction", "unsupported"]
 
@@ -326,9 +330,9 @@ class CompiledReconstruction:
         self._zero_a = np.zeros((grid.ndofs, grid.dim))
         if self.name == "spline" and self.dim == 2:
             self.spline_ls = SplineLeastSquares(grid, options.get("penalty", 1e-6))
-        # 2D TLS and spline: kernels.cell_integrals' tables per axis and kernels
+        # 2D TLS, spline and mls: kernels.cell_integrals' tables per axis and kernels
         self.cell_tables = None
-        if self.name in ("tls", "spline") and self.dim == 2 and CELL_INTEGRALS:
+        if self.name in ("tls", "spline", "mls") and self.dim == 2 and CELL_INTEGRALS:
             self.degree = int(grid.degree)
             self.ncx = int(self.axes[0].size - 1)
             self.nbx = int(grid.basis_per_axis[0])
@@ -336,6 +340,10 @@ class CompiledReconstruction:
                 self.cell_tables = tuple(
                     axis_tables(self.axes[a], self.uniform[a], grid.extraction[a], self.degree,
                                 self.ref, self.wref) for a in range(2))
+            elif self.name == "mls":  # over the cells' Gauss points
+                self.cell_tables = tuple(
+                    point_axis_tables(self.axes[a], self.uniform[a], grid.extraction[a],
+                                      self.degree, self.ref, self.wref) for a in range(2))
             else:  # over the cubic space's functions (SplineLeastSquares' axes)
                 self.cell_tables = tuple(
                     spline_axis_tables(self.axes[a], self.uniform[a], grid.extraction[a],
@@ -459,9 +467,21 @@ class CompiledReconstruction:
         position half kept on the rule, as _fit), and each slot's cell; the
         2D spline: its cubic coefficients (ndofs, k) (the factorisation kept
         on the rule, as _fit) and the cells of the rule's Gauss points (its
-        k x k blocks, ascending)."""
+        k x k blocks, ascending); mls: the fit at the rule's Gauss points
+        (cells, k, k, columns) (kernels.cell_integrals.point_axis_tables;
+        the points' M_g^-1 e_0 kept on the rule, as _fit) and those cells."""
         parallel = self.kernels.parallel
         n = getattr(rule, "ngauss", rule.w.shape[0])
+        if self.name == "mls":
+            alpha = getattr(rule, "alpha", None)
+            if alpha is None:
+                rule.alpha = np.empty((n, self.dim + 1))
+            out = np.empty((n, values.shape[1]))
+            for_threads(mls_fit, parallel)(p.x, values, rule.x[:n], rule.cell[:n], self.radius,
+                                           rule.alpha, out, alpha is None)
+            k = self.ref.shape[0]
+            return (out.reshape(n // (k * k), k, k, values.shape[1]),
+                    np.ascontiguousarray(rule.cell[:n:k * k]))
         if self.name == "spline":
             coef, rule.lu = self.spline_ls.coefficients(p.x, p.V, values,
                                                         getattr(rule, "lu", None))
@@ -482,8 +502,8 @@ class CompiledReconstruction:
         return np.zeros(0, dtype=np.int64) if own is None else own
 
     def _cells_to_grid(self, state, p, volume):
-        """to_grid of the 2D TLS and spline with the cells' closed-form
-        integrals (:data:`CELL_INTEGRALS`): p2g and the consistent mass of
+        """to_grid of the 2D TLS, spline and mls with the cells' integrals
+        factorised per axis (:data:`CELL_INTEGRALS`): p2g and the consistent mass of
         the rule's particle points, plus kernels.cell_integrals of the
         fitted coefficients added into the same per-thread copies."""
         k, dim = self.kernels, self.dim
@@ -518,8 +538,8 @@ class CompiledReconstruction:
         return mass, momentum, force, stencil, (rule, rho)
 
     def _cells_project(self, state, p, v_new, rule, rho):
-        """project of the 2D TLS and spline with the cells' closed-form
-        integrals."""
+        """project of the 2D TLS, spline and mls with the cells' integrals
+        factorised per axis."""
         k = self.kernels
         tx, ty = self.cell_tables
         cell_momentum = self.cell_kernels[1]
