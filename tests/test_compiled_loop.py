@@ -480,6 +480,28 @@ def test_precompile_mass_compiles_what_the_loop_calls():
     assert not compiled_loop.precompile_mass(lumped, CompiledExecutor(lumped))
 
 
+def test_a_serial_run_fits_the_kronecker_factors_with_the_serial_copy(monkeypatch):
+    """Below SERIAL_BELOW particles the executor's consistent solve (its
+    warm-up included) fits the Kronecker preconditioner with the serial
+    copy of fit_kronecker, the one the compiled loop calls: a first use
+    compiles that copy only, not also the parallel kernel (whose compile
+    costs a few times more; the same blocks, so the same bits)."""
+    from skfem_mpm.kernels.kronecker import KroneckerData, fit_kronecker
+
+    built = KroneckerData.of_system.__func__
+    fits = []
+
+    def spy(cls, *args, **kwargs):
+        fits.append(kwargs.get("fit"))
+        return built(cls, *args, **kwargs)
+
+    monkeypatch.setattr(KroneckerData, "of_system", classmethod(spy))
+    scene = scene_for(mass_case(MASS_CASES[0]), steps=23)
+    result = without_loop(monkeypatch, scene, Method(scheme="musl", mass="consistent"))
+    assert result.counts["particles"] < serial.SERIAL_BELOW
+    assert fits and all(fit is serial.serial(fit_kronecker) for fit in fits), set(fits)
+
+
 @pytest.mark.parametrize("case", ["musl-consistent", "rk4-spline"])
 def test_a_typed_only_run_has_the_type_of_the_built_run(case):
     """precompile_mass types the run without building it (the fields'
