@@ -10,6 +10,10 @@ masses) is handed to the executor, which must then do what it does
 without the loop.
 """
 import itertools
+import json
+import os
+import subprocess
+import sys
 
 import numba
 import numpy as np
@@ -463,6 +467,63 @@ def test_the_merge_kernels_compile_at_the_first_step_with_tiny_masses(monkeypatc
         assert loop.run(state, 23) == 23
         assert (state.small_dofs_max > 0) is (not aligned)
         assert (loop.compile_seconds > 0.0) is (not aligned)
+
+
+_ONE_D_CG = r"""
+import json, sys
+import numpy as np
+from skfem_mpm import Body, Fixed, Gravity, LinearElastic, Method, Particles, Scene, simulate
+from skfem_mpm.kernels import mpm, serial
+from skfem_mpm.spline import SplineGrid
+
+
+def bar(end, steps=23):
+    # a 1D quadratic bar on 8 cells ending at end: 0.63 leaves a tiny-mass
+    # dof past it, 0.75 (a knot) none
+    grid = SplineGrid.line(0.0, 1.0, 8, 2)
+    p = Particles.seed(grid, 2, 1.0, region=((0.0, end),),
+                       velocity=lambda X: 0.05 * np.sin(np.pi * X))
+    scene = Scene(grid, [Body(p, LinearElastic(10.0, 0.3))], 1.0,
+                  effects=[Fixed("left"), Gravity(-2.0)])
+    from skfem_mpm.solve.state import prepare
+    dt = prepare(scene, Method(scheme="usl", mass="consistent")).dt
+    return Scene(grid, [Body(p, LinearElastic(10.0, 0.3))], steps * dt,
+                 effects=[Fixed("left"), Gravity(-2.0)])
+
+
+if __name__ == "__main__":
+    r = simulate(bar(float(sys.argv[1])), Method(scheme="usl", mass="consistent"))
+    print(json.dumps({"path": r.path, "small": r.counts["small_dofs_max"],
+                      "cg": len(serial.serial(mpm.ell_pcg).overloads)}))
+"""
+
+
+def test_a_1d_loop_merges_tiny_masses_with_the_executors_bits(monkeypatch):
+    """1D consistent mass with a tiny-mass dof: the loop merges it and runs
+    CG on the merged group (ell_pcg through the address the merge sets),
+    with the bits of the executor stepping in Python."""
+    namespace = {}
+    exec(_ONE_D_CG.split('if __name__')[0], namespace)
+    scene = namespace["bar"](0.63)
+    looped, _ = looped_and_stepped(monkeypatch, scene, Method(scheme="usl", mass="consistent"))
+    assert looped.counts["small_dofs_max"] > 0
+    assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] == 23
+
+
+@pytest.mark.parametrize("end", [0.75, 0.63])
+def test_a_1d_loop_compiles_cg_only_for_a_merged_group(end):
+    """1D consistent mass in the loop: the Kronecker step is the solution
+    (P = A) unless a group is merged, so ell_pcg is compiled (or loaded)
+    with the merge kernels at the first step with tiny-mass dofs, never in
+    a run without them (a fresh process: nothing else compiled it)."""
+    out = subprocess.run([sys.executable, "-c", _ONE_D_CG, str(end)],
+                         capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report["path"] == "fast (compiled loop)"
+    tiny = end != 0.75
+    assert (report["small"] > 0) is tiny
+    assert report["cg"] == (1 if tiny else 0)
 
 
 def test_precompile_mass_compiles_what_the_loop_calls():
