@@ -563,6 +563,36 @@ def test_a_serial_run_fits_the_kronecker_factors_with_the_serial_copy(monkeypatc
     assert fits and all(fit is serial.serial(fit_kronecker) for fit in fits), set(fits)
 
 
+_PRECOMPILE = r"""
+import json, sys
+sys.path.insert(0, "tests")
+from skfem_mpm import Method
+from skfem_mpm.solve import compiled_loop
+from skfem_mpm.solve.compiled import CompiledExecutor
+from skfem_mpm.solve.state import prepare
+from test_executors import scene_for
+scene = scene_for(dict(scheme="musl", mass="consistent", degree=2, dim=1, material="linear",
+                       effect="gravity", aligned=True), steps=23)
+state = prepare(scene, Method(scheme="musl", mass="consistent"))
+compiled_loop.precompile_mass(state, CompiledExecutor(state))
+module = compiled_loop.StepLoop(state, CompiledExecutor(state), compile_loop=False).module
+print(json.dumps({name: len(getattr(module, name).overloads)
+                  for name in ("prepare_mass", "mass_solve", "run_musl")}))
+"""
+
+
+def test_precompile_mass_takes_the_preparation_and_the_solve():
+    """A study's second worker compiles (or loads) the system's
+    preparation and its solve, not the loop (a fresh process: nothing
+    else compiled them)."""
+    out = subprocess.run([sys.executable, "-c", _PRECOMPILE], capture_output=True, text=True,
+                         timeout=900,
+                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert out.returncode == 0, out.stderr[-3000:]
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report == {"prepare_mass": 1, "mass_solve": 1, "run_musl": 0}
+
+
 @pytest.mark.parametrize("case", ["musl-consistent", "rk4-spline"])
 def test_a_typed_only_run_has_the_type_of_the_built_run(case):
     """precompile_mass types the run without building it (the fields'

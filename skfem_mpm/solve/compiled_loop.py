@@ -477,13 +477,14 @@ def loop_module(dim, parallel, window):
 
 
 def precompile_mass(state, executor):
-    """Compile (or load from numba's cache) the consistent-mass solve the
+    """Compile (or load from numba's cache) the consistent-mass functions the
     compiled loop of ``state`` calls by symbol (the generated module's
-    ``mass_units``: mass_solve and its CG), without compiling the loop nor
-    building the run (only its type: :meth:`StepLoop._record`): a second
-    process (a study's second worker) so takes that share of a first use
-    while the first compiles the rest of the loop, which reaches the
-    solve last; :class:`~skfem_mpm.kernels.by_symbol.compile_lock` makes
+    ``mass_units``: prepare_mass, then mass_solve and its CG), without
+    compiling the loop nor building the run (only its type:
+    :meth:`StepLoop._record`): a second process (a study's second worker)
+    so takes that share of a first use while the first compiles the rest
+    of the loop, which reaches them after its particles-to-grid pass;
+    :class:`~skfem_mpm.kernels.by_symbol.compile_lock` makes
     each function compile in one of them. Returns whether the run has
     such functions (consistent or hybrid mass on the loop)."""
     if state.method.mass == "lumped" or not loop_applies(state, executor)[0]:

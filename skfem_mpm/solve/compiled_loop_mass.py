@@ -772,10 +772,12 @@ def mass_units(run):
     consistent-mass solve its loop calls by symbol, mass_solve (with
     ell_pcg in 2D and 3D; in 1D ell_pcg runs only on a merged group and
     compiles with the merge kernels), by the very call of the scheme operations (see
-    compiled_loop.precompile_mass). Not prepare_mass: the loop's own
-    compilation reaches it before mass_solve (a step prepares the grid,
-    then solves), so a second process would take it only as the first
-    reaches it, and one of them would wait for the other."""
+    compiled_loop.precompile_mass), and first the step's preparation of
+    the system, prepare_mass: the loop's own compilation reaches it only
+    after the particles-to-grid pass it calls before (the consistent
+    stencil, the guard's particle sums, with a reconstruction its fit),
+    so the second process has compiled it by then."""
+    run.prepare_grid()
     run.mass_solve(2, run.force, 0, run.a, run.momentum, 1, run.v_old)
 
 
