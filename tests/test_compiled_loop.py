@@ -10,6 +10,10 @@ masses) is handed to the executor, which must then do what it does
 without the loop.
 """
 import itertools
+import json
+import os
+import subprocess
+import sys
 
 import numba
 import numpy as np
@@ -465,6 +469,63 @@ def test_the_merge_kernels_compile_at_the_first_step_with_tiny_masses(monkeypatc
         assert (loop.compile_seconds > 0.0) is (not aligned)
 
 
+_ONE_D_CG = r"""
+import json, sys
+import numpy as np
+from skfem_mpm import Body, Fixed, Gravity, LinearElastic, Method, Particles, Scene, simulate
+from skfem_mpm.kernels import mpm, serial
+from skfem_mpm.spline import SplineGrid
+
+
+def bar(end, steps=23):
+    # a 1D quadratic bar on 8 cells ending at end: 0.63 leaves a tiny-mass
+    # dof past it, 0.75 (a knot) none
+    grid = SplineGrid.line(0.0, 1.0, 8, 2)
+    p = Particles.seed(grid, 2, 1.0, region=((0.0, end),),
+                       velocity=lambda X: 0.05 * np.sin(np.pi * X))
+    scene = Scene(grid, [Body(p, LinearElastic(10.0, 0.3))], 1.0,
+                  effects=[Fixed("left"), Gravity(-2.0)])
+    from skfem_mpm.solve.state import prepare
+    dt = prepare(scene, Method(scheme="usl", mass="consistent")).dt
+    return Scene(grid, [Body(p, LinearElastic(10.0, 0.3))], steps * dt,
+                 effects=[Fixed("left"), Gravity(-2.0)])
+
+
+if __name__ == "__main__":
+    r = simulate(bar(float(sys.argv[1])), Method(scheme="usl", mass="consistent"))
+    print(json.dumps({"path": r.path, "small": r.counts["small_dofs_max"],
+                      "cg": len(serial.serial(mpm.ell_pcg).overloads)}))
+"""
+
+
+def test_a_1d_loop_merges_tiny_masses_with_the_executors_bits(monkeypatch):
+    """1D consistent mass with a tiny-mass dof: the loop merges it and runs
+    CG on the merged group (ell_pcg through the address the merge sets),
+    with the bits of the executor stepping in Python."""
+    namespace = {}
+    exec(_ONE_D_CG.split('if __name__')[0], namespace)
+    scene = namespace["bar"](0.63)
+    looped, _ = looped_and_stepped(monkeypatch, scene, Method(scheme="usl", mass="consistent"))
+    assert looped.counts["small_dofs_max"] > 0
+    assert looped.counts["compiled_loop_steps"] == looped.counts["steps"] == 23
+
+
+@pytest.mark.parametrize("end", [0.75, 0.63])
+def test_a_1d_loop_compiles_cg_only_for_a_merged_group(end):
+    """1D consistent mass in the loop: the Kronecker step is the solution
+    (P = A) unless a group is merged, so ell_pcg is compiled (or loaded)
+    with the merge kernels at the first step with tiny-mass dofs, never in
+    a run without them (a fresh process: nothing else compiled it)."""
+    out = subprocess.run([sys.executable, "-c", _ONE_D_CG, str(end)],
+                         capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report["path"] == "fast (compiled loop)"
+    tiny = end != 0.75
+    assert (report["small"] > 0) is tiny
+    assert report["cg"] == (1 if tiny else 0)
+
+
 def test_precompile_mass_compiles_what_the_loop_calls():
     """A study's second worker compiles a consistent-mass loop's CG solve
     (precompile_mass) for the very argument types the loop then calls it
@@ -478,6 +539,58 @@ def test_precompile_mass_compiles_what_the_loop_calls():
         assert len(getattr(loop.module, name).overloads) == 1, name
     lumped = prepare(scene, Method(scheme="musl", mass="lumped"))
     assert not compiled_loop.precompile_mass(lumped, CompiledExecutor(lumped))
+
+
+def test_a_serial_run_fits_the_kronecker_factors_with_the_serial_copy(monkeypatch):
+    """Below SERIAL_BELOW particles the executor's consistent solve (its
+    warm-up included) fits the Kronecker preconditioner with the serial
+    copy of fit_kronecker, the one the compiled loop calls: a first use
+    compiles that copy only, not also the parallel kernel (whose compile
+    costs a few times more; the same blocks, so the same bits)."""
+    from skfem_mpm.kernels.kronecker import KroneckerData, fit_kronecker
+
+    built = KroneckerData.of_system.__func__
+    fits = []
+
+    def spy(cls, *args, **kwargs):
+        fits.append(kwargs.get("fit"))
+        return built(cls, *args, **kwargs)
+
+    monkeypatch.setattr(KroneckerData, "of_system", classmethod(spy))
+    scene = scene_for(mass_case(MASS_CASES[0]), steps=23)
+    result = without_loop(monkeypatch, scene, Method(scheme="musl", mass="consistent"))
+    assert result.counts["particles"] < serial.SERIAL_BELOW
+    assert fits and all(fit is serial.serial(fit_kronecker) for fit in fits), set(fits)
+
+
+_PRECOMPILE = r"""
+import json, sys
+sys.path.insert(0, "tests")
+from skfem_mpm import Method
+from skfem_mpm.solve import compiled_loop
+from skfem_mpm.solve.compiled import CompiledExecutor
+from skfem_mpm.solve.state import prepare
+from test_executors import scene_for
+scene = scene_for(dict(scheme="musl", mass="consistent", degree=2, dim=1, material="linear",
+                       effect="gravity", aligned=True), steps=23)
+state = prepare(scene, Method(scheme="musl", mass="consistent"))
+compiled_loop.precompile_mass(state, CompiledExecutor(state))
+module = compiled_loop.StepLoop(state, CompiledExecutor(state), compile_loop=False).module
+print(json.dumps({name: len(getattr(module, name).overloads)
+                  for name in ("prepare_mass", "mass_solve", "run_musl")}))
+"""
+
+
+def test_precompile_mass_takes_the_preparation_and_the_solve():
+    """A study's second worker compiles (or loads) the system's
+    preparation and its solve, not the loop (a fresh process: nothing
+    else compiled them)."""
+    out = subprocess.run([sys.executable, "-c", _PRECOMPILE], capture_output=True, text=True,
+                         timeout=900,
+                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert out.returncode == 0, out.stderr[-3000:]
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report == {"prepare_mass": 1, "mass_solve": 1, "run_musl": 0}
 
 
 @pytest.mark.parametrize("case", ["musl-consistent", "rk4-spline"])

@@ -442,7 +442,8 @@ class KroneckerData:
         self.inv_scale = 1.0 / np.sqrt(lumped[rows] / self.gauss)
 
     @classmethod
-    def of_system(cls, A, rows, geometry, previous=None, index=None, by_component=False):
+    def of_system(cls, A, rows, geometry, previous=None, index=None, by_component=False,
+                  fit=None):
         """The preconditioner of the free-dof matrix A itself (ELL rows of
         ``rows`` as compact_system writes them) by :func:`fit_kronecker`; the box
         numbering of ``previous`` is reused for the same free dofs. In 3D
@@ -453,7 +454,12 @@ class KroneckerData:
         else the one box of the free dofs (StencilSystem asks for it with
         several bodies and without the fringe correction, which takes the
         one box: the search costs about as much as one of the factors'
-        fits, a tenth of a consistent step at 128 x 128 cells)."""
+        fits, a tenth of a consistent step at 128 x 128 cells). ``fit``:
+        :func:`fit_kronecker` as the run calls it (its serial copy for a run
+        on serial kernels: the same blocks, so the same bits, and a first
+        use compiles one copy, the one the compiled loop calls, instead of
+        both); None: :func:`fit_kronecker` itself."""
+        fit = fit_kronecker if fit is None else fit
         self = cls.__new__(cls)
         p = geometry[0]
         boxes = 0
@@ -465,7 +471,7 @@ class KroneckerData:
                                          np.empty((nz, p + 1)))
             self.inv_scale = np.empty(rows.size)
             longest = max(self.factor_shape + (1,))
-            fit_kronecker(A, self.coords, self.Lx, self.Ly, self.Lz, self.inv_scale,
+            fit(A, self.coords, self.Lx, self.Ly, self.Lz, self.inv_scale,
                           np.empty((3, longest, p + 1)), np.empty((3, longest)))
             return self
         self.boxes = None
@@ -476,7 +482,7 @@ class KroneckerData:
         self.Lz = np.ones((shape[0], p + 1))
         self.inv_scale = np.empty(rows.size)
         longest = max(shape)
-        fit_kronecker(A, self.coords, self.Lx, self.Ly, self.Lz, self.inv_scale,
+        fit(A, self.coords, self.Lx, self.Ly, self.Lz, self.inv_scale,
                       np.empty((3, longest, p + 1)), np.empty((3, longest)))
         if len(self.shape) < 3:
             self.Lz = None

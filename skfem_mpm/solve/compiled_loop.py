@@ -176,6 +176,8 @@ MERGE_KERNELS = {
     "MERGED_SYSTEM": (merged_mass.merged_system, "int64"),
     "MERGED_PROBLEM": (merged_mass.merged_problem, "none"),
     "MERGED_EXPAND": (merged_mass.merged_expand, "none"),
+    # 1D: CG on a merged group (unmerged, P = A gives the solution at once)
+    "MERGED_PCG": (mpm.ell_pcg, "int64"),
 }
 STOP_MERGE_KERNELS = 6
 """run.stop when a step met tiny-mass dofs before the merge kernels were
@@ -378,9 +380,11 @@ def _prelude(dim, parallel, window, variant):
               "k = KRONECKER_ARGS(cm, g, n, nc, nt)\n"
               "    APPLY_KRONECKER(k[0], k[1], k[2], k[3], k[4], k[5], b, x)\n"
               "    return 1")
-    if dim == 1:  # P = A: the solution at once (StencilSystem.solve_many)
+    if dim == 1:  # P = A: the solution at once (StencilSystem.solve_many); CG only on
+        # a merged group, through the address the merge sets (cm.merge_at[5])
         pcg = ("if not cm.merged[g]:\n"
-               "        return KRONECKER_DIRECT(cm, g, n, nc, nt, b, x)\n    " + pcg)
+               "        return KRONECKER_DIRECT(cm, g, n, nc, nt, b, x)\n    "
+               + pcg.replace("ELL_PCG(", "MERGED_PCG(cm.merge_at[5], "))
     if dim == 2:  # (the fringe correction is 2D's)
         pcg = ("if cm.fringe_used[g]:\n"
                "        return ELL_PCG(A, cols, inv_diag, KRONECKER_ARGS(cm, g, n, nc, nt), "
@@ -484,13 +488,14 @@ def loop_module(dim, parallel, window):
 
 
 def precompile_mass(state, executor):
-    """Compile (or load from numba's cache) the consistent-mass solve the
+    """Compile (or load from numba's cache) the consistent-mass functions the
     compiled loop of ``state`` calls by symbol (the generated module's
-    ``mass_units``: mass_solve and its CG), without compiling the loop nor
-    building the run (only its type: :meth:`StepLoop._record`): a second
-    process (a study's second worker) so takes that share of a first use
-    while the first compiles the rest of the loop, which reaches the
-    solve last; :class:`~skfem_mpm.kernels.by_symbol.compile_lock` makes
+    ``mass_units``: prepare_mass, then mass_solve and its CG), without
+    compiling the loop nor building the run (only its type:
+    :meth:`StepLoop._record`): a second process (a study's second worker)
+    so takes that share of a first use while the first compiles the rest
+    of the loop, which reaches them after its particles-to-grid pass;
+    :class:`~skfem_mpm.kernels.by_symbol.compile_lock` makes
     each function compile in one of them. Returns whether the run has
     such functions (consistent or hybrid mass on the loop)."""
     if state.method.mass == "lumped" or not loop_applies(state, executor)[0]:
@@ -949,7 +954,7 @@ class StepLoop:
             merged_A=zeros((G, merged_size)), merged_cols=zeros((G, merged_size), dtype=np.int32),
             merged_F=zeros((G, merged_size)), merged_fcols=zeros((G, merged_size), dtype=np.int32),
             merged_inv_diag=zeros((G, nd)), merged_fit=zeros(nd * ns),
-            merged_sizes=zeros((G, 3), dtype=np.int64), merge_at=zeros(5, dtype=np.int64))
+            merged_sizes=zeros((G, 3), dtype=np.int64), merge_at=zeros(len(StepLoop.MERGE_CONSISTENT), dtype=np.int64))
         rk4 = method.scheme == "rk4"
         for name in ("stencil", "fast"):
             own = fields[name]
@@ -1180,7 +1185,7 @@ class StepLoop:
     """The CPU seconds of the same (``Result.cpu_time`` leaves them out)."""
 
     MERGE_CONSISTENT = ("NEIGHBOUR_MAXIMA", "MERGING_ROWS", "MERGED_SYSTEM", "MERGED_PROBLEM",
-                        "MERGED_EXPAND")  # MassSystem.merge_at's order
+                        "MERGED_EXPAND", "MERGED_PCG")  # MassSystem.merge_at's order
 
     def _merge_address(self, label):
         """The merge kernel ``label`` compiled (or loaded) for the argument

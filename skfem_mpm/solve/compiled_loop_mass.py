@@ -164,8 +164,9 @@ MASS_FIELDS = (
     "kept_index", "merged_A", "merged_cols", "merged_F", "merged_fcols", "merged_inv_diag",
     "merged_fit", "merged_sizes",
     # the native entry points of the merge kernels (neighbour_maxima,
-    # merging_rows, merged_system, merged_problem, merged_expand), 0 until a
-    # step needs them (prepare_mass returns 6)
+    # merging_rows, merged_system, merged_problem, merged_expand and, in 1D,
+    # ell_pcg: there only a merged group runs CG), 0 until a step needs them
+    # (prepare_mass returns 6)
     "merge_at",
     # the stencil and lumping fractions of the last step's reactions: the
     # step's own, or with rk4 copies of its first stage's
@@ -787,11 +788,14 @@ def _solve_group(cm, g, n, nt, nc, ncomp, A, cols, inv_diag, b, x, kinds):
 def mass_units(run):
     """Never called: compiling it for a run's type compiles (or loads) the
     consistent-mass solve its loop calls by symbol, mass_solve (with
-    ell_pcg), by the very call of the scheme operations (see
-    compiled_loop.precompile_mass). Not prepare_mass: the loop's own
-    compilation reaches it before mass_solve (a step prepares the grid,
-    then solves), so a second process would take it only as the first
-    reaches it, and one of them would wait for the other."""
+    ell_pcg in 2D and 3D; in 1D ell_pcg runs only on a merged group and
+    compiles with the merge kernels), by the very call of the scheme operations (see
+    compiled_loop.precompile_mass), and first the step's preparation of
+    the system, prepare_mass: the loop's own compilation reaches it only
+    after the particles-to-grid pass it calls before (the consistent
+    stencil, the guard's particle sums, with a reconstruction its fit),
+    so the second process has compiled it by then."""
+    run.prepare_grid()
     run.mass_solve(2, run.force, 0, run.a, run.momentum, 1, run.v_old)
 
 

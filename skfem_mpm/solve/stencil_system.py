@@ -14,7 +14,7 @@ from ..errors import InvalidState
 from ..kernels.band_factor import (ell_band_width, factor_columns, factor_layout_ok,
                                    fit_band_factor)
 from ..kernels.fringe import FringeFactor, FringePattern
-from ..kernels.kronecker import KroneckerData, apply_kronecker
+from ..kernels.kronecker import KroneckerData, apply_kronecker, fit_kronecker
 from ..kernels.merged_mass import EXTRA, merged_expand, merged_problem, merged_system
 from ..kernels.mpm import (compact_problem, compact_system, ell_pcg, expand_problem,
                            lumped_reach, stencil_rows_product)
@@ -181,7 +181,8 @@ class StencilSystem:
         if self.preconditioner == "kronecker" and n:
             kron = KroneckerData.of_system(fit[:n * ns].reshape((n, ns)), merge.kept,
                                            self.geometry, previous=self.memo.get(f"kronecker{g}"),
-                                           index=merge.kept_index, by_component=self.by_component)
+                                           index=merge.kept_index, by_component=self.by_component,
+                                           fit=self.k.kernel(fit_kronecker))
             self.memo[f"kronecker{g}"] = kron
         group[3] = (Ar[:n * W].reshape((n, W)), colsr[:n * W].reshape((n, W)),
                     Fr[:n * WF].reshape((n, WF)), fcolsr[:n * WF].reshape((n, WF)),
@@ -229,7 +230,8 @@ class StencilSystem:
                                                       or f"fringe{g}_on" in self.warm)
             kron = KroneckerData.of_system(A, rows, self.geometry,
                                            previous=self.memo.get(f"kronecker{g}"), index=index,
-                                           by_component=self.by_component and not with_fringe)
+                                           by_component=self.by_component and not with_fringe,
+                                           fit=self.k.kernel(fit_kronecker))
             self.memo[f"kronecker{g}"] = kron
             if with_fringe:
                 fringe = self._fringe(g, rows, A, cols)
