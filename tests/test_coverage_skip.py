@@ -40,32 +40,45 @@ def _theta(grid, sums, mass, guard, limit):
     return np.where(mass > 0.0, theta, 0.0)
 
 
-@pytest.mark.parametrize("dim", [1, 2])
-def test_kept_coverage_gives_the_lumping_of_a_new_pass(dim):
+def _setting(dim):
+    """A quadratic 8-cell grid in ``dim`` dimensions, its serial kernels, the
+    skip's bound and the guard's arguments (tls)."""
     grid = (SplineGrid.line(0.0, 1.0, 8, 2) if dim == 1 else
             SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), 8, 2))
-    k = Kernels(grid, parallel=False)
-    axes = list(k.args) + [k.args[0]] * (3 - dim)
-    nby = grid.basis_per_axis[1] if dim > 1 else 1
-    bound = coverage_bound(grid)
-    delta = bound[0]
     weights, ratios = fast_dof_weights(grid)
     guard = (weights, ratios, np.ones(grid.ndofs), *covered_parameters(grid, "tls"))
+    return grid, Kernels(grid, parallel=False), coverage_bound(grid), guard
+
+
+def _first_pass(grid, k, bound, guard, gap):
+    """The block ``gap`` short of a face: its particles (x0, m), the pass's
+    sums, their reach W_k and the pass's largest ratio T_k / D_k (limit inf:
+    no withdrawal)."""
+    x0, m = _block(grid, gap)
+    kept = k.particle_coverage(SimpleNamespace(x=x0, m=m)).copy()
+    axes = list(k.args) + [k.args[0]] * (3 - grid.dim)
+    nby = grid.basis_per_axis[1] if grid.dim > 1 else 1
+    reach = np.zeros(grid.ndofs)
+    coverage_reach(x0, m, *axes[0], *axes[1], *axes[2], grid.degree, grid.basis_per_axis[0],
+                   nby, bound[0], reach)
+    unit = covered_stiffness(*kept, *guard[:3], *guard[5:], np.inf, grid.degree,
+                             grid.basis_per_axis)
+    top = np.max(np.where(kept[1] > 0, unit / np.maximum(kept[1], 1e-300), 0.0))
+    return x0, m, kept, reach, top
+
+
+@pytest.mark.parametrize("dim", [1, 2])
+def test_kept_coverage_gives_the_lumping_of_a_new_pass(dim):
+    grid, k, bound, guard = _setting(dim)
+    delta = bound[0]
     rng = np.random.default_rng(1)
     kept_right = skipped = wrong_if_skipped = 0
     # the body's end within delta of a face (a sliver of the next cell's
     # functions from a shift of 1e-3 delta on), or not
     for gap in (1e-3 * delta, 0.6 * delta, 2.0 * delta):
-        x0, m = _block(grid, gap)
-        kept = k.particle_coverage(SimpleNamespace(x=x0, m=m)).copy()
-        reach = np.zeros(grid.ndofs)
-        coverage_reach(x0, m, *axes[0], *axes[1], *axes[2], grid.degree, grid.basis_per_axis[0],
-                       nby, delta, reach)
-        # the pass's largest ratio T_k / D_k (limit inf: no withdrawal); limits
-        # that put it at 0.1 .. 0.4999 (the threshold 0.5)
-        unit = covered_stiffness(*kept, *guard[:3], *guard[5:], np.inf, grid.degree,
-                                 grid.basis_per_axis)
-        top = np.max(np.where(kept[1] > 0, unit / np.maximum(kept[1], 1e-300), 0.0))
+        # limits that put the pass's largest ratio at 1e-9 .. 0.4999 of the
+        # threshold 0.5
+        x0, m, kept, reach, top = _first_pass(grid, k, bound, guard, gap)
         for trial in range(60):
             d = delta * 10.0 ** rng.uniform(-7.0, 0.2) * (0.0 if trial == 0 else 1.0)
             shift = rng.normal(size=dim)
@@ -117,22 +130,8 @@ def test_a_pass_that_fails_its_own_test_is_not_kept(dim):
     pass asks of its own sums before it stores the reach) fails only where
     the bound of every later move fails too, and Kernels.particle_coverage
     keeps nothing after such a pass."""
-    grid = (SplineGrid.line(0.0, 1.0, 8, 2) if dim == 1 else
-            SplineGrid.rectangle((0.0, 1.0), (0.0, 1.0), 8, 2))
-    k = Kernels(grid, parallel=False)
-    axes = list(k.args) + [k.args[0]] * (3 - dim)
-    nby = grid.basis_per_axis[1] if dim > 1 else 1
-    bound = coverage_bound(grid)
-    weights, ratios = fast_dof_weights(grid)
-    guard = (weights, ratios, np.ones(grid.ndofs), *covered_parameters(grid, "tls"))
-    x0, m = _block(grid, 2.0 * bound[0])
-    kept = k.particle_coverage(SimpleNamespace(x=x0, m=m)).copy()
-    reach = np.zeros(grid.ndofs)
-    coverage_reach(x0, m, *axes[0], *axes[1], *axes[2], grid.degree, grid.basis_per_axis[0],
-                   nby, bound[0], reach)
-    unit = covered_stiffness(*kept, *guard[:3], *guard[5:], np.inf, grid.degree,
-                             grid.basis_per_axis)
-    top = np.max(np.where(kept[1] > 0, unit / np.maximum(kept[1], 1e-300), 0.0))
+    grid, k, bound, guard = _setting(dim)
+    x0, m, kept, reach, top = _first_pass(grid, k, bound, guard, 2.0 * bound[0])
     rng = np.random.default_rng(2)
     own_failed = later_held = 0
     for share in (0.3, 0.49, 0.4999, 0.5001, 0.6, 2.0):
